@@ -1,0 +1,543 @@
+"""``hitops calibrate``: frequency phase transfer between two Measurement Sets.
+
+Stages (each in its own module):
+1. check the inputs (paths, columns, spectral windows, fields, channels, R)
+   before anything is written, so bad input leaves both sets untouched;
+2. read per-row metadata with dask-ms and match the bands
+   (:mod:`hitops.io.match`);
+3. cut the union time axis into chunks of at most ``chunk_rows`` target
+   rows; for each chunk read the data columns, run
+   :func:`hitops.calibrate.transfer.transfer_group` on baseline groups as
+   dask tasks (wrap counts carried across chunks) and write the output
+   columns and flags through dask-ms;
+4. with an offset-reference column, a first pass only accumulates the
+   circular-mean offsets, the n0 candidates are chosen per baseline,
+   correlation and scan (:mod:`hitops.calibrate.offsets`), and the second
+   pass writes;
+5. write the JSON report and log the summary.
+
+Output flags: FLAG is backed up once into FLAG_HITOPS_BACKUP (the first time
+hitops writes to the set), then FLAG becomes FLAG | FLAG_ROW | (samples that
+could not be calibrated).  See docs/calibrate.md.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import time
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from ..errors import ColumnError, InputError, MeasurementSetError, OutputExistsError
+from ..io import read as msio
+from ..io.match import BandRows, match_bands, parse_antenna_map
+
+log = logging.getLogger("hitops.calibrate")
+
+DEFAULT_COLUMNS = {"pwc": "PWC_DATA", "cfpt": "CFPT_DATA", "cwu": "CWU_DATA"}
+FLAG_BACKUP = "FLAG_HITOPS_BACKUP"
+META_COLUMNS = ["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER", "INTERVAL", "FLAG_ROW"]
+#: read only when the DATA_DESCRIPTION / FIELD subtables have several rows
+SELECTION_COLUMNS = ["DATA_DESC_ID", "FIELD_ID"]
+
+
+def parse_methods(method) -> List[str]:
+    items = method if isinstance(method, (list, tuple)) else str(method or "").split(",")
+    methods = [m.strip().lower() for m in items if m and m.strip()]
+    if not methods:
+        raise InputError("--method is empty; give one or more of pwc, cfpt, cwu (e.g. --method pwc,cfpt)")
+    for m in methods:
+        if m not in DEFAULT_COLUMNS:
+            raise InputError(f"--method: unknown method '{m}'; choose from pwc, cfpt, cwu")
+    if len(set(methods)) != len(methods):
+        raise InputError(f"--method lists a method twice: {','.join(methods)}")
+    return methods
+
+
+def split_ratio(ratio: float):
+    """(r, eps) with R = r + eps; R within 1e-9 of an integer counts as that integer."""
+    nearest = round(ratio)
+    if abs(ratio - nearest) < 1e-9:
+        return int(nearest), 0.0
+    r = math.floor(ratio)
+    return int(r), float(ratio - r)
+
+
+def _selection_columns(ms: str) -> List[str]:
+    """Main-table columns needed to check spectral windows and fields.
+
+    With one DATA_DESCRIPTION row and one FIELD row there is nothing to check,
+    and reading 2 x n_row integers is skipped.
+    """
+    from casacore import tables as pt
+
+    with pt.table(f"{ms}::DATA_DESCRIPTION", ack=False) as t:
+        n_dd = t.nrows()
+    with pt.table(f"{ms}::FIELD", ack=False) as t:
+        n_field = t.nrows()
+    return SELECTION_COLUMNS if (n_dd > 1 or n_field > 1) else []
+
+
+def _band_setup(ms: str, role: str, meta: Dict[str, np.ndarray], average_channels: bool):
+    """Check one band's spectral windows, fields and channels; return (freq, corr types, names)."""
+    dd = np.unique(meta["DATA_DESC_ID"]) if "DATA_DESC_ID" in meta else np.array([0])
+    if dd.size != 1:
+        raise MeasurementSetError(
+            f"{role} '{ms}' holds {dd.size} data descriptions (spectral windows) "
+            f"{dd.tolist()}; hitops calibrate takes one spectral window per set: split them "
+            "(CASA split spw=...) and run once per spectral window")
+    fields = np.unique(meta["FIELD_ID"]) if "FIELD_ID" in meta else np.array([0])
+    if fields.size != 1:
+        raise MeasurementSetError(
+            f"{role} '{ms}' holds {fields.size} fields {fields.tolist()}; FPT is done per "
+            "source: split the fields (CASA split field=...) and run once per field")
+    ddt = msio.read_subtable(ms, "DATA_DESCRIPTION", ["SPECTRAL_WINDOW_ID", "POLARIZATION_ID"])
+    spw = int(ddt["SPECTRAL_WINDOW_ID"][dd[0]])
+    pol = int(ddt["POLARIZATION_ID"][dd[0]])
+    spw_t = msio.read_subtable(ms, "SPECTRAL_WINDOW", ["CHAN_FREQ", "NUM_CHAN"])
+    n_chan = int(spw_t["NUM_CHAN"][spw])
+    if n_chan > 1 and not average_channels:
+        raise MeasurementSetError(
+            f"{role} '{ms}' has {n_chan} channels in spectral window {spw}; FPT works on one "
+            "channel per band: average first (CASA split/mstransform with chanaverage) or "
+            "pass --average-channels to average the unflagged channels on the fly")
+    freq = float(np.mean(np.asarray(spw_t["CHAN_FREQ"][spw], dtype=np.float64)))
+    corr = [int(c) for c in msio.read_subtable(ms, "POLARIZATION", ["CORR_TYPE"])["CORR_TYPE"][pol]]
+    names = [str(n) for n in msio.read_subtable(ms, "ANTENNA", ["NAME"])["NAME"]]
+    return freq, corr, names
+
+
+def _average(data: np.ndarray, flag: np.ndarray, flag_row: np.ndarray):
+    """(n_row, n_corr) visibility and validity from (n_row, n_chan, n_corr) data.
+
+    One channel: the channel itself.  Several: the mean of unflagged finite
+    channels.  Non-finite and zero values are rejected later by the kernels.
+    """
+    good = ~flag & ~flag_row[:, None, None]
+    if data.shape[1] == 1:
+        return data[:, 0, :], good[:, 0, :]
+    good = good & np.isfinite(data)
+    n_good = good.sum(axis=1)
+    total = np.where(good, data, 0).sum(axis=1)
+    vis = (total / np.maximum(n_good, 1)).astype(np.complex64)
+    return vis, n_good > 0
+
+
+def _chunk_bounds(tgt_time: np.ndarray, ref_time: np.ndarray, n_time: int, chunk_rows: int):
+    """Time-index boundaries so that each chunk holds at most ~chunk_rows target rows."""
+    per_time = np.bincount(tgt_time, minlength=n_time) + np.bincount(ref_time, minlength=n_time)
+    cum = np.cumsum(per_time)
+    bounds = [0]
+    while bounds[-1] < n_time:
+        start_count = cum[bounds[-1] - 1] if bounds[-1] > 0 else 0
+        stop = int(np.searchsorted(cum, start_count + 2 * chunk_rows, side="right"))
+        bounds.append(min(max(stop, bounds[-1] + 1), n_time))
+    return bounds
+
+
+class _Rows:
+    """Rows of one band sorted by time index, for slicing chunks."""
+
+    def __init__(self, time_idx: np.ndarray):
+        self.order = np.argsort(time_idx, kind="stable")
+        self.sorted_time = time_idx[self.order]
+        self.n_row = time_idx.size
+
+    def rows_in(self, t0: int, t1: int) -> np.ndarray:
+        a, b = np.searchsorted(self.sorted_time, [t0, t1])
+        return np.sort(self.order[a:b])
+
+
+def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column="DATA",
+              ref_model_column=None, offset_reference_column=None, max_offset_wraps=10,
+              offset_ambiguity_deg=2.0, ratio=None, antenna_map=None, output_column=None,
+              overwrite=False, average_channels=False, time_tolerance=None, tracker="count",
+              chunk_rows=2_000_000, report=None, scheduler=None) -> Dict:
+    """Frequency phase transfer from ``ref_ms`` (reference band) to ``target_ms``.
+
+    Writes one column per method into ``target_ms`` (PWC_DATA, CFPT_DATA,
+    CWU_DATA by default) holding V_target * exp(-i*(R*phi_cal - 2*pi*eps*n))
+    (PWC; CFPT and CWU analogues), updates FLAG (backed up once into
+    FLAG_HITOPS_BACKUP) and writes a JSON report (default
+    ``<target_ms>.hitops-calibrate.json``).  Returns the report as a dict.
+    """
+    started = time.perf_counter()
+    from ..kernels import fpt
+    from ..kernels.wraps import get_tracker
+    from .offsets import choose_offset
+    from .transfer import Carry, group_inputs, plan_groups, transfer_group
+
+    # ---- 1. inputs, all checked before anything is written
+    methods = parse_methods(method)
+    ref_ms = msio.check_ms(ref_ms, "reference-band Measurement Set")
+    target_ms = msio.check_ms(target_ms, "target-band Measurement Set")
+    if os.path.realpath(ref_ms) == os.path.realpath(target_ms):
+        raise InputError(f"REF_MS and TARGET_MS are the same set ({ref_ms}); give the "
+                         "reference-band and the target-band Measurement Sets")
+    if ratio is not None and not (float(ratio) > 0 and math.isfinite(float(ratio))):
+        raise InputError(f"--ratio {ratio}: R = nu_target / nu_reference must be a positive "
+                         "number (e.g. 2.6744 for 230/86 GHz); omit it to take R from the sets")
+    if int(max_offset_wraps) < 0:
+        raise InputError(f"--max-offset-wraps {max_offset_wraps} must be >= 0")
+    if int(chunk_rows) < 1:
+        raise InputError(f"--chunk-rows {chunk_rows} must be >= 1")
+    get_tracker(tracker)
+    if output_column and len(methods) > 1:
+        raise InputError(f"--output-column {output_column} names one column but --method "
+                         f"lists {len(methods)} methods; run one method at a time to rename")
+    outputs = {m: (output_column or DEFAULT_COLUMNS[m]) for m in methods}
+    antenna_map = parse_antenna_map(antenna_map)
+
+    ref_needed = [ref_column, "FLAG"] + ([ref_model_column] if ref_model_column else [])
+    tgt_needed = [target_column, "FLAG"] + ([offset_reference_column] if offset_reference_column else [])
+    msio.require_columns(ref_ms, ref_needed + META_COLUMNS, "reference-band Measurement Set",
+                         "check --ref-column / --ref-model-column")
+    msio.require_columns(target_ms, tgt_needed + META_COLUMNS, "target-band Measurement Set",
+                         "check --target-column / --offset-reference-column")
+    protected = {target_column, "FLAG", FLAG_BACKUP, "DATA", offset_reference_column} - {None}
+    present = set(msio.column_names(target_ms))
+    for m, col in outputs.items():
+        if col in protected:
+            raise InputError(f"output column {col} of {target_ms} is an input or flag column; "
+                             "choose another --output-column (e.g. PWC_DATA)")
+        if col in present and not overwrite:
+            raise OutputExistsError(f"column {col} already exists in {target_ms}; pass "
+                                    "--overwrite to replace it or --output-column to write "
+                                    "another column")
+
+    ref_cols = [ref_column, "FLAG"] + ([ref_model_column] if ref_model_column else [])
+    tgt_cols = [target_column, "FLAG"] + ([offset_reference_column] if offset_reference_column else [])
+    ref_meta_cols = META_COLUMNS + _selection_columns(ref_ms)
+    tgt_meta_cols = META_COLUMNS + _selection_columns(target_ms)
+    ref_ds = msio.open_main(ref_ms, list(dict.fromkeys(ref_meta_cols + ref_cols)))
+    tgt_ds = msio.open_main(target_ms, list(dict.fromkeys(tgt_meta_cols + tgt_cols)))
+    ref_meta, tgt_meta = msio.compute_columns([(ref_ds, ref_meta_cols, None),
+                                               (tgt_ds, tgt_meta_cols, None)])
+    if ref_meta["TIME"].size == 0 or tgt_meta["TIME"].size == 0:
+        empty = ref_ms if ref_meta["TIME"].size == 0 else target_ms
+        raise MeasurementSetError(f"{empty} has no rows; nothing to calibrate")
+    ref_freq, ref_corr, ref_names = _band_setup(ref_ms, "reference-band Measurement Set",
+                                                ref_meta, average_channels)
+    tgt_freq, tgt_corr, tgt_names = _band_setup(target_ms, "target-band Measurement Set",
+                                                tgt_meta, average_channels)
+    if ratio is None:
+        if not (ref_freq > 0 and tgt_freq > 0):
+            raise MeasurementSetError(f"cannot take R from the spectral windows ({ref_freq} Hz, "
+                                      f"{tgt_freq} Hz); pass --ratio")
+        ratio = tgt_freq / ref_freq
+        source = f"from the spectral windows: {tgt_freq / 1e9:.6g} GHz / {ref_freq / 1e9:.6g} GHz"
+    else:
+        ratio = float(ratio)
+        source = "from --ratio"
+    r, eps = split_ratio(ratio)
+    log.info("R = %.10g (%s): r = %d, eps = %.10g; a reference wrap moves CFPT by %.2f deg",
+             ratio, source, r, eps, math.degrees(math.remainder(2 * math.pi * eps, 2 * math.pi)))
+    if ratio < 1:
+        log.warning("R = %.6g < 1: the target band is below the reference band; FPT scales "
+                    "the reference phases down (PWC still applies, eps = R)", ratio)
+
+    def band(ms, meta, names, corr):
+        return BandRows(ms=ms, time=meta["TIME"], ant1=meta["ANTENNA1"], ant2=meta["ANTENNA2"],
+                        scan=meta["SCAN_NUMBER"], interval=meta["INTERVAL"],
+                        antenna_names=names, corr_types=corr)
+
+    match = match_bands(band(ref_ms, ref_meta, ref_names, ref_corr),
+                        band(target_ms, tgt_meta, tgt_names, tgt_corr), antenna_map,
+                        time_tolerance)
+    n_corr = len(tgt_corr)
+    for c, name in enumerate(match.corr_names):
+        if match.corr_map[0, c] < 0:
+            log.warning("correlation %s of %s has no counterpart in %s: flagged in the output",
+                        name, target_ms, ref_ms)
+    log.info("matched %d of %d target rows to %s (time tolerance %.3g s, %d baselines, "
+             "%d times, %d scans); %d reference rows unused",
+             match.n_matched, tgt_meta["TIME"].size, ref_ms, match.tolerance, match.n_bl,
+             match.n_time, match.scans.size, match.n_ref_unused)
+    if match.n_matched < tgt_meta["TIME"].size:
+        log.warning("%d target rows have no reference row (time/station) and are flagged",
+                    tgt_meta["TIME"].size - match.n_matched)
+
+    # ---- 2. chunks and the dask machinery
+    client = None
+    if scheduler:
+        try:
+            from distributed import Client
+            client = Client(scheduler, set_as_default=False)
+        except OSError as err:
+            raise InputError(f"--scheduler {scheduler}: cannot reach a dask scheduler there "
+                             f"({err}); start one (dask scheduler) or omit the option") from err
+    try:
+        return _run(locals(), started)
+    finally:
+        if client is not None:
+            client.close()
+
+
+def _run(ctx: Dict, started: float) -> Dict:
+    import dask
+
+    from ..kernels import fpt
+    from .offsets import choose_offset
+    from .transfer import Carry, group_inputs, plan_groups, transfer_group
+
+    g = ctx
+    match, methods, outputs = g["match"], g["methods"], g["outputs"]
+    ref_ms, target_ms = g["ref_ms"], g["target_ms"]
+    ratio, eps = g["ratio"], g["eps"]
+    n_corr = len(g["tgt_corr"])
+    n_scan = match.scans.size
+    client = g["client"]
+    import dask.threaded
+
+    compute_kw = {"scheduler": client.get if client is not None else dask.threaded.get}
+    io_scheduler = compute_kw["scheduler"]
+    codes = [fpt.METHOD_CODES[m] for m in methods]
+    bounds = _chunk_bounds(match.tgt_time, match.ref_time[match.ref_bl >= 0], match.n_time,
+                           int(g["chunk_rows"]))
+    n_chunks = len(bounds) - 1
+    tgt_rows_all = _Rows(match.tgt_time)
+    ref_keep = np.flatnonzero(match.ref_bl >= 0)
+    ref_rows_all = _Rows(match.ref_time[ref_keep])
+    n_workers = (len(client.scheduler_info()["workers"]) if client is not None
+                 else (os.cpu_count() or 1))
+    groups = plan_groups(match.n_bl, 2 * n_workers)
+    log.info("%d chunk(s) of <= %d target rows; %d baseline groups; scheduler %s",
+             n_chunks, int(g["chunk_rows"]), len(groups), g["scheduler"] or "threads")
+
+    ref_cols, tgt_cols = g["ref_cols"], g["tgt_cols"]
+    off_col = g["offset_reference_column"]
+    cache = {}
+
+    def load(i):
+        if i in cache:
+            return cache[i]
+        t0, t1 = bounds[i], bounds[i + 1]
+        tgt_rows = tgt_rows_all.rows_in(t0, t1)
+        ref_rows = ref_keep[ref_rows_all.rows_in(t0, t1)]
+        whole_t = tgt_rows.size == tgt_rows_all.n_row
+        whole_r = ref_rows.size == match.ref_bl.size
+        tgt, ref = msio.compute_columns(
+            [(g["tgt_ds"], tgt_cols, None if whole_t else tgt_rows),
+             (g["ref_ds"], ref_cols, None if whole_r else ref_rows)], scheduler=io_scheduler)
+        tgt_flag_row = g["tgt_meta"]["FLAG_ROW"][tgt_rows]
+        ref_flag_row = g["ref_meta"]["FLAG_ROW"][ref_rows]
+        tvis, tok = _average(tgt[g["target_column"]], tgt["FLAG"], tgt_flag_row)
+        rvis, rok = _average(ref[g["ref_column"]], ref["FLAG"], ref_flag_row)
+        if g["ref_model_column"]:
+            mvis, _ = _average(ref[g["ref_model_column"]], np.zeros_like(ref["FLAG"]),
+                               np.zeros_like(ref_flag_row))
+            rvis = rvis * np.conj(mvis)
+        ovis = ook = None
+        if off_col:
+            ovis, ook = _average(tgt[off_col], tgt["FLAG"], tgt_flag_row)
+        n_t = t1 - t0
+        tgt_grid = np.full((match.n_bl, n_t), -1, dtype=np.int64)
+        tgt_grid[match.tgt_bl[tgt_rows], match.tgt_time[tgt_rows] - t0] = np.arange(tgt_rows.size)
+        ref_grid = np.full((match.n_bl, n_t), -1, dtype=np.int64)
+        ref_grid[match.ref_bl[ref_rows], match.ref_time[ref_rows] - t0] = np.arange(ref_rows.size)
+        chunk = dict(t0=t0, t1=t1, tgt_rows=tgt_rows, tgt_data=tgt[g["target_column"]],
+                     tgt_flag=tgt["FLAG"], tgt_flag_row=tgt_flag_row, tgt_vis=tvis, tgt_ok=tok,
+                     ref_vis=rvis, ref_ok=rok, ref_swapped=match.ref_swapped[ref_rows],
+                     off_vis=ovis, off_ok=ook, tgt_grid=tgt_grid, ref_grid=ref_grid)
+        if n_chunks == 1:
+            cache[i] = chunk
+        return chunk
+
+    def run_pass(offsets, write):
+        ref_carry = Carry.empty(match.n_bl, n_corr)
+        tgt_carry = Carry.empty(match.n_bl, n_corr)
+        totals = {"n_samples": 0, "no_reference_row": 0, "target_invalid": 0,
+                  "reference_invalid": 0}
+        wrap_events = np.zeros((match.n_bl, n_corr), dtype=np.int64)
+        sums = np.zeros((match.n_bl, n_corr, n_scan), dtype=np.complex128)
+        counts = np.zeros((match.n_bl, n_corr, n_scan), dtype=np.int64)
+        written = []
+        for i in range(n_chunks):
+            ch = load(i)
+            scan_local = match.scan_of_time[ch["t0"]:ch["t1"]]
+            tasks = []
+            for bls in groups:
+                gi = group_inputs(bls, ch["tgt_grid"], ch["ref_grid"], ch["tgt_vis"],
+                                  ch["tgt_ok"], ch["ref_vis"], ch["ref_ok"], ch["ref_swapped"],
+                                  ch["off_vis"] if offsets is None else None,
+                                  ch["off_ok"] if offsets is None else None)
+                picked = gi.pop("tgt_picked")
+                local_grid = gi["tgt_rows"]
+                gi.update(corr_map=match.corr_map, scan_of_time=scan_local, n_scan=n_scan,
+                          methods=codes, ratio=ratio, eps=eps, tracker=g["tracker"],
+                          ref_carry=ref_carry.subset(bls), tgt_carry=tgt_carry.subset(bls),
+                          offsets=None if offsets is None else offsets[bls])
+                tasks.append((bls, picked, local_grid,
+                              dask.delayed(transfer_group, pure=False)(gi)))
+            results = dask.compute(*[t[3] for t in tasks], **compute_kw)
+            n_rows = ch["tgt_rows"].size
+            phasor_rows = {c: np.zeros((n_rows, n_corr), np.complex64) for c in codes}
+            calibrated = np.zeros((n_rows, n_corr), dtype=bool)
+            for (bls, picked, local_grid, _), res in zip(tasks, results):
+                for c in codes:
+                    phasor_rows[c][picked] = fpt.scatter_rows(
+                        local_grid, res["phasors"][c], picked.size, np.complex64(0))
+                calibrated[picked] = fpt.scatter_rows(local_grid, res["calibrated"],
+                                                      picked.size, False)
+                for key in totals:
+                    totals[key] += res[key]
+                wrap_events[bls] += res["wrap_events"]
+                if "offset_sums" in res:
+                    sums[bls] += res["offset_sums"]
+                    counts[bls] += res["offset_counts"]
+                _merge_carry(ref_carry, bls, res["ref_carry"])
+                _merge_carry(tgt_carry, bls, res["tgt_carry"])
+            ref_carry.last_scan = int(scan_local[-1])
+            tgt_carry.last_scan = int(scan_local[-1])
+            if write:
+                written.append(_write_chunk(g, ch, phasor_rows, calibrated, codes, outputs,
+                                            io_scheduler))
+        return totals, wrap_events, sums, counts
+
+    state = {"created": [], "backup_created": False}
+    g["_state"] = state
+    present = set(msio.column_names(target_ms))
+    state["created"] = [c for c in outputs.values() if c not in present]
+    state["backup_created"] = FLAG_BACKUP not in present
+    g["_backup_needed"] = FLAG_BACKUP not in present
+    g["_n_chunks"] = n_chunks
+
+    offsets = None
+    offset_report = []
+    if off_col and fpt.PWC not in codes and fpt.CWU not in codes:
+        log.warning("--offset-reference-column applies to pwc and cwu only; ignored for cfpt")
+    elif off_col:
+        if eps == 0.0:
+            log.info("integer R: PWC has no n0 offset; the offset step is skipped")
+        else:
+            _, _, sums, counts = run_pass(None, write=False)
+            offsets = np.zeros((match.n_bl, n_corr, n_scan))
+            for b in range(match.n_bl):
+                for c in range(n_corr):
+                    for s in range(n_scan):
+                        choice = choose_offset(complex(sums[b, c, s]), int(counts[b, c, s]), eps,
+                                               int(g["max_offset_wraps"]),
+                                               float(g["offset_ambiguity_deg"]))
+                        entry = {"baseline": match.baseline_names[b],
+                                 "correlation": match.corr_names[c],
+                                 "scan": int(match.scans[s])}
+                        if choice is None:
+                            entry.update(k=0, samples=0, note="no sample to compare; offset 0")
+                        else:
+                            offsets[b, c, s] = 2 * math.pi * eps * choice.k
+                            entry.update(choice.as_dict())
+                            if choice.ambiguous:
+                                log.warning(
+                                    "offset step %s %s scan %d ambiguous: k = %d (residual "
+                                    "%.2f deg) vs k = %d (%.2f deg); bound --max-offset-wraps "
+                                    "or use a better offset reference",
+                                    entry["baseline"], entry["correlation"], entry["scan"],
+                                    choice.k, choice.residual_deg, choice.runner_up_k,
+                                    choice.runner_up_residual_deg)
+                        offset_report.append(entry)
+            chosen = [e for e in offset_report if e.get("samples")]
+            log.info("offset step: n0 chosen for %d series (|k| <= %d); %d ambiguous; "
+                     "k values: %s", len(chosen), int(g["max_offset_wraps"]),
+                     sum(bool(e.get("ambiguous")) for e in chosen),
+                     ", ".join(f"{e['baseline']} {e['correlation']} s{e['scan']}: {e['k']}"
+                               for e in chosen[:12]) + (" ..." if len(chosen) > 12 else ""))
+    try:
+        totals, wrap_events, _, _ = run_pass(offsets, write=True)
+    except BaseException:
+        _rollback(g)
+        raise
+
+    elapsed = time.perf_counter() - started
+    n_samples = totals["n_samples"]
+    flagged = totals["no_reference_row"] + totals["target_invalid"] + totals["reference_invalid"]
+    log.info("flagged %d of %d target samples (row x correlation): %d without a reference row, "
+             "%d target flagged/NaN/zero, %d reference flagged/NaN/zero",
+             flagged, n_samples, totals["no_reference_row"], totals["target_invalid"],
+             totals["reference_invalid"])
+    for b, name in enumerate(match.baseline_names):
+        log.info("wraps %s: %s", name, ", ".join(f"{cn} {int(wrap_events[b, c])}"
+                                                 for c, cn in enumerate(match.corr_names)))
+    report = {
+        "ref_ms": ref_ms, "target_ms": target_ms, "methods": methods, "columns": outputs,
+        "ratio": ratio, "r": g["r"], "eps": eps, "ratio_source": g["source"],
+        "time_tolerance_s": match.tolerance, "tracker": g["tracker"],
+        "flags": {"column": "FLAG", "backup_column": FLAG_BACKUP,
+                  "flag_updated": bool(state.get("flag_written")),
+                  "backup_created": bool(state.get("backup_written"))},
+        "rows": {"target": int(g["tgt_meta"]["TIME"].size), "matched": match.n_matched,
+                 "reference_unused": match.n_ref_unused},
+        "samples": {"target": n_samples, "flagged": flagged,
+                    "no_reference_row": totals["no_reference_row"],
+                    "target_invalid": totals["target_invalid"],
+                    "reference_invalid": totals["reference_invalid"]},
+        "wraps": [{"baseline": name, "correlation": cn, "wrap_events": int(wrap_events[b, c])}
+                  for b, name in enumerate(match.baseline_names)
+                  for c, cn in enumerate(match.corr_names)],
+        "offset_step": {"column": off_col, "max_offset_wraps": int(g["max_offset_wraps"]),
+                        "applied_to": [m for m in methods if m in ("pwc", "cwu")] if offsets is not None else [],
+                        "series": offset_report},
+        "time_s": elapsed,
+    }
+    report_path = Path(g["report"]) if g["report"] else Path(target_ms + ".hitops-calibrate.json")
+    report_path.write_text(json.dumps(report, indent=1))
+    log.info("wrote %s to %s; report %s; %.2f s", ", ".join(outputs.values()), target_ms,
+             report_path, elapsed)
+    report["report_path"] = str(report_path)
+    return report
+
+
+def _merge_carry(carry, bls, part):
+    carry.last_phase[bls] = part.last_phase
+    carry.has_last[bls] = part.has_last
+    carry.count[bls] = part.count
+
+
+def _write_chunk(g, ch, phasor_rows, calibrated, codes, outputs, io_scheduler):
+    from ..kernels import fpt
+
+    names = {v: k for k, v in fpt.METHOD_CODES.items()}
+    data = ch["tgt_data"]
+    arrays, dims = {}, {}
+    vis_dims = ("row", "chan", "corr")
+    for c in codes:
+        arrays[outputs[names[c]]] = (data * phasor_rows[c][:, None, :]).astype(np.complex64, copy=False)
+        dims[outputs[names[c]]] = vis_dims
+    new_flag = ch["tgt_flag"] | ch["tgt_flag_row"][:, None, None] | ~calibrated[:, None, :]
+    # FLAG is rewritten only when this run adds flags; the backup is made the first time
+    # (with several chunks and no backup yet, every chunk writes both so the backup is whole)
+    changed = not np.array_equal(new_flag, ch["tgt_flag"])
+    if changed or (g["_backup_needed"] and g["_n_chunks"] > 1):
+        arrays["FLAG"] = new_flag
+        dims["FLAG"] = vis_dims
+        if g["_backup_needed"]:
+            arrays[FLAG_BACKUP] = ch["tgt_flag"]
+            dims[FLAG_BACKUP] = vis_dims
+            g["_state"]["backup_written"] = True
+        g["_state"]["flag_written"] = True
+    msio.write_main_columns(g["target_ms"], ch["tgt_rows"], arrays, dims, scheduler=io_scheduler)
+    return ch["tgt_rows"].size
+
+
+def _rollback(g):
+    """After a failure while writing: drop the columns this run created, restore FLAG."""
+    from casacore import tables as pt
+
+    state = g["_state"]
+    try:
+        with pt.table(g["target_ms"], readonly=False, ack=False) as t:
+            if state["backup_created"] and FLAG_BACKUP in t.colnames():
+                t.putcol("FLAG", t.getcol(FLAG_BACKUP))
+                t.removecols([FLAG_BACKUP])
+            drop = [c for c in state["created"] if c in t.colnames()]
+            if drop:
+                t.removecols(drop)
+        log.error("calibrate failed while writing %s: removed the new columns and restored "
+                  "FLAG", g["target_ms"])
+    except Exception as err:  # the original error matters more
+        log.error("calibrate failed while writing and could not roll back %s (%s); restore "
+                  "FLAG from %s by hand", g["target_ms"], err, FLAG_BACKUP)

@@ -1,0 +1,175 @@
+"""One time chunk of frequency phase transfer, split over baseline groups.
+
+The driver (:mod:`hitops.calibrate.api`) reads a chunk of rows, calls
+:func:`plan_groups` and runs :func:`transfer_group` on each baseline group
+as a dask task.  Wrap counting continues across chunks through a
+:class:`Carry` (the last valid reference sample of each series and its
+count), so the result does not depend on the chunk size; it restarts at
+every new scan.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from ..kernels import fpt
+from ..kernels.wraps import get_tracker
+
+
+@dataclass
+class Carry:
+    """State of each (baseline, correlation) series at the end of the previous chunk."""
+
+    last_phase: np.ndarray   # (n_bl, n_corr) float64 last valid phase
+    has_last: np.ndarray     # (n_bl, n_corr) bool
+    count: np.ndarray        # (n_bl, n_corr) int64 wrap count at that sample
+    last_scan: int = -1      # scan index of the previous chunk's last time
+
+    @classmethod
+    def empty(cls, n_bl: int, n_corr: int) -> "Carry":
+        return cls(np.zeros((n_bl, n_corr)), np.zeros((n_bl, n_corr), bool),
+                   np.zeros((n_bl, n_corr), np.int64), -1)
+
+    def subset(self, bls) -> "Carry":
+        return Carry(self.last_phase[bls], self.has_last[bls], self.count[bls], self.last_scan)
+
+
+def scan_segments(scan_of_time: np.ndarray):
+    """(start, stop, scan) of each run of equal scan index."""
+    if scan_of_time.size == 0:
+        return []
+    cuts = np.flatnonzero(np.diff(scan_of_time)) + 1
+    starts = np.concatenate([[0], cuts])
+    stops = np.concatenate([cuts, [scan_of_time.size]])
+    return [(int(a), int(b), int(scan_of_time[a])) for a, b in zip(starts, stops)]
+
+
+def track(tracker, phase: np.ndarray, valid: np.ndarray, scan_of_time: np.ndarray,
+          carry: Carry):
+    """Wrap counts (n_bl, n_corr, n_time) of every series, and the carry after them.
+
+    The tracker runs on each scan segment of each series; a segment that
+    continues the previous chunk's scan is prefixed with the carried last
+    valid sample, so the count goes on where it stopped.
+    """
+    n_bl, n_corr, n_time = phase.shape
+    wraps = np.zeros((n_bl, n_corr, n_time), dtype=np.int64)
+    segments = scan_segments(scan_of_time)
+    new = Carry(carry.last_phase.copy(), carry.has_last.copy(), carry.count.copy(),
+                segments[-1][2] if segments else carry.last_scan)
+    for b in range(n_bl):
+        for c in range(n_corr):
+            for i, (start, stop, scan) in enumerate(segments):
+                ph = phase[b, c, start:stop]
+                va = valid[b, c, start:stop]
+                if i == 0 and scan == carry.last_scan and carry.has_last[b, c]:
+                    n = tracker(np.concatenate(([carry.last_phase[b, c]], ph)),
+                                np.concatenate(([True], va)))[1:] + carry.count[b, c]
+                else:
+                    n = tracker(ph, va)
+                wraps[b, c, start:stop] = n
+            if not segments:
+                continue
+            start, stop, scan = segments[-1]
+            last_valid = np.flatnonzero(valid[b, c, start:stop])
+            if last_valid.size:
+                t = start + int(last_valid[-1])
+                new.last_phase[b, c] = phase[b, c, t]
+                new.has_last[b, c] = True
+                new.count[b, c] = wraps[b, c, t]
+            elif not (len(segments) == 1 and scan == carry.last_scan):
+                new.has_last[b, c] = False
+                new.count[b, c] = 0
+    return wraps, new
+
+
+def transfer_group(g: Dict) -> Dict:
+    """FPT of one baseline group of one chunk (a dask task; inputs are group-local).
+
+    Keys of ``g``: tgt_rows, ref_rows (n_bl, n_time) local row indices;
+    tgt_vis, tgt_ok (n_tgt, n_corr); ref_vis, ref_ok (n_ref, n_corr_ref);
+    ref_swapped (n_ref,); corr_map (2, n_corr); scan_of_time (n_time,);
+    n_scan; methods (list of method codes); ratio; eps; tracker (name);
+    ref_carry, tgt_carry (Carry); offsets (n_bl, n_corr, n_scan) or None;
+    off_vis, off_ok (n_tgt, n_corr) or None.
+    """
+    tracker = get_tracker(g["tracker"])
+    tgt_rows, ref_rows = g["tgt_rows"], g["ref_rows"]
+    n_bl, n_time = tgt_rows.shape
+    n_corr = g["corr_map"].shape[1]
+    identity = np.vstack([np.arange(n_corr), np.arange(n_corr)]).astype(np.int64)
+    ref_phase, ref_valid = fpt.gather_phase(ref_rows, g["ref_vis"], g["ref_ok"],
+                                            g["ref_swapped"], g["corr_map"])
+    tgt_phase, tgt_valid = fpt.gather_phase(tgt_rows, g["tgt_vis"], g["tgt_ok"],
+                                            np.zeros(g["tgt_vis"].shape[0], bool), identity)
+    scan_of_time = g["scan_of_time"]
+    ref_wraps, ref_carry = track(tracker, ref_phase, ref_valid, scan_of_time, g["ref_carry"])
+    tgt_wraps, tgt_carry = np.zeros((1, 1, 1), np.int64), g["tgt_carry"]
+    if fpt.CWU in g["methods"]:
+        tgt_wraps, tgt_carry = track(tracker, tgt_phase, tgt_valid, scan_of_time, g["tgt_carry"])
+    offsets = g["offsets"]
+    if offsets is None:
+        offsets = np.zeros((n_bl, n_corr, g["n_scan"]))
+    phasors = {}
+    calibrated = None
+    for method in g["methods"]:
+        phasors[method], calibrated = fpt.transfer_phasors(
+            tgt_rows, tgt_phase, tgt_valid, ref_phase, ref_valid, ref_wraps, tgt_wraps,
+            g["ratio"], g["eps"], method, offsets, scan_of_time)
+    out = {"phasors": phasors, "calibrated": calibrated, "ref_carry": ref_carry,
+           "tgt_carry": tgt_carry}
+    # wrap events per series (|steps| of n), for the log and report
+    steps = np.abs(np.diff(ref_wraps, axis=2)).sum(axis=2)
+    if g["ref_carry"].has_last.any():
+        first = ref_wraps[:, :, 0] - np.where(g["ref_carry"].has_last, g["ref_carry"].count, 0)
+        steps = steps + np.abs(np.where(g["ref_carry"].has_last, first, 0))
+    out["wrap_events"] = steps
+    # why target samples are not calibrated
+    has_tgt = tgt_rows >= 0
+    has_ref = ref_rows >= 0
+    out["n_samples"] = int(has_tgt.sum()) * n_corr
+    out["no_reference_row"] = int((has_tgt & ~has_ref).sum()) * n_corr
+    tgt_cell = has_tgt[:, None, :]
+    out["target_invalid"] = int((tgt_cell & ~tgt_valid).sum())
+    out["reference_invalid"] = int((tgt_cell & has_ref[:, None, :] & ~ref_valid & tgt_valid).sum())
+    if g.get("off_vis") is not None and fpt.PWC in phasors:
+        off_phase, off_valid = fpt.gather_phase(tgt_rows, g["off_vis"], g["off_ok"],
+                                                np.zeros(g["off_vis"].shape[0], bool), identity)
+        out["offset_sums"], out["offset_counts"] = fpt.offset_sums(
+            tgt_phase, phasors[fpt.PWC], calibrated, off_phase, off_valid, scan_of_time,
+            g["n_scan"])
+    elif g.get("off_vis") is not None and fpt.CWU in phasors:
+        off_phase, off_valid = fpt.gather_phase(tgt_rows, g["off_vis"], g["off_ok"],
+                                                np.zeros(g["off_vis"].shape[0], bool), identity)
+        out["offset_sums"], out["offset_counts"] = fpt.offset_sums(
+            tgt_phase, phasors[fpt.CWU], calibrated, off_phase, off_valid, scan_of_time,
+            g["n_scan"])
+    return out
+
+
+def plan_groups(n_bl: int, n_groups: int) -> List[np.ndarray]:
+    """Baseline indices of each group (contiguous, nearly equal sizes)."""
+    n_groups = max(1, min(n_groups, n_bl))
+    return [g for g in np.array_split(np.arange(n_bl), n_groups) if g.size]
+
+
+def group_inputs(bls: np.ndarray, tgt_grid: np.ndarray, ref_grid: np.ndarray,
+                 tgt_vis, tgt_ok, ref_vis, ref_ok, ref_swapped,
+                 off_vis: Optional[np.ndarray], off_ok: Optional[np.ndarray]) -> Dict:
+    """Group-local copies of the rows one baseline group needs, and local row grids."""
+    def localise(grid, arrays):
+        rows = grid[bls]
+        used = rows >= 0
+        picked = rows[used]
+        local = np.full(rows.shape, -1, dtype=np.int64)
+        local[used] = np.arange(picked.size)
+        return local, picked, [None if a is None else a[picked] for a in arrays]
+
+    tgt_local, tgt_picked, (tv, tok, ov, ook) = localise(tgt_grid, [tgt_vis, tgt_ok, off_vis, off_ok])
+    ref_local, _, (rv, rok, rsw) = localise(ref_grid, [ref_vis, ref_ok, ref_swapped])
+    return {"tgt_rows": tgt_local, "ref_rows": ref_local, "tgt_vis": tv, "tgt_ok": tok,
+            "ref_vis": rv, "ref_ok": rok, "ref_swapped": rsw, "off_vis": ov, "off_ok": ook,
+            "tgt_picked": tgt_picked}

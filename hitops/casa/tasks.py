@@ -1,0 +1,260 @@
+"""Wrappers of the CASA tasks the recipes use: fringefit, gaincal, applycal, imfit.
+
+Each wrapper runs the task through :func:`hitops.casa.runner.run_task` (which
+fails on SEVERE log lines), then checks that the output it promises exists,
+and returns a dict of plain Python values that Stimela's ``python`` flavour
+maps onto the cab's outputs.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import shutil
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, Union
+
+import numpy as np
+
+from ..errors import ExternalToolError, InputError, MeasurementSetError, OutputExistsError
+from .runner import run_task
+
+log = logging.getLogger("hitops.casa")
+
+StrList = Union[str, Sequence[str], None]
+
+
+def _as_list(value: StrList) -> List[str]:
+    """Stimela passes lists; the CLI and users may pass 'a,b'."""
+    if value is None or value == "":
+        return []
+    if isinstance(value, str):
+        return [v.strip() for v in value.split(",") if v.strip()]
+    return [str(v) for v in value]
+
+
+def _check_ms(vis: str) -> None:
+    if not (Path(vis) / "table.dat").exists():
+        raise MeasurementSetError(f"'{vis}' is not a Measurement Set (no table.dat); "
+                                  "check the path or run the simulate step first")
+
+
+def _prepare_output(path: str, overwrite: bool) -> None:
+    """Remove an old output only when asked to, so a rerun never mixes tables."""
+    target = Path(path)
+    if target.exists():
+        if not overwrite:
+            raise OutputExistsError(f"calibration table '{path}' exists; pass overwrite=True "
+                                    "(cab: overwrite=true) to replace it")
+        shutil.rmtree(target)
+
+
+def table_summary(caltable: str, task: str) -> Dict[str, float]:
+    """Rows and flagged fraction of a calibration table; raise if none was written.
+
+    CASA's solvers log "Insufficient unflagged antennas" for every interval and
+    then write no table (or an empty one) without raising: that must fail the step.
+    """
+    from casacore import tables as pt
+
+    path = Path(caltable)
+    if not (path / "table.dat").exists():
+        raise ExternalToolError(f"CASA {task} wrote no calibration table at '{caltable}' "
+                                "(no output calibration table written); check the refant "
+                                "list, the SNR threshold and the flags")
+    with pt.table(str(path), ack=False) as tab:
+        n_rows = tab.nrows()
+        if n_rows == 0:
+            raise ExternalToolError(f"CASA {task} wrote an empty calibration table "
+                                    f"'{caltable}': no interval had a solution")
+        flags = tab.getcol("FLAG")
+    flagged = float(np.mean(flags)) if flags.size else 1.0
+    if flagged >= 1.0:
+        raise ExternalToolError(f"every solution in '{caltable}' ({task}) is flagged; "
+                                "lower minsnr, lengthen solint or check the data")
+    log.info("%s: %d rows, %.1f%% of solutions flagged", caltable, n_rows, 100 * flagged)
+    return {"n_rows": int(n_rows), "flagged_fraction": flagged}
+
+
+def fringefit(vis: str, caltable: str, solint: str = "20s", refant: StrList = "",
+              minsnr: float = 3.0, field: str = "", spw: str = "",
+              zerorates: bool = False, globalsolve: bool = True,
+              gaintable: StrList = None, overwrite: bool = False) -> Dict[str, object]:
+    """CASA fringefit: delay/rate/phase solutions per ``solint``.
+
+    ``refant`` should be a priority list (e.g. "PV,PB,AP"): CASA stops with
+    "No valid reference antenna supplied" when a single refant sets mid-track.
+    """
+    _check_ms(vis)
+    _prepare_output(caltable, overwrite)
+    refants = _as_list(refant)
+    run_task("fringefit", vis=vis, caltable=caltable, field=field, spw=spw, solint=solint,
+             refant=",".join(refants), minsnr=float(minsnr), zerorates=bool(zerorates),
+             globalsolve=bool(globalsolve), gaintable=_as_list(gaintable))
+    summary = table_summary(caltable, "fringefit")
+    return {"caltable": caltable, **summary}
+
+
+def gaincal(vis: str, caltable: str, solint: str = "10s", refant: StrList = "",
+            calmode: str = "p", gaintype: str = "G", minsnr: float = 3.0,
+            field: str = "", spw: str = "", gaintable: StrList = None,
+            minblperant: int = 4, overwrite: bool = False) -> Dict[str, object]:
+    """CASA gaincal (self-calibration against the model, default a 1 Jy point source).
+
+    ``minblperant`` (CASA default 4) must be at most n_ant - 1: with four
+    stations every interval fails with "Insufficient unflagged antennas".
+    """
+    _check_ms(vis)
+    if calmode not in ("p", "a", "ap"):
+        raise InputError(f"gaincal calmode '{calmode}' must be one of p, a, ap")
+    _prepare_output(caltable, overwrite)
+    run_task("gaincal", vis=vis, caltable=caltable, field=field, spw=spw, solint=solint,
+             refant=",".join(_as_list(refant)), calmode=calmode, gaintype=gaintype,
+             minsnr=float(minsnr), gaintable=_as_list(gaintable),
+             minblperant=int(minblperant))
+    summary = table_summary(caltable, "gaincal")
+    return {"caltable": caltable, **summary}
+
+
+def applycal(vis: str, gaintable: StrList, interp: StrList = None,
+             applymode: str = "calflag", calwt: bool = False,
+             flagbackup: bool = False, receipt: str | None = None) -> Dict[str, object]:
+    """CASA applycal into CORRECTED_DATA; check the column exists afterwards.
+
+    Returns the fraction of the data flagged after the apply.  ``receipt``
+    names a JSON file written on success: the MS is changed in place, so the
+    receipt is the file a pipeline can test for "this step is done".
+    """
+    from casacore import tables as pt
+
+    _check_ms(vis)
+    tables = _as_list(gaintable)
+    if not tables:
+        raise InputError("applycal needs at least one gaintable")
+    for table in tables:
+        if not (Path(table) / "table.dat").exists():
+            raise InputError(f"applycal: calibration table '{table}' does not exist; "
+                             "run the solve step first")
+    run_task("applycal", vis=vis, gaintable=tables, interp=_as_list(interp),
+             applymode=applymode, calwt=[bool(calwt)] * len(tables),
+             flagbackup=bool(flagbackup))
+    with pt.table(vis, ack=False) as tab:
+        if "CORRECTED_DATA" not in tab.colnames():
+            raise ExternalToolError(f"applycal left no CORRECTED_DATA column in '{vis}'")
+        flags = tab.getcol("FLAG")
+    flagged = float(np.mean(flags)) if flags.size else 1.0
+    log.info("%s: CORRECTED_DATA written, %.1f%% flagged", vis, 100 * flagged)
+    out = {"vis": vis, "gaintable": tables, "applymode": applymode, "flagged_fraction": flagged}
+    if receipt:
+        _write_json(receipt, out)
+        out["receipt"] = receipt
+    return out
+
+
+def _write_json(path: str, payload: Dict[str, object]) -> None:
+    """Write atomically, so a half-written file never marks a step as done."""
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_name(target.name + ".partial")
+    tmp.write_text(json.dumps(payload, indent=2) + "\n")
+    tmp.replace(target)
+
+
+def _quantity(q) -> float:
+    return float(np.asarray(q["value"]).ravel()[0])
+
+
+def _image_shape_and_stats(imagename: str, box: str) -> Dict[str, float]:
+    """Shape, brightest pixel and robust rms inside ``box`` (casatools image tool)."""
+    from ..casa_env import ensure_casa_offline
+
+    ensure_casa_offline()
+    import casatools
+
+    ia = casatools.image()
+    try:
+        ia.open(str(imagename))
+        shape = [int(n) for n in ia.shape()]
+        rg = casatools.regionmanager()
+        region = rg.box(blc=[int(v) for v in box.split(",")[:2]],
+                        trc=[int(v) for v in box.split(",")[2:]]) if box else {}
+        stats = ia.statistics(region=region, robust=True, verbose=False)
+        rg.done()
+    finally:
+        ia.done()
+    return {"shape": shape, "max": float(np.asarray(stats["max"]).ravel()[0]),
+            "maxpos": [float(v) for v in np.asarray(stats["maxpos"]).ravel()[:2]],
+            "rms": float(np.asarray(stats["medabsdevmed"]).ravel()[0]) * 1.4826}
+
+
+def centre_box(imagename: str, half_width: int) -> str:
+    """CASA box string of +-half_width pixels around the image centre."""
+    shape = _image_shape_and_stats(imagename, "")["shape"]
+    cx, cy = shape[0] // 2, shape[1] // 2
+    half = int(half_width)
+    return f"{max(cx - half, 0)},{max(cy - half, 0)},{min(cx + half, shape[0] - 1)},{min(cy + half, shape[1] - 1)}"
+
+
+def imfit(imagename: str, box: str = "", region: str = "", stokes: str = "I",
+          centre_half_width: int = 0, fallback: bool = False, label: str = "",
+          outfile: Optional[str] = None) -> Dict[str, object]:
+    """Fit one 2-D Gaussian with CASA imfit; return its peak and error (Jy/beam).
+
+    Also returns the integrated flux and its error and the fitted centre
+    (pixels), all plain floats.  ``centre_half_width`` > 0 restricts the fit
+    to a box of that many pixels around the image centre (the phase centre,
+    where the simulated source sits), which keeps imfit off sidelobes and fast.
+    If the fit does not converge (e.g. the uncalibrated image, whose flux is
+    smeared into a ring of sidelobes) ``fallback`` reports the brightest pixel
+    in the box with the robust image rms as its error, marked
+    ``method: max-pixel``; otherwise the step fails.  ``outfile`` (JSON) keeps
+    the result with its ``label`` (e.g. "pwc") for the peak-flux comparison,
+    which reads files so that it still works when this step is skipped on a
+    rerun.
+    """
+    if not Path(imagename).exists():
+        raise InputError(f"imfit: image '{imagename}' does not exist; run the imaging step first")
+    if centre_half_width and not box:
+        box = centre_box(imagename, centre_half_width)
+    error = None
+    try:
+        result = run_task("imfit", imagename=str(imagename), box=box, region=region,
+                          stokes=stokes)
+        if not result or not result.get("converged", [False])[0]:
+            raise ExternalToolError(f"imfit did not converge on '{imagename}'")
+    except ExternalToolError as err:
+        if not fallback:
+            raise
+        error = err
+    if error is None:
+        comp = result["results"]["component0"]
+        peak = comp["peak"]
+        flux = comp["flux"]
+        pixel = comp.get("pixelcoords", np.array([np.nan, np.nan]))
+        out = {
+            "method": "gaussian",
+            "peak": _quantity(peak),
+            # peak["error"] is a bare float in casatasks 6.7, a quantity in some versions
+            "peak_err": _quantity(peak["error"]) if isinstance(peak["error"], dict)
+            else float(np.asarray(peak["error"]).ravel()[0]),
+            "flux": float(np.asarray(flux["value"]).ravel()[0]),
+            "flux_err": float(np.asarray(flux["error"]).ravel()[0]),
+            "x_pix": float(pixel[0]),
+            "y_pix": float(pixel[1]),
+        }
+        if not all(math.isfinite(out[k]) for k in ("peak", "peak_err")):
+            raise ExternalToolError(f"imfit on '{imagename}' returned a non-finite peak")
+    else:
+        log.warning("%s; reporting the brightest pixel instead (fallback)", error)
+        stats = _image_shape_and_stats(imagename, box)
+        # no flux/flux_err: they are undefined without a fit (and NaN is not JSON)
+        out = {"method": "max-pixel", "peak": stats["max"], "peak_err": stats["rms"],
+               "x_pix": stats["maxpos"][0], "y_pix": stats["maxpos"][1]}
+    log.info("imfit %s: peak %.5f +- %.5f Jy/beam (%s)", imagename, out["peak"],
+             out["peak_err"], out["method"])
+    if outfile:
+        _write_json(outfile, {"label": label or Path(imagename).stem, "image": str(imagename),
+                              "box": box, **out})
+        out["outfile"] = outfile
+    return out

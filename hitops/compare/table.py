@@ -1,0 +1,275 @@
+"""Build, write and summarise the peak-flux recovery table."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import math
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence
+
+from ..errors import InputError, OutputExistsError
+
+log = logging.getLogger("hitops.compare")
+
+#: The FPT paper's simulation results (Results section; GUIDE.md section 2).
+PAPER = {
+    "recovery": {"pwc": (0.965, 0.0046), "ffsc": (0.868, 0.0045)},
+    "coherence": {
+        "ffsc_range": (0.61, 0.96),
+        "pwc_range": (0.88, 0.99),
+        "pwc_over_ffsc_mean_pct": 18.0,
+        "pwc_over_ffsc_median_pct": 11.0,
+        "pwc_over_ffsc_range_pct": (3.0, 50.0),
+        "pwc_beats_ffsc_on_every_baseline": True,
+    },
+}
+
+#: Display names of the usual labels.
+METHOD_NAMES = {"raw": "raw (DATA)", "ffsc": "FF+SC (CORRECTED_DATA)",
+                "cfpt": "CFPT (CFPT_DATA)", "pwc": "PWC (PWC_DATA)"}
+
+
+def recovery(peak: float, peak_err: float, input_peak: float,
+             input_peak_err: float = 0.0) -> tuple:
+    """Fractional recovery and its 1-sigma uncertainty (first-order propagation)."""
+    if not (input_peak > 0 and math.isfinite(input_peak)):
+        raise InputError(f"input peak {input_peak!r} must be a positive number of Jy/beam")
+    if input_peak_err < 0:
+        raise InputError(f"input peak error {input_peak_err!r} must not be negative")
+    value = peak / input_peak
+    rel = math.hypot(peak_err / peak if peak else math.inf, input_peak_err / input_peak)
+    err = abs(value) * rel if peak else peak_err / input_peak
+    return float(value), float(err)
+
+
+def _split(text) -> List[str]:
+    if text is None:
+        return []
+    if isinstance(text, (list, tuple)):
+        return [str(t) for t in text]
+    return [t.strip() for t in str(text).split(",") if t.strip()]
+
+
+def _read_fit(path: str) -> Dict:
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"imfit result '{path}' does not exist; run the imfit step "
+                         "(hitops.casa.imfit with outfile=...) first")
+    try:
+        fit = json.loads(p.read_text())
+    except json.JSONDecodeError as err:
+        raise InputError(f"imfit result '{path}' is not JSON ({err})") from err
+    for key in ("peak", "peak_err"):
+        if not isinstance(fit.get(key), (int, float)) or not math.isfinite(fit[key]):
+            raise InputError(f"imfit result '{path}' has no finite '{key}'")
+    return fit
+
+
+def build_rows(fit_files: Sequence[str], labels: Sequence[str], input_peak: float,
+               input_peak_err: float = 0.0, reference: str = "none") -> List[Dict]:
+    if labels and len(labels) != len(fit_files):
+        raise InputError(f"{len(labels)} labels ({','.join(labels)}) for "
+                         f"{len(fit_files)} fit files: give one label per file or none")
+    rows = []
+    for i, path in enumerate(fit_files):
+        fit = _read_fit(path)
+        label = labels[i] if labels else str(fit.get("label") or Path(path).stem)
+        value, err = recovery(fit["peak"], fit["peak_err"], input_peak, input_peak_err)
+        row = {
+            "label": label,
+            "method": METHOD_NAMES.get(label, label),
+            "image": fit.get("image", ""),
+            "fit": fit.get("method", "gaussian"),
+            "peak_jy": float(fit["peak"]),
+            "peak_err_jy": float(fit["peak_err"]),
+            "input_peak_jy": float(input_peak),
+            "recovery": value,
+            "recovery_err": err,
+        }
+        if reference == "paper":
+            ref = PAPER["recovery"].get(label)
+            row["paper_recovery"] = ref[0] if ref else None
+            row["paper_recovery_err"] = ref[1] if ref else None
+        rows.append(row)
+    labels_seen = [r["label"] for r in rows]
+    duplicates = sorted({l for l in labels_seen if labels_seen.count(l) > 1})
+    if duplicates:
+        raise InputError(f"labels {duplicates} appear more than once; pass --labels")
+    return rows
+
+
+def _fmt(value, digits=4) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def markdown(rows: List[Dict], coherence: Optional[Dict], reference: str) -> str:
+    out = ["# Fractional peak-flux recovery", "",
+           "Fitted (CASA imfit) peak / input peak; uncertainty from the imfit peak error.", ""]
+    header = ["method", "peak (Jy/beam)", "recovery"]
+    if reference == "paper":
+        header.append("paper")
+    out.append("| " + " | ".join(header) + " |")
+    out.append("|" + "---|" * len(header))
+    for r in rows:
+        note = "" if r["fit"] == "gaussian" else f" ({r['fit']}: fit did not converge)"
+        cells = [r["method"] + note, f"{r['peak_jy']:.4f} ± {r['peak_err_jy']:.4f}",
+                 f"{r['recovery']:.4f} ± {r['recovery_err']:.4f}"]
+        if reference == "paper":
+            cells.append(f"{r['paper_recovery']:.3f} ± {r['paper_recovery_err']:.4f}"
+                         if r.get("paper_recovery") is not None else "-")
+        out.append("| " + " | ".join(cells) + " |")
+    if coherence:
+        out += ["", "# Coherence of the residual phases (per baseline)", ""]
+        cols = coherence["columns"]
+        out.append("| baseline | " + " | ".join(cols) + " | PWC vs FF+SC |")
+        out.append("|" + "---|" * (len(cols) + 2))
+        for bl in coherence["baselines"]:
+            gain = bl.get("pwc_over_ffsc_pct")
+            out.append(f"| {bl['baseline']} | " + " | ".join(_fmt(bl.get(c), 3) for c in cols)
+                       + f" | {_fmt(gain, 1)}{'%' if gain is not None else ''} |")
+        stats = coherence.get("stats", {})
+        if stats:
+            out += ["", "| statistic | ours | paper |", "|---|---|---|"]
+            pc = PAPER["coherence"]
+            paper = {
+                "ffsc_min": pc["ffsc_range"][0], "ffsc_max": pc["ffsc_range"][1],
+                "pwc_min": pc["pwc_range"][0], "pwc_max": pc["pwc_range"][1],
+                "pwc_over_ffsc_mean_pct": pc["pwc_over_ffsc_mean_pct"],
+                "pwc_over_ffsc_median_pct": pc["pwc_over_ffsc_median_pct"],
+                "pwc_ge_ffsc_every_baseline": pc["pwc_beats_ffsc_on_every_baseline"],
+            } if reference == "paper" else {}
+            for key, value in stats.items():
+                out.append(f"| {key} | {_fmt(value, 3)} | {_fmt(paper.get(key), 3)} |")
+    return "\n".join(out) + "\n"
+
+
+def coherence_summary(path: str) -> Dict:
+    """Per-baseline coherence of each method from a `hitops diagnose` summary.json.
+
+    Reads diagnose's ``{"baselines": [{"baseline": "AP-PV", "columns":
+    {"DATA": {"coherence_factor": ..}, "PWC_DATA": {..}}}]}``; also accepts
+    ``{"baselines": [{"baseline": "AP-PV", "coherence": {"raw": .., ...}}]}`` and
+    ``{"coherence": {"AP-PV": {"DATA": .., ...}}}``; column names are mapped
+    to raw/ffsc/cfpt/pwc where recognisable.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"diagnose summary '{path}' does not exist; run hitops diagnose first")
+    data = json.loads(p.read_text())
+    per_bl = _extract_per_baseline(data)
+    if not per_bl:
+        raise InputError(f"diagnose summary '{path}' has no per-baseline coherence values "
+                         "this tool recognises")
+    cols = []
+    rows = []
+    for name, values in per_bl.items():
+        row = {"baseline": name}
+        for key, value in values.items():
+            label = _method_label(key)
+            if label is None or not isinstance(value, (int, float)):
+                continue
+            row[label] = float(value)
+            if label not in cols:
+                cols.append(label)
+        if row.get("ffsc") and row.get("pwc") is not None:
+            row["pwc_over_ffsc_pct"] = 100.0 * (row["pwc"] / row["ffsc"] - 1.0)
+        rows.append(row)
+    order = [c for c in ("raw", "ffsc", "cfpt", "pwc") if c in cols] + \
+        [c for c in cols if c not in ("raw", "ffsc", "cfpt", "pwc")]
+    stats = {}
+    if "ffsc" in order and "pwc" in order:
+        import numpy as np
+
+        ffsc = np.array([r["ffsc"] for r in rows if "ffsc" in r and "pwc" in r])
+        pwc = np.array([r["pwc"] for r in rows if "ffsc" in r and "pwc" in r])
+        gain = 100.0 * (pwc / ffsc - 1.0)
+        stats = {
+            "n_baselines": int(ffsc.size),
+            "ffsc_min": float(ffsc.min()), "ffsc_max": float(ffsc.max()),
+            "pwc_min": float(pwc.min()), "pwc_max": float(pwc.max()),
+            "pwc_over_ffsc_mean_pct": float(gain.mean()),
+            "pwc_over_ffsc_median_pct": float(np.median(gain)),
+            "pwc_ge_ffsc_every_baseline": bool(np.all(pwc >= ffsc)),
+        }
+    return {"source": str(path), "interval_s": data.get("interval_s"), "columns": order,
+            "baselines": rows, "stats": stats}
+
+
+_ALIASES = {
+    "raw": "raw", "data": "raw",
+    "ffsc": "ffsc", "ff+sc": "ffsc", "corrected": "ffsc", "corrected_data": "ffsc",
+    "cfpt": "cfpt", "cfpt_data": "cfpt",
+    "pwc": "pwc", "pwc_data": "pwc",
+}
+
+
+def _method_label(key: str) -> Optional[str]:
+    return _ALIASES.get(str(key).strip().lower())
+
+
+def _extract_per_baseline(data) -> Dict[str, Dict]:
+    if isinstance(data, dict):
+        if isinstance(data.get("baselines"), list):
+            out = {}
+            for entry in data["baselines"]:
+                name = entry.get("baseline") or entry.get("name")
+                values = entry.get("coherence", entry)
+                if isinstance(entry.get("columns"), dict):
+                    # hitops diagnose: {"columns": {"PWC_DATA": {"coherence_factor": ..}}}
+                    values = {col: v.get("coherence_factor") for col, v in entry["columns"].items()
+                              if isinstance(v, dict)}
+                if name and isinstance(values, dict):
+                    out[str(name)] = values
+            if out:
+                return out
+        for key in ("coherence", "coherence_factor", "per_baseline"):
+            block = data.get(key)
+            if isinstance(block, dict) and block and all(isinstance(v, dict) for v in block.values()):
+                return {str(k): v for k, v in block.items()}
+    return {}
+
+
+def compare(fits, labels=None, input_peak: float = 1.0, input_peak_err: float = 0.0,
+            coherence: Optional[str] = None, reference: str = "none",
+            outdir: str = ".", name: str = "peak-flux", overwrite: bool = False) -> Dict:
+    """Write {outdir}/{name}.csv/.md/.json; return the JSON payload."""
+    fit_files = _split(fits)
+    if not fit_files:
+        raise InputError("no imfit result files given (FITS argument is empty)")
+    if reference not in ("none", "paper"):
+        raise InputError(f"reference '{reference}' must be 'none' or 'paper'")
+    rows = build_rows(fit_files, _split(labels), float(input_peak), float(input_peak_err),
+                      reference)
+    coh = coherence_summary(coherence) if coherence else None
+    out = Path(outdir)
+    targets = {ext: out / f"{name}.{ext}" for ext in ("csv", "md", "json")}
+    existing = [str(p) for p in targets.values() if p.exists()]
+    if existing and not overwrite:
+        raise OutputExistsError(f"{', '.join(existing)} exist; pass --overwrite to replace them")
+    out.mkdir(parents=True, exist_ok=True)
+    payload = {"rows": rows}
+    if coh:
+        payload["coherence"] = coh
+    if reference == "paper":
+        payload["paper"] = PAPER
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(rows[0].keys()))
+    writer.writeheader()
+    writer.writerows(rows)
+    texts = {"csv": buf.getvalue(), "md": markdown(rows, coh, reference),
+             "json": json.dumps(payload, indent=2) + "\n"}
+    for ext, path in targets.items():
+        tmp = path.with_name(path.name + ".partial")
+        tmp.write_text(texts[ext])
+        tmp.replace(path)
+    for r in rows:
+        log.info("%-24s recovery %.4f +- %.4f", r["method"], r["recovery"], r["recovery_err"])
+    log.info("wrote %s", ", ".join(str(p) for p in targets.values()))
+    return payload

@@ -1,0 +1,233 @@
+"""Matching the rows of a reference-band and a target-band Measurement Set.
+
+Rows are matched by time (within a tolerance, by default half the smallest
+INTERVAL of either band), by station pair (ANTENNA::NAME, through an
+antenna map for stations whose names differ between bands, e.g. the paper's
+JCMT at 86 GHz paired with SMA at 230 GHz) and by correlation type
+(POLARIZATION::CORR_TYPE), never by row order or position.  A reference row
+whose antenna order is reversed with respect to the target baseline is
+conjugated, which also exchanges its cross-hand correlations (RL <-> LR).
+
+The result puts both bands on one (baseline, time) grid: baselines are the
+target's, times the union of both bands' times.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Dict, List, Mapping, Sequence
+
+import numpy as np
+
+from ..errors import MeasurementSetError, StationError
+from .layout import unique_times
+from .ms_create import CORR_NAMES
+
+
+@dataclass
+class BandRows:
+    """Per-row metadata of one band (storage order)."""
+
+    ms: str
+    time: np.ndarray
+    ant1: np.ndarray
+    ant2: np.ndarray
+    scan: np.ndarray
+    interval: np.ndarray
+    antenna_names: List[str]
+    corr_types: List[int]
+
+    @property
+    def n_row(self) -> int:
+        return self.time.size
+
+
+@dataclass
+class Match:
+    times: np.ndarray          # (n_time,) union time axis, ascending
+    ant1: np.ndarray           # (n_bl,) target ANTENNA1 of each baseline
+    ant2: np.ndarray           # (n_bl,) target ANTENNA2 of each baseline
+    baseline_names: List[str]  # (n_bl,) "AP-SM" (target names)
+    tgt_bl: np.ndarray         # (n_tgt_row,) baseline index of each target row
+    tgt_time: np.ndarray       # (n_tgt_row,) time index of each target row
+    ref_bl: np.ndarray         # (n_ref_row,) baseline index, -1 when the pair has no target baseline
+    ref_time: np.ndarray       # (n_ref_row,) time index
+    ref_swapped: np.ndarray    # (n_ref_row,) antenna order reversed w.r.t. the target baseline
+    corr_map: np.ndarray       # (2, n_corr) reference correlation of each target correlation
+    corr_names: List[str]      # target correlation names
+    scans: np.ndarray          # (n_scan,) SCAN_NUMBER values
+    scan_of_time: np.ndarray   # (n_time,) scan index of each time
+    tolerance: float
+    n_matched: int             # target rows with a reference row in their cell
+    n_ref_unused: int          # reference rows with no target row in their cell
+
+    @property
+    def n_bl(self) -> int:
+        return self.ant1.size
+
+    @property
+    def n_time(self) -> int:
+        return self.times.size
+
+
+def parse_antenna_map(text: str | Mapping[str, str] | None) -> Dict[str, str]:
+    """``"JC=SM,AA=AP"`` -> {"JC": "SM", "AA": "AP"} (reference name -> target name)."""
+    from ..errors import InputError
+
+    if not text:
+        return {}
+    if isinstance(text, Mapping):
+        return {str(k): str(v) for k, v in text.items()}
+    mapping = {}
+    for item in str(text).split(","):
+        item = item.strip()
+        if not item:
+            continue
+        if item.count("=") != 1 or not all(p.strip() for p in item.split("=")):
+            raise InputError(f"--antenna-map entry '{item}' is not REF=TARGET "
+                             "(e.g. --antenna-map JC=SM)")
+        ref, tgt = (p.strip() for p in item.split("="))
+        if ref in mapping:
+            raise InputError(f"--antenna-map names reference station {ref} twice")
+        mapping[ref] = tgt
+    return mapping
+
+
+def pair_antennas(ref: BandRows, tgt: BandRows, antenna_map: Mapping[str, str]) -> np.ndarray:
+    """Target antenna index of each reference antenna (-1 when it has none).
+
+    Raises :class:`StationError` when a map entry names an unknown station or
+    a target station used in the data has no reference counterpart.
+    """
+    tgt_index = {name: i for i, name in enumerate(tgt.antenna_names)}
+    for ref_name, tgt_name in antenna_map.items():
+        if ref_name not in ref.antenna_names:
+            raise StationError(f"--antenna-map {ref_name}={tgt_name}: reference station "
+                               f"{ref_name} is not in {ref.ms} (stations: "
+                               f"{', '.join(ref.antenna_names)})")
+        if tgt_name not in tgt_index:
+            raise StationError(f"--antenna-map {ref_name}={tgt_name}: target station "
+                               f"{tgt_name} is not in {tgt.ms} (stations: "
+                               f"{', '.join(tgt.antenna_names)})")
+    ref_to_tgt = np.full(len(ref.antenna_names), -1, dtype=np.int64)
+    for i, name in enumerate(ref.antenna_names):
+        ref_to_tgt[i] = tgt_index.get(antenna_map.get(name, name), -1)
+    mapped = ref_to_tgt[ref_to_tgt >= 0]
+    if np.unique(mapped).size != mapped.size:
+        raise StationError("two reference stations map to the same target station; "
+                           "check --antenna-map and the ANTENNA tables of "
+                           f"{ref.ms} and {tgt.ms}")
+    used_tgt = np.unique(np.concatenate([tgt.ant1, tgt.ant2]))
+    paired = set(mapped.tolist())
+    orphans = [tgt.antenna_names[a] for a in used_tgt if a not in paired]
+    if orphans:
+        unused_ref = [n for i, n in enumerate(ref.antenna_names) if ref_to_tgt[i] < 0]
+        raise StationError(
+            f"target station(s) {', '.join(orphans)} of {tgt.ms} have no counterpart in "
+            f"{ref.ms} (unpaired reference stations: {', '.join(unused_ref) or 'none'}); "
+            "pair them with --antenna-map REF=TARGET (e.g. --antenna-map JC=SM)")
+    return ref_to_tgt
+
+
+def correlation_map(ref_types: Sequence[int], tgt_types: Sequence[int]) -> np.ndarray:
+    """(2, n_corr) reference correlation index of each target correlation (-1: none).
+
+    Row 0 for rows in the same antenna order, row 1 for swapped rows, whose
+    conjugate exchanges the hands (RL of p-q is the conjugate of LR of q-p).
+    """
+    ref_index = {int(code): i for i, code in enumerate(ref_types)}
+    name_code = {name: code for code, name in CORR_NAMES.items()}
+    out = np.full((2, len(tgt_types)), -1, dtype=np.int64)
+    for c, code in enumerate(tgt_types):
+        out[0, c] = ref_index.get(int(code), -1)
+        name = CORR_NAMES.get(int(code))
+        swapped_code = name_code.get(name[::-1]) if name else int(code)
+        out[1, c] = ref_index.get(int(swapped_code), -1)
+    return out
+
+
+def _check_unique(bl, time_idx, n_time, band: BandRows, names, times):
+    key = bl * n_time + time_idx
+    order = np.argsort(key, kind="stable")
+    sk = key[order]
+    dup = np.flatnonzero(sk[1:] == sk[:-1])
+    if dup.size:
+        b, t = divmod(int(sk[dup[0]]), n_time)
+        raise MeasurementSetError(
+            f"{band.ms}: {dup.size} rows share a (baseline, time) cell with another row, "
+            f"e.g. {names[b]} at TIME {times[t]:.3f}; the data mix several fields, spectral "
+            "windows or sub-arrays, or the time tolerance is too large: split them "
+            "(e.g. CASA split by field/spw) and run on each part")
+
+
+def match_bands(ref: BandRows, tgt: BandRows, antenna_map: Mapping[str, str],
+                tolerance: float | None = None) -> Match:
+    """Put both bands on the target's (baseline, time) grid."""
+    ref_to_tgt = pair_antennas(ref, tgt, antenna_map)
+    corr_map = correlation_map(ref.corr_types, tgt.corr_types)
+    corr_names = [CORR_NAMES.get(int(c), str(c)) for c in tgt.corr_types]
+    if not np.any(corr_map[0] >= 0):
+        raise MeasurementSetError(
+            f"no correlation of {tgt.ms} ({', '.join(corr_names)}) exists in {ref.ms} "
+            f"({', '.join(CORR_NAMES.get(int(c), str(c)) for c in ref.corr_types)}); "
+            "both bands need the same polarisation products")
+
+    if tolerance is None:
+        intervals = np.concatenate([ref.interval, tgt.interval])
+        intervals = intervals[np.isfinite(intervals) & (intervals > 0)]
+        tolerance = 0.5 * float(intervals.min()) if intervals.size else 1e-3
+
+    # target baselines: (ant1, ant2) pairs as the target stores them
+    n_ant_t = len(tgt.antenna_names)
+    tkey = tgt.ant1.astype(np.int64) * n_ant_t + tgt.ant2
+    pairs, tgt_bl = np.unique(tkey, return_inverse=True)
+    bl_a1, bl_a2 = pairs // n_ant_t, pairs % n_ant_t
+    # unordered lookup: a pair stored both ways in the target would be two baselines
+    lookup = np.full(n_ant_t * n_ant_t, -1, dtype=np.int64)
+    lookup[pairs] = np.arange(pairs.size)
+
+    # reference rows mapped to target antennas
+    r1 = ref_to_tgt[ref.ant1]
+    r2 = ref_to_tgt[ref.ant2]
+    ok = (r1 >= 0) & (r2 >= 0)
+    ref_bl = np.full(ref.n_row, -1, dtype=np.int64)
+    ref_swapped = np.zeros(ref.n_row, dtype=bool)
+    direct = np.where(ok, lookup[np.where(ok, r1 * n_ant_t + r2, 0)], -1)
+    reverse = np.where(ok, lookup[np.where(ok, r2 * n_ant_t + r1, 0)], -1)
+    ref_bl[:] = np.where(direct >= 0, direct, reverse)
+    ref_swapped[:] = (direct < 0) & (reverse >= 0)
+
+    # union time axis
+    all_times = np.concatenate([tgt.time, ref.time])
+    times, time_idx = unique_times(all_times, tolerance)
+    tgt_time = time_idx[:tgt.n_row]
+    ref_time = time_idx[tgt.n_row:]
+    names = [f"{tgt.antenna_names[a]}-{tgt.antenna_names[b]}" for a, b in zip(bl_a1, bl_a2)]
+    _check_unique(tgt_bl, tgt_time, times.size, tgt, names, times)
+    used = ref_bl >= 0
+    _check_unique(ref_bl[used], ref_time[used], times.size, ref, names, times)
+
+    # cells holding both bands
+    n_time = times.size
+    tgt_cells = tgt_bl * n_time + tgt_time
+    ref_cells = ref_bl[used] * n_time + ref_time[used]
+    in_both = np.isin(tgt_cells, ref_cells)
+    n_matched = int(np.count_nonzero(in_both))
+    if n_matched == 0:
+        raise MeasurementSetError(
+            f"no row of {tgt.ms} has a counterpart in {ref.ms} at the same time (tolerance "
+            f"{tolerance:g} s) and station pair: target times {tgt.time.min():.1f}.."
+            f"{tgt.time.max():.1f}, reference times {ref.time.min():.1f}..{ref.time.max():.1f} "
+            "(MJD seconds); check that the two sets cover the same observation")
+    n_ref_unused = int(ref.n_row - np.count_nonzero(np.isin(ref_cells, tgt_cells)))
+
+    # scans: target's SCAN_NUMBER where the target has a row at that time, else the reference's
+    scans = np.unique(np.concatenate([tgt.scan, ref.scan]))
+    scan_of_time = np.zeros(n_time, dtype=np.int64)
+    scan_of_time[ref_time] = np.searchsorted(scans, ref.scan)
+    scan_of_time[tgt_time] = np.searchsorted(scans, tgt.scan)
+    return Match(times=times, ant1=bl_a1, ant2=bl_a2, baseline_names=names, tgt_bl=tgt_bl,
+                 tgt_time=tgt_time, ref_bl=ref_bl, ref_time=ref_time, ref_swapped=ref_swapped,
+                 corr_map=corr_map, corr_names=corr_names, scans=scans,
+                 scan_of_time=scan_of_time, tolerance=float(tolerance), n_matched=n_matched,
+                 n_ref_unused=n_ref_unused)

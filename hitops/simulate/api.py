@@ -1,0 +1,269 @@
+"""``simulate(scene, outdir, ...)``: dual-band Measurement Sets from a scene.
+
+Steps: time grid -> geometry (casacore-anchored UVW, elevations) -> rows
+while both stations are above their limits -> one troposphere realisation
+at the coherence frequency, scaled to each band -> model x station phases +
+thermal noise -> one Measurement Set per band (+ truth .npz).  All outputs
+are written under temporary names and renamed at the end, so a failure
+leaves nothing half-written.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import time as _time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from ..errors import OutputExistsError, SceneError
+from ..io.ms_create import ArrayLayout, Band, Field, create_ms
+from . import geometry, noise as noise_mod, troposphere
+from .kernels import corrupt_visibilities
+from .scene import Scene, apply_overrides, parse_scene
+
+log = logging.getLogger("hitops.simulate")
+
+C_LIGHT = 299792458.0
+
+
+@dataclass
+class Observation:
+    """Everything the bands share: time grid, rows, geometry, troposphere."""
+
+    times: np.ndarray          # (n_time,) UTC MJD seconds, integration centres
+    scan: np.ndarray           # (n_time,) scan number
+    elevation: np.ndarray      # (n_station, n_time) rad
+    station_uvw: np.ndarray    # (n_station, n_time, 3) m
+    time_index: np.ndarray     # (n_row,) index into times
+    ant1: np.ndarray           # (n_row,) int32
+    ant2: np.ndarray           # (n_row,) int32
+    uvw: np.ndarray            # (n_row, 3) m, uvw[ant1] - uvw[ant2] (see geometry.py)
+    phase_ref: np.ndarray      # (n_station, n_time) troposphere phase at the coherence frequency
+
+
+def output_paths(outdir: str | Path, prefix: str, scene: Scene, save_truth: bool) -> Dict[str, Path]:
+    outdir = Path(outdir)
+    paths = {band.name: outdir / f"{prefix}-{band.name}.ms" for band in scene.bands}
+    if save_truth:
+        paths["truth"] = outdir / f"{prefix}-truth.npz"
+    return paths
+
+
+def observe(scene: Scene) -> Observation:
+    """Rows, geometry and troposphere of a scene (band independent)."""
+    times, scan, on_source = geometry.time_grid(scene.start_mjd_s, scene.duration,
+                                                scene.integration, scene.scan_length,
+                                                scene.scan_gap)
+    positions = np.array([s.itrf for s in scene.stations])
+    matrices = geometry.uvw_matrices(times, scene.ra, scene.dec, positions[0])
+    station_uvw = geometry.station_uvw(matrices, positions)
+    elevation = geometry.station_elevation(matrices, positions)
+    limits = np.radians([s.elevation_limit for s in scene.stations])
+    up = elevation > limits[:, None]
+
+    n_station = len(scene.stations)
+    bl_ant1, bl_ant2 = np.triu_indices(n_station, k=1)
+    visible = (up[bl_ant1] & up[bl_ant2]) & on_source[None, :]      # (n_bl, n_time)
+    time_index, bl_index = np.nonzero(visible.T)                     # time-major row order
+    if time_index.size == 0:
+        raise SceneError(
+            f"scene {scene.source_file}: source {scene.source_name} is never above the "
+            "elevation limits (stations[*].elevation_limit) of two stations at the same time "
+            "during the observation; change observation.start/duration, the stations or "
+            "their elevation limits")
+    ant1 = bl_ant1[bl_index].astype(np.int32)
+    ant2 = bl_ant2[bl_index].astype(np.int32)
+    uvw = station_uvw[ant1, time_index] - station_uvw[ant2, time_index]
+
+    n_time = times.size
+    if scene.troposphere:
+        rng = np.random.default_rng(np.random.SeedSequence([scene.seed, 1]))
+        # airmass of the turbulent layer, floored at the station's elevation limit
+        # (phases below the limit are never observed; they only carry the walk on)
+        floor_el = np.maximum(elevation, limits[:, None])
+        air = noise_mod.airmass(floor_el)
+        first_up = np.where(up.any(axis=1), up.argmax(axis=1), 0)
+        t_c = np.array([s.coherence_time for s in scene.stations]) * scene.coherence_scale
+        phase_ref = troposphere.station_phases(n_time, scene.integration, t_c, air, first_up, rng)
+    else:
+        phase_ref = np.zeros((n_station, n_time))
+    return Observation(times, scan, elevation, station_uvw, time_index, ant1, ant2, uvw, phase_ref)
+
+
+def model_visibilities(scene: Scene, band_index: int, uvw: np.ndarray) -> np.ndarray:
+    """Noise-free Stokes I visibility (Jy) per row: point source + Gaussians.
+
+    V = sum_k F_k exp(-2 pi i (u l_k + v m_k)) exp(-pi^2 (a_k^2 u'^2 + b_k^2 v'^2) / (4 ln 2)),
+    u, v in wavelengths, a/b the FWHM along the major/minor axis.
+    """
+    band = scene.bands[band_index]
+    model = np.full(uvw.shape[0], scene.flux[band.name], dtype=np.complex128)
+    if not scene.components:
+        return model
+    uas = np.radians(1.0 / 3600e6)
+    u = uvw[:, 0] * band.freq_hz / C_LIGHT
+    v = uvw[:, 1] * band.freq_hz / C_LIGHT
+    for comp in scene.components:
+        pa = np.radians(comp.position_angle)
+        along_major = u * np.sin(pa) + v * np.cos(pa)
+        along_minor = u * np.cos(pa) - v * np.sin(pa)
+        taper = np.exp(-(np.pi ** 2) / (4.0 * np.log(2.0)) *
+                       ((comp.fwhm_major * uas * along_major) ** 2 +
+                        (comp.fwhm_minor * uas * along_minor) ** 2))
+        shift = np.exp(-2j * np.pi * (u * comp.offset_ra * uas + v * comp.offset_dec * uas))
+        model += comp.flux[band.name] * taper * shift
+    return model
+
+
+def band_sigma(scene: Scene, band_index: int, obs: Observation) -> np.ndarray:
+    """Per-row noise rms (Jy) of each of the real and imaginary parts."""
+    band = scene.bands[band_index]
+    air = noise_mod.airmass(obs.elevation)
+    sefd = np.empty_like(obs.elevation)
+    for i, station in enumerate(scene.stations):
+        sb = station.bands[band.name]
+        t_sys = noise_mod.system_temperature(sb.t_rx, sb.t_atm, sb.tau, air[i])
+        sefd[i] = noise_mod.sefd(t_sys, station.diameter, sb.aperture_efficiency)
+    return noise_mod.baseline_sigma(sefd[obs.ant1, obs.time_index], sefd[obs.ant2, obs.time_index],
+                                    band.bandwidth_hz, scene.integration,
+                                    scene.quantisation_efficiency)
+
+
+def band_phase(scene: Scene, band_index: int, obs: Observation) -> np.ndarray:
+    """Station phases at this band: non-dispersive, (nu / nu0) x phase at nu0."""
+    return obs.phase_ref * (scene.bands[band_index].freq_hz / scene.coherence_freq_hz)
+
+
+def band_columns(scene: Scene, band_index: int, obs: Observation) -> Dict[str, np.ndarray]:
+    """Main-table columns of one band's Measurement Set."""
+    n_corr = len(scene.correlations)
+    sigma = band_sigma(scene, band_index, obs)
+    parallel = np.array([c[0] == c[1] for c in scene.correlations])
+    if scene.noise:
+        rng = np.random.default_rng(np.random.SeedSequence([scene.seed, 2, band_index]))
+        draws = rng.standard_normal((obs.ant1.size, n_corr, 2), dtype=np.float32)
+    else:
+        draws = np.zeros((0, n_corr, 2), np.float32)
+    data = corrupt_visibilities(model_visibilities(scene, band_index, obs.uvw), obs.ant1,
+                                obs.ant2, obs.time_index, band_phase(scene, band_index, obs),
+                                parallel, draws, sigma)
+    sigma_col = np.repeat(sigma.astype(np.float32)[:, None], n_corr, axis=1)
+    return {
+        "TIME": obs.times[obs.time_index],
+        "ANTENNA1": obs.ant1,
+        "ANTENNA2": obs.ant2,
+        "UVW": obs.uvw,
+        "DATA": data,
+        "SIGMA": sigma_col,
+        "WEIGHT": 1.0 / sigma_col ** 2,
+        "SCAN_NUMBER": obs.scan[obs.time_index],
+        "INTERVAL": np.full(obs.ant1.size, scene.integration),
+    }
+
+
+def _write_band(scene: Scene, band_index: int, obs: Observation, path: Path) -> Path:
+    band = scene.bands[band_index]
+    layout = ArrayLayout(
+        names=[s.bands[band.name].antenna_name for s in scene.stations],
+        stations=[s.name for s in scene.stations],
+        positions=np.array([s.itrf for s in scene.stations]),
+        diameters=np.array([s.diameter for s in scene.stations]))
+    t0 = _time.perf_counter()
+    columns = band_columns(scene, band_index, obs)
+    t1 = _time.perf_counter()
+    create_ms(path, layout, Band(band.freq_hz, band.bandwidth_hz, tuple(scene.correlations)),
+              Field(scene.source_name, scene.ra, scene.dec), columns,
+              telescope=scene.telescope, overwrite=True)
+    log.info("band %s: %d rows, visibilities %.1f s, written %.1f s -> %s", band.name,
+             obs.ant1.size, t1 - t0, _time.perf_counter() - t1, path)
+    return path
+
+
+def write_truth(scene: Scene, obs: Observation, path: Path) -> None:
+    """Per-station unwrapped troposphere phases per band, with names and times."""
+    arrays = {
+        "stations": np.array([s.code for s in scene.stations]),
+        "time": obs.times,
+        "bands": np.array([b.name for b in scene.bands]),
+        "freq_hz": np.array([b.freq_hz for b in scene.bands]),
+        "elevation": obs.elevation,
+        "coherence_time": np.array([s.coherence_time * scene.coherence_scale
+                                    for s in scene.stations]),
+        "coherence_freq_hz": np.float64(scene.coherence_freq_hz),
+        "convention": np.array("V_pq = V_model * exp(i*(phase[p] - phase[q])), "
+                               "p = ANTENNA1, q = ANTENNA2; radians, unwrapped"),
+    }
+    for i, band in enumerate(scene.bands):
+        arrays[f"phase_{band.name}"] = band_phase(scene, i, obs)
+        arrays[f"antenna_names_{band.name}"] = np.array(
+            [s.bands[band.name].antenna_name for s in scene.stations])
+    with open(path, "wb") as handle:
+        np.savez(handle, **arrays)
+
+
+def simulate(scene, outdir, prefix: str = "sim", seed: Optional[int] = None,
+             save_truth: bool = False, overwrite: bool = False, duration=None,
+             integration=None, coherence_scale=None, no_noise: bool = False,
+             no_troposphere: bool = False, stations=None, start=None, scan_length=None,
+             scan_gap=None, correlations=None, threads: int = 2) -> Dict[str, Path]:
+    """Simulate a scene; return {band name: MS path, ['truth': npz path]}.
+
+    ``scene`` is a :class:`Scene`, a YAML path, a packaged scene name
+    ('paper', 'demo') or a mapping; keyword overrides replace the scene's
+    values (see :func:`hitops.simulate.scene.apply_overrides`).
+    """
+    scene = scene if isinstance(scene, Scene) else parse_scene(scene)
+    scene = apply_overrides(scene, duration=duration, integration=integration, seed=seed,
+                            coherence_scale=coherence_scale, no_noise=no_noise,
+                            no_troposphere=no_troposphere, stations=stations, start=start,
+                            scan_length=scan_length, scan_gap=scan_gap,
+                            correlations=correlations)
+    if not prefix or "/" in prefix:
+        raise SceneError(f"prefix {prefix!r} must be a plain file-name prefix like 'sim'")
+    paths = output_paths(outdir, prefix, scene, save_truth)
+    existing = [str(p) for p in paths.values() if p.exists()]
+    if existing and not overwrite:
+        raise OutputExistsError(f"{', '.join(existing)} exist(s); pass --overwrite "
+                                "(overwrite=True) to replace, or choose another --outdir/--prefix")
+
+    t0 = _time.perf_counter()
+    obs = observe(scene)
+    log.info("scene %s: %d stations, %d times, %d rows per band (%.1f s)", scene.name,
+             len(scene.stations), obs.times.size, obs.ant1.size, _time.perf_counter() - t0)
+
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    staging = {key: p.with_name(f".{p.name}.writing") for key, p in paths.items()}
+    try:
+        for tmp in staging.values():
+            _remove(tmp)
+        # casacore releases the GIL while it writes, so two bands overlap on two cores
+        with ThreadPoolExecutor(max_workers=max(1, min(threads, len(scene.bands)))) as pool:
+            futures = [pool.submit(_write_band, scene, i, obs, staging[b.name])
+                       for i, b in enumerate(scene.bands)]
+            for fut in futures:
+                fut.result()
+        if save_truth:
+            write_truth(scene, obs, staging["truth"])
+        for key, final in paths.items():
+            _remove(final)
+            staging[key].rename(final)
+    except BaseException:
+        for tmp in staging.values():
+            _remove(tmp)
+        raise
+    log.info("simulate: wrote %s in %.1f s", ", ".join(str(p) for p in paths.values()),
+             _time.perf_counter() - t0)
+    return paths
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir():
+        shutil.rmtree(path)
+    elif path.exists():
+        path.unlink()

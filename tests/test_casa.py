@@ -1,0 +1,216 @@
+"""hitops.casa: real CASA tasks on small Measurement Sets built here.
+
+Known truth: antenna phases put into the data must be removed by the FF+SC
+chain; a Gaussian of known peak written into an image must come back from
+imfit; CASA calls that fail (everything flagged, an unknown refant, no table)
+must raise instead of passing silently.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from hitops.errors import ExternalToolError, InputError, OutputExistsError
+from hitops.io.ms_create import ArrayLayout, Band, Field, create_ms
+
+# ITRF positions (m) of four of the paper's stations (GUIDE.md section 2)
+POSITIONS = {
+    "AP": (2225039.5297, -5441197.6292, -2479303.3597),
+    "PV": (5088967.74544, -301681.18586, 3825012.20561),
+    "PB": (4524000.43, 468042.14, 4460309.76),
+    "GL": (541547.0, -1387978.6, 6180982.0),
+}
+M87 = (np.deg2rad(187.7059167), np.deg2rad(12.3911222))
+
+
+def uvw_for(b_itrf, hour_angle, dec):
+    """Baseline (m, ITRF) to (u, v, w) for a source at hour angle H and declination dec."""
+    bx, by, bz = b_itrf
+    sh, ch = np.sin(hour_angle), np.cos(hour_angle)
+    sd, cd = np.sin(dec), np.cos(dec)
+    return (sh * bx + ch * by,
+            -sd * ch * bx + sd * sh * by + cd * bz,
+            cd * ch * bx - cd * sh * by + sd * bz)
+
+
+def build_ms(path, n_time=120, dt=10.0, noise=0.1, seed=1, flag_all=False,
+             phase_step_rad=0.05, freq_hz=230e9):
+    """A point source of 1 Jy at the phase centre seen by four stations.
+
+    Each antenna gets a random-walk phase (antenna 0 is the reference, zero);
+    returns the path and the (n_time, n_ant) antenna phases put in.
+    """
+    rng = np.random.default_rng(seed)
+    names = list(POSITIONS)
+    n_ant = len(names)
+    pos = np.array([POSITIONS[n] for n in names])
+    t0 = 60044.0 * 86400.0 + 7200.0
+    times = t0 + dt * np.arange(n_time)
+    ant_phase = np.cumsum(rng.normal(0.0, phase_step_rad, (n_time, n_ant)), axis=0)
+    ant_phase[:, 0] = 0.0
+    ant1, ant2 = np.triu_indices(n_ant, 1)
+    n_bl = ant1.size
+    time = np.repeat(times, n_bl)
+    a1 = np.tile(ant1, n_time)
+    a2 = np.tile(ant2, n_time)
+    hour_angle = np.repeat(-0.6 + 2 * np.pi * (times - t0) / 86164.0905, n_bl)
+    uvw = np.stack(uvw_for((pos[a2] - pos[a1]).T, hour_angle, M87[1]), axis=1)
+    it = np.repeat(np.arange(n_time), n_bl)
+    model = np.exp(1j * (ant_phase[it, a1] - ant_phase[it, a2]))
+    n_row = time.size
+    data = model[:, None] * np.ones((1, 2))
+    data = data + noise / np.sqrt(2) * (rng.normal(size=data.shape) + 1j * rng.normal(size=data.shape))
+    main = {"TIME": time, "ANTENNA1": a1, "ANTENNA2": a2, "UVW": uvw, "DATA": data,
+            "SIGMA": np.full((n_row, 2), noise), "WEIGHT": np.full((n_row, 2), noise ** -2)}
+    if flag_all:
+        main["FLAG"] = np.ones((n_row, 1, 2), bool)
+    layout = ArrayLayout(names, names, pos, np.full(n_ant, 12.0))
+    create_ms(path, layout, Band(freq_hz, 2e9), Field("M87", *M87), main)
+    return str(path), ant_phase
+
+
+@pytest.fixture(scope="module")
+def casa():
+    from hitops.casa_env import ensure_casa_offline
+
+    ensure_casa_offline()  # before the first import of casatools/casatasks
+    pytest.importorskip("casatasks")
+    import hitops.casa as casa_mod
+
+    return casa_mod
+
+
+# ---------------------------------------------------------------------------
+# log scanning (no CASA run)
+
+def test_severe_lines_skip_leap_second_message():
+    from hitops.casa.runner import severe_lines
+
+    log = [
+        "2026-11-22 03:36:07\tSEVERE\tMeasTable::dUTC(Double) (file MeasTable.cc, line 4290)\t"
+        "Leap second table TAI_UTC seems out-of-date.",
+        "2026-11-22 03:36:07\tSEVERE\tMeasTable::dUTC(Double) (file MeasTable.cc, line 4290)+\t"
+        "times and coordinates derived from UTC could be wrong by 1s or more.",
+        "2026-11-22 03:36:08\tINFO\tfringefit::::\tSolving",
+        "2026-11-22 03:36:09\tSEVERE\tfringefit::::casa\tNo valid reference antenna supplied",
+    ]
+    found = severe_lines(log)
+    assert len(found) == 1
+    assert "No valid reference antenna" in found[0]
+
+
+# ---------------------------------------------------------------------------
+# failures must raise
+
+def test_fringefit_on_fully_flagged_ms_raises(casa, tmp_path):
+    vis, _ = build_ms(tmp_path / "flagged.ms", n_time=30, flag_all=True)
+    with pytest.raises(ExternalToolError, match="no output calibration table written"):
+        casa.fringefit(vis, str(tmp_path / "ff.tbl"), solint="60s", refant="PV,PB")
+    assert not (tmp_path / "ff.tbl").exists()
+
+
+def test_fringefit_with_unknown_refant_raises_on_severe(casa, tmp_path):
+    vis, _ = build_ms(tmp_path / "t.ms", n_time=30)
+    with pytest.raises(ExternalToolError, match="SEVERE.*XX|XX.*SEVERE|No match found"):
+        casa.fringefit(vis, str(tmp_path / "ff.tbl"), solint="60s", refant="XX")
+
+
+def test_gaincal_with_too_few_baselines_per_antenna_raises(casa, tmp_path):
+    # four stations have three baselines each: CASA's default minblperant=4
+    # fails every interval ("Insufficient unflagged antennas") and writes nothing
+    vis, _ = build_ms(tmp_path / "t.ms", n_time=30)
+    with pytest.raises(ExternalToolError, match="no calibration table"):
+        casa.gaincal(vis, str(tmp_path / "g.tbl"), solint="30s", refant="PV,PB")
+
+
+def test_existing_table_is_not_overwritten_without_flag(casa, tmp_path):
+    vis, _ = build_ms(tmp_path / "t.ms", n_time=30)
+    table = tmp_path / "ff.tbl"
+    table.mkdir()
+    with pytest.raises(OutputExistsError):
+        casa.fringefit(vis, str(table), solint="60s", refant="PV")
+
+
+def test_applycal_needs_existing_tables(casa, tmp_path):
+    vis, _ = build_ms(tmp_path / "t.ms", n_time=10)
+    with pytest.raises(InputError, match="does not exist"):
+        casa.applycal(vis, [str(tmp_path / "missing.tbl")])
+
+
+# ---------------------------------------------------------------------------
+# the FF+SC chain removes known antenna phases
+
+def test_ffsc_chain_removes_antenna_phases(casa, tmp_path):
+    from casacore import tables as pt
+
+    vis, _ = build_ms(tmp_path / "t.ms", n_time=120, noise=0.1, phase_step_rad=0.25)
+    ff = casa.fringefit(vis, str(tmp_path / "ff.tbl"), solint="60s", refant=["PV", "PB"])
+    assert ff["n_rows"] > 0 and 0.0 <= ff["flagged_fraction"] < 0.2
+    assert isinstance(ff["flagged_fraction"], float)
+    gc = casa.gaincal(vis, str(tmp_path / "g.tbl"), solint="20s", refant=["PV", "PB"],
+                      gaintable=[ff["caltable"]], minblperant=2)
+    assert gc["n_rows"] > 0
+    receipt = tmp_path / "applycal.json"
+    ac = casa.applycal(vis, [ff["caltable"], gc["caltable"]], receipt=str(receipt))
+    assert json.loads(receipt.read_text())["gaintable"] == [ff["caltable"], gc["caltable"]]
+    assert type(ac["flagged_fraction"]) is float
+    with pt.table(vis, ack=False) as tab:
+        raw = tab.getcol("DATA")[:, 0, 0]
+        corrected = tab.getcol("CORRECTED_DATA")[:, 0, 0]
+        flags = tab.getcol("FLAG")[:, 0, 0]
+    good = ~flags
+    coherence_raw = np.abs(np.mean(np.exp(1j * np.angle(raw[good]))))
+    coherence_cal = np.abs(np.mean(np.exp(1j * np.angle(corrected[good]))))
+    # the random-walk phases (~3 rad rms over the track) decorrelate the raw
+    # data; after FF+SC only the thermal noise (0.1 per component) remains
+    assert coherence_raw < 0.6
+    assert coherence_cal > 0.9
+
+
+# ---------------------------------------------------------------------------
+# imfit recovers a Gaussian of known peak
+
+def _gaussian_image(path, peak, noise, seed=3):
+    from hitops.casa_env import ensure_casa_offline
+
+    ensure_casa_offline()
+    import casatools
+
+    n = 128
+    x, y = np.mgrid[:n, :n]  # casatools: first array axis is the x (RA) pixel
+    sigma_pix = 4.0
+    rng = np.random.default_rng(seed)
+    pixels = peak * np.exp(-((x - 64.3) ** 2 + (y - 63.6) ** 2) / (2 * sigma_pix ** 2))
+    pixels = pixels + rng.normal(0.0, noise, pixels.shape)
+    cs = casatools.coordsys()
+    csys = cs.newcoordsys(direction=True)
+    csys.setincrement([-1e-10, 1e-10], "direction")  # radians per pixel
+    ia = casatools.image()
+    ia.fromarray(outfile=str(path), pixels=pixels, csys=csys.torecord(), overwrite=True)
+    ia.setbrightnessunit("Jy/beam")
+    fwhm_arcsec = 2.3548 * sigma_pix * 1e-10 * 206264.806
+    ia.setrestoringbeam(major=f"{fwhm_arcsec}arcsec", minor=f"{fwhm_arcsec}arcsec", pa="0deg")
+    ia.done()
+    csys.done()
+    cs.done()
+    return str(path)
+
+
+def test_imfit_recovers_known_peak(casa, tmp_path):
+    image = _gaussian_image(tmp_path / "g.im", peak=0.8, noise=0.005)
+    out = tmp_path / "fit.json"
+    fit = casa.imfit(image, label="pwc", outfile=str(out))
+    assert type(fit["peak"]) is float and type(fit["peak_err"]) is float
+    assert fit["peak"] == pytest.approx(0.8, abs=4 * fit["peak_err"] + 0.005)
+    assert 0 < fit["peak_err"] < 0.02
+    assert fit["x_pix"] == pytest.approx(64.3, abs=0.3)
+    stored = json.loads(out.read_text())
+    assert stored["label"] == "pwc" and stored["peak"] == fit["peak"]
+
+
+def test_imfit_missing_image_is_input_error(casa, tmp_path):
+    with pytest.raises(InputError, match="does not exist"):
+        casa.imfit(str(tmp_path / "nothing.fits"))
