@@ -32,7 +32,7 @@ casa-config: $(STAMP)
 	@$(PY) -m hitops.casa_env >/dev/null
 
 run: setup
-	cd recipes && stimela run fpt-demo.yml
+	stimela run recipes/fpt-demo.yml
 
 test: setup
 	$(PY) -m pytest -q

@@ -1,7 +1,7 @@
 """Lay out a scene with casatools.simulator (no corruption, no noise): the CASA baseline.
 
 Run as ``python benchmarks/casa_layout.py SCENE OUT.ms [--band NAME] [--duration S]
-[--stations A,B]`` in its own process so the benchmark can time it and read
+[--integration S] [--stations A,B] [--elevation-limit DEG]`` in its own process so the benchmark can time it and read
 its peak memory.  Used by benchmarks/bench_simulate.py (speed comparison) and
 tests/test_simulate_casa.py (UVW sign convention and time scale cross-check).
 """
@@ -17,14 +17,16 @@ import numpy as np
 
 def casa_layout(scene_name: str, ms_path: str, band_name: str | None = None,
                 duration: float | None = None, stations: str | None = None,
-                elevation_limit_deg: float | None = None) -> None:
+                elevation_limit_deg: float | None = None,
+                integration: float | None = None) -> None:
     from hitops.casa_env import ensure_casa_offline
     from hitops.simulate.scene import apply_overrides, parse_scene
 
     ensure_casa_offline()
     from casatools import measures, simulator
 
-    scene = apply_overrides(parse_scene(scene_name), duration=duration, stations=stations)
+    scene = apply_overrides(parse_scene(scene_name), duration=duration, stations=stations,
+                            integration=integration)
     band = next(b for b in scene.bands if band_name in (None, b.name))
     positions = np.array([s.itrf for s in scene.stations])
     me = measures()
@@ -64,8 +66,10 @@ def main(argv=None) -> int:
     parser.add_argument("--duration", type=float)
     parser.add_argument("--stations")
     parser.add_argument("--elevation-limit", type=float)
+    parser.add_argument("--integration", type=float)
     args = parser.parse_args(argv)
-    casa_layout(args.scene, args.ms, args.band, args.duration, args.stations, args.elevation_limit)
+    casa_layout(args.scene, args.ms, args.band, args.duration, args.stations, args.elevation_limit,
+                args.integration)
     return 0
 
 

@@ -333,3 +333,58 @@ def test_ratio_below_one():
     pwc = np.angle(np.exp(1j * (target - ratio * phase + TWO_PI * ratio * counts)))
     # residual is thermal only (R * noise phase): no persistent offsets
     assert abs(np.angle(np.mean(np.exp(1j * pwc[:10000])) / np.mean(np.exp(1j * pwc[10000:])))) < 0.05
+
+
+# ---------------------------------------------------------------- station terms
+
+
+def test_station_terms_round_trip():
+    from hitops.tracking import stations
+
+    tsys = stations.system_temperature(30.0, 0.1, 30.0, t_atm=260.0)
+    # Tsys* = (T_rx + T_atm (1 - e^-tau X)) e^(tau X), X = 2 at 30 deg
+    assert tsys == pytest.approx((30 + 260 * (1 - np.exp(-0.2))) * np.exp(0.2))
+    sefd_pv = stations.sefd(tsys, 30.0)
+    rho = stations.per_sample_snr(1.1, sefd_pv, sefd_pv, 2e9, 1.0)
+    sigma = np.sqrt(sefd_pv * sefd_pv / (2 * 2e9 * 1.0)) / 0.88
+    assert rho == pytest.approx(1.1 / sigma)
+    limit = stations.max_sefd_product(3.0, 1.1, 2e9, 1.0)
+    tau = stations.max_opacity(limit, 30.0, 30.0, 30.0)
+    at_limit = stations.sefd(stations.system_temperature(30.0, tau, 30.0), 30.0)
+    assert at_limit == pytest.approx(limit, rel=1e-6)
+    assert np.isnan(stations.max_opacity(1.0, 30.0, 30.0, 30.0))
+    # the naive threshold for one slip per 12 h sits between rho = 3 and 4
+    rho_1 = stations.rho_for_slip_rate(1.0)
+    assert 3.0 < rho_1 < 4.0
+    assert theory.itoh_failure_probability(rho_1) * 43199 == pytest.approx(1.0, rel=0.02)
+    with pytest.raises(InputError, match="elevation"):
+        stations.system_temperature(30.0, 0.1, 0.0)
+
+
+def test_dask_wrapper_matches_numpy():
+    import dask.array as da
+
+    from hitops.tracking.modes import track_series, track_series_dask
+
+    truth = np.stack([kolmogorov_track(3000, 20.0, seed) for seed in range(5)])
+    phase = np.stack([noisy_phase(t, 2.5, i) for i, t in enumerate(truth)])
+    valid = np.ones(phase.shape, bool)
+    valid[:, 1000:1010] = False
+    expected = track_series(phase, valid, "smooth", half_window=4)
+    lazy = track_series_dask(da.from_array(phase, chunks=(2, -1)), da.from_array(valid, chunks=(2, -1)),
+                             "smooth", half_window=4)
+    assert np.array_equal(lazy["counts"].compute(), expected.counts)
+    assert np.array_equal(lazy["bridged"].compute(), expected.bridged)
+    with pytest.raises(InputError, match="time axis"):
+        track_series_dask(da.from_array(phase, chunks=(2, 100)), da.from_array(valid, chunks=(2, 100)))
+
+
+def test_count_slips_separates_outliers_from_slips():
+    valid = np.ones(12, bool)
+    outliers = np.array([0, 0, 1, 0, 0, -1, -1, 0, 1, 0, 0, 0])
+    assert count_slips(outliers, valid) == (0, 4)
+    slip = np.array([0, 0, 0, 0, 1, 1, 1, 1, 1, 1, 1, 1])
+    assert count_slips(slip, valid) == (1, 0)
+    long_excursion = np.array([0, 0, 1, 1, 1, 1, 0, 0, 0, 0, 0, 0])
+    assert count_slips(long_excursion, valid) == (2, 0)
+    assert count_slips(long_excursion, valid, max_transient=4) == (0, 4)

@@ -214,10 +214,15 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
     tgt_cols = [target_column, "FLAG"] + ([offset_reference_column] if offset_reference_column else [])
     ref_meta_cols = META_COLUMNS + _selection_columns(ref_ms)
     tgt_meta_cols = META_COLUMNS + _selection_columns(target_ms)
+    timings = {"checks": time.perf_counter() - started}
+    stage = time.perf_counter()
     ref_ds = msio.open_main(ref_ms, list(dict.fromkeys(ref_meta_cols + ref_cols)))
     tgt_ds = msio.open_main(target_ms, list(dict.fromkeys(tgt_meta_cols + tgt_cols)))
+    timings["open"] = time.perf_counter() - stage
+    stage = time.perf_counter()
     ref_meta, tgt_meta = msio.compute_columns([(ref_ds, ref_meta_cols, None),
                                                (tgt_ds, tgt_meta_cols, None)])
+    timings["metadata"] = time.perf_counter() - stage
     if ref_meta["TIME"].size == 0 or tgt_meta["TIME"].size == 0:
         empty = ref_ms if ref_meta["TIME"].size == 0 else target_ms
         raise MeasurementSetError(f"{empty} has no rows; nothing to calibrate")
@@ -246,9 +251,11 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
                         scan=meta["SCAN_NUMBER"], interval=meta["INTERVAL"],
                         antenna_names=names, corr_types=corr)
 
+    stage = time.perf_counter()
     match = match_bands(band(ref_ms, ref_meta, ref_names, ref_corr),
                         band(target_ms, tgt_meta, tgt_names, tgt_corr), antenna_map,
                         time_tolerance)
+    timings["match"] = time.perf_counter() - stage
     n_corr = len(tgt_corr)
     for c, name in enumerate(match.corr_names):
         if match.corr_map[0, c] < 0:
@@ -313,9 +320,15 @@ def _run(ctx: Dict, started: float) -> Dict:
     off_col = g["offset_reference_column"]
     cache = {}
 
+    two_pass = bool(off_col) and g["eps"] != 0.0 and (fpt.PWC in codes or fpt.CWU in codes)
+    timings = g["timings"]
+    for key in ("read", "transfer", "write"):
+        timings[key] = 0.0
+
     def load(i):
         if i in cache:
             return cache[i]
+        stage = time.perf_counter()
         t0, t1 = bounds[i], bounds[i + 1]
         tgt_rows = tgt_rows_all.rows_in(t0, t1)
         ref_rows = ref_keep[ref_rows_all.rows_in(t0, t1)]
@@ -344,8 +357,9 @@ def _run(ctx: Dict, started: float) -> Dict:
                      tgt_flag=tgt["FLAG"], tgt_flag_row=tgt_flag_row, tgt_vis=tvis, tgt_ok=tok,
                      ref_vis=rvis, ref_ok=rok, ref_swapped=match.ref_swapped[ref_rows],
                      off_vis=ovis, off_ok=ook, tgt_grid=tgt_grid, ref_grid=ref_grid)
-        if n_chunks == 1:
+        if n_chunks == 1 and two_pass:   # keep the data for the second pass
             cache[i] = chunk
+        timings["read"] += time.perf_counter() - stage
         return chunk
 
     def run_pass(offsets, write):
@@ -359,15 +373,19 @@ def _run(ctx: Dict, started: float) -> Dict:
         written = []
         for i in range(n_chunks):
             ch = load(i)
+            stage = time.perf_counter()
             scan_local = match.scan_of_time[ch["t0"]:ch["t1"]]
             tasks = []
             for bls in groups:
                 gi = group_inputs(bls, ch["tgt_grid"], ch["ref_grid"], ch["tgt_vis"],
                                   ch["tgt_ok"], ch["ref_vis"], ch["ref_ok"], ch["ref_swapped"],
                                   ch["off_vis"] if offsets is None else None,
-                                  ch["off_ok"] if offsets is None else None)
+                                  ch["off_ok"] if offsets is None else None,
+                                  local=client is not None)
                 picked = gi.pop("tgt_picked")
                 local_grid = gi["tgt_rows"]
+                if picked is None:   # shared chunk arrays: the grid holds chunk row indices
+                    local_grid, picked = None, gi["tgt_rows"]
                 gi.update(corr_map=match.corr_map, scan_of_time=scan_local, n_scan=n_scan,
                           methods=codes, ratio=ratio, eps=eps, tracker=g["tracker"],
                           ref_carry=ref_carry.subset(bls), tgt_carry=tgt_carry.subset(bls),
@@ -375,15 +393,23 @@ def _run(ctx: Dict, started: float) -> Dict:
                 tasks.append((bls, picked, local_grid,
                               dask.delayed(transfer_group, pure=False)(gi)))
             results = dask.compute(*[t[3] for t in tasks], **compute_kw)
+            tasks = [t[:3] for t in tasks]   # drop the group inputs as soon as possible
             n_rows = ch["tgt_rows"].size
             phasor_rows = {c: np.zeros((n_rows, n_corr), np.complex64) for c in codes}
             calibrated = np.zeros((n_rows, n_corr), dtype=bool)
-            for (bls, picked, local_grid, _), res in zip(tasks, results):
-                for c in codes:
-                    phasor_rows[c][picked] = fpt.scatter_rows(
-                        local_grid, res["phasors"][c], picked.size, np.complex64(0))
-                calibrated[picked] = fpt.scatter_rows(local_grid, res["calibrated"],
-                                                      picked.size, False)
+            for (bls, picked, local_grid), res in zip(tasks, results):
+                if local_grid is None:   # cells map straight to chunk rows
+                    used = picked >= 0
+                    rows_used = picked[used]
+                    for c in codes:
+                        phasor_rows[c][rows_used] = res["phasors"][c][used]
+                    calibrated[rows_used] = res["calibrated"][used]
+                else:
+                    for c in codes:
+                        phasor_rows[c][picked] = fpt.scatter_rows(
+                            local_grid, res["phasors"][c], picked.size, np.complex64(0))
+                    calibrated[picked] = fpt.scatter_rows(local_grid, res["calibrated"],
+                                                          picked.size, False)
                 for key in totals:
                     totals[key] += res[key]
                 wrap_events[bls] += res["wrap_events"]
@@ -394,9 +420,12 @@ def _run(ctx: Dict, started: float) -> Dict:
                 _merge_carry(tgt_carry, bls, res["tgt_carry"])
             ref_carry.last_scan = int(scan_local[-1])
             tgt_carry.last_scan = int(scan_local[-1])
+            timings["transfer"] += time.perf_counter() - stage
             if write:
+                stage = time.perf_counter()
                 written.append(_write_chunk(g, ch, phasor_rows, calibrated, codes, outputs,
                                             io_scheduler))
+                timings["write"] += time.perf_counter() - stage
         return totals, wrap_events, sums, counts
 
     state = {"created": [], "backup_created": False}
@@ -482,11 +511,12 @@ def _run(ctx: Dict, started: float) -> Dict:
                         "applied_to": [m for m in methods if m in ("pwc", "cwu")] if offsets is not None else [],
                         "series": offset_report},
         "time_s": elapsed,
+        "timings_s": {k: round(v, 4) for k, v in timings.items()},
     }
     report_path = Path(g["report"]) if g["report"] else Path(target_ms + ".hitops-calibrate.json")
     report_path.write_text(json.dumps(report, indent=1))
-    log.info("wrote %s to %s; report %s; %.2f s", ", ".join(outputs.values()), target_ms,
-             report_path, elapsed)
+    log.info("wrote %s to %s; report %s; %.2f s (%s)", ", ".join(outputs.values()), target_ms,
+             report_path, elapsed, ", ".join(f"{k} {v:.2f}" for k, v in timings.items()))
     report["report_path"] = str(report_path)
     return report
 
@@ -530,6 +560,7 @@ def _rollback(g):
     state = g["_state"]
     try:
         with pt.table(g["target_ms"], readonly=False, ack=False) as t:
+            t.lock(write=True)
             if state["backup_created"] and FLAG_BACKUP in t.colnames():
                 t.putcol("FLAG", t.getcol(FLAG_BACKUP))
                 t.removecols([FLAG_BACKUP])

@@ -51,6 +51,8 @@ def make_pair(directory, *, n_ant: int = 4, n_time: int = 300, dt: float = 1.0,
               ref_names: Optional[Sequence[str]] = None,
               target_names: Optional[Sequence[str]] = None,
               t0: float = 5.1e9, seed: int = 0, phase_offset_rad: float = 0.0,
+              shuffle_ref: bool = False, shuffle_target: bool = False,
+              swap_ref_baselines: Sequence[int] = (), ref_time_shift: float = 0.0,
               ref_name: str = "ref.ms", target_name: str = "target.ms") -> PairTruth:
     """Write ``ref.ms`` and ``target.ms`` under ``directory``; return the truth.
 
@@ -58,8 +60,14 @@ def make_pair(directory, *, n_ant: int = 4, n_time: int = 300, dt: float = 1.0,
     reference band (keep below ~1 so the Itoh condition holds);
     ``drift_rad``: per-sample linear drift per antenna (spread over antennas);
     ``sigma_ref``/``sigma_target``: std of each real/imaginary noise component;
-    ``phase_offset_rad``: constant added to every antenna phase at the
-    reference band, which shifts where each baseline's wraps fall.
+    ``phase_offset_rad``: constant times (antenna number) added to each
+    antenna phase at the reference band, so that baselines start at
+    different wrap counts (n0 != 0);
+    ``shuffle_ref``/``shuffle_target``: store the rows in random order;
+    ``swap_ref_baselines``: baseline indices whose reference rows are stored
+    with the antenna order reversed (visibility conjugated, RL <-> LR);
+    ``ref_time_shift``: seconds added to the reference TIME column.
+    The truth is given per target row, in the target's storage order.
     """
     rng = np.random.default_rng(seed)
     directory = Path(directory)
@@ -97,18 +105,47 @@ def make_pair(directory, *, n_ant: int = 4, n_time: int = 300, dt: float = 1.0,
                           for k in range(n_ant)])
     fld = Field("SYNTH", 3.276, 0.2163)
     uvw = np.zeros((n_row, 3))
-    common = dict(TIME=time, ANTENNA1=ant1, ANTENNA2=ant2, UVW=uvw, SCAN_NUMBER=scan,
-                  INTERVAL=np.full(n_row, dt))
+    bl_of_row = np.repeat(np.arange(n_bl), n_time)
+
+    # reference band: optionally reversed antenna order on some baselines
+    r_ant1, r_ant2, r_vis = ant1.copy(), ant2.copy(), ref_vis.copy()
+    swap = np.isin(bl_of_row, np.asarray(swap_ref_baselines, dtype=np.int64))
+    if swap.any():
+        reverse = [list(corr_types).index(c[::-1]) for c in corr_types]
+        r_ant1[swap], r_ant2[swap] = ant2[swap], ant1[swap]
+        r_vis[swap] = np.conj(ref_vis[swap][:, reverse])
+    ref_order = rng.permutation(n_row) if shuffle_ref else np.arange(n_row)
+    tgt_order = rng.permutation(n_row) if shuffle_target else np.arange(n_row)
+
+    def columns(order, a1_, a2_, vis, shift=0.0):
+        return dict(TIME=time[order] + shift, ANTENNA1=a1_[order], ANTENNA2=a2_[order],
+                    UVW=uvw[order], SCAN_NUMBER=scan[order], INTERVAL=np.full(n_row, dt),
+                    DATA=vis[order].astype(np.complex64))
+
     ref_ms = create_ms(directory / ref_name,
                        ArrayLayout(ref_names, ref_names, positions, np.full(n_ant, 12.0)),
                        Band(ref_freq_hz, 2e9, tuple(corr_types)), fld,
-                       dict(common, DATA=ref_vis.astype(np.complex64)), overwrite=True)
+                       columns(ref_order, r_ant1, r_ant2, r_vis, ref_time_shift), overwrite=True)
     target_ms = create_ms(directory / target_name,
                           ArrayLayout(target_names, target_names, positions, np.full(n_ant, 12.0)),
                           Band(ref_freq_hz * ratio, 2e9, tuple(corr_types)), fld,
-                          dict(common, DATA=tgt_vis.astype(np.complex64)), overwrite=True)
-    return PairTruth(ref_ms=ref_ms, target_ms=target_ms, ratio=ratio, ant1=ant1, ant2=ant2,
-                     time=time, scan=scan, ref_phase_true=ref_true, source_phase=source)
+                          columns(tgt_order, ant1, ant2, tgt_vis), overwrite=True)
+    o = tgt_order
+    return PairTruth(ref_ms=ref_ms, target_ms=target_ms, ratio=ratio, ant1=ant1[o], ant2=ant2[o],
+                     time=time[o], scan=scan[o], ref_phase_true=ref_true[o],
+                     source_phase=source[o])
+
+
+def add_column(ms, name: str, values: np.ndarray, like: str = "DATA") -> None:
+    """Add main-table column ``name`` shaped like ``like`` and fill it (tests: CORRECTED_DATA)."""
+    from casacore import tables as pt
+
+    with pt.table(str(ms), readonly=False, ack=False) as t:
+        desc = t.getcoldesc(like)
+        desc["name"] = name
+        t.addcols(pt.makecoldesc(name, desc))
+        t.putcol(name, np.asarray(values).reshape((t.nrows(),) + t.getcell(like, 0).shape)
+                 .astype(t.getcell(like, 0).dtype))
 
 
 def expected_pwc_phase(truth: PairTruth, ratio: Optional[float] = None) -> np.ndarray:

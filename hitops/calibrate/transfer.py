@@ -16,7 +16,7 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from ..kernels import fpt
-from ..kernels.wraps import get_tracker
+from ..kernels.wraps import get_tracker, wrap_events
 
 
 @dataclass
@@ -103,8 +103,12 @@ def transfer_group(g: Dict) -> Dict:
     identity = np.vstack([np.arange(n_corr), np.arange(n_corr)]).astype(np.int64)
     ref_phase, ref_valid = fpt.gather_phase(ref_rows, g["ref_vis"], g["ref_ok"],
                                             g["ref_swapped"], g["corr_map"])
-    tgt_phase, tgt_valid = fpt.gather_phase(tgt_rows, g["tgt_vis"], g["tgt_ok"],
-                                            np.zeros(g["tgt_vis"].shape[0], bool), identity)
+    if fpt.CWU in g["methods"] or g.get("off_vis") is not None:
+        tgt_phase, tgt_valid = fpt.gather_phase(tgt_rows, g["tgt_vis"], g["tgt_ok"],
+                                                np.zeros(g["tgt_vis"].shape[0], bool), identity)
+    else:  # PWC and CFPT do not need the target phase itself
+        tgt_valid = fpt.gather_valid(tgt_rows, g["tgt_vis"], g["tgt_ok"])
+        tgt_phase = np.zeros((1, 1, 1))
     scan_of_time = g["scan_of_time"]
     ref_wraps, ref_carry = track(tracker, ref_phase, ref_valid, scan_of_time, g["ref_carry"])
     tgt_wraps, tgt_carry = np.zeros((1, 1, 1), np.int64), g["tgt_carry"]
@@ -122,7 +126,7 @@ def transfer_group(g: Dict) -> Dict:
     out = {"phasors": phasors, "calibrated": calibrated, "ref_carry": ref_carry,
            "tgt_carry": tgt_carry}
     # wrap events per series (|steps| of n), for the log and report
-    steps = np.abs(np.diff(ref_wraps, axis=2)).sum(axis=2)
+    steps = wrap_events(np.ascontiguousarray(ref_wraps))
     if g["ref_carry"].has_last.any():
         first = ref_wraps[:, :, 0] - np.where(g["ref_carry"].has_last, g["ref_carry"].count, 0)
         steps = steps + np.abs(np.where(g["ref_carry"].has_last, first, 0))
@@ -158,8 +162,21 @@ def plan_groups(n_bl: int, n_groups: int) -> List[np.ndarray]:
 
 def group_inputs(bls: np.ndarray, tgt_grid: np.ndarray, ref_grid: np.ndarray,
                  tgt_vis, tgt_ok, ref_vis, ref_ok, ref_swapped,
-                 off_vis: Optional[np.ndarray], off_ok: Optional[np.ndarray]) -> Dict:
-    """Group-local copies of the rows one baseline group needs, and local row grids."""
+                 off_vis: Optional[np.ndarray], off_ok: Optional[np.ndarray],
+                 local: bool = True) -> Dict:
+    """The rows one baseline group needs, and its row grids.
+
+    ``local``: copy the group's rows into compact arrays (what a remote worker
+    should receive); otherwise share the chunk's arrays (threads) and index
+    them through the chunk's row grids.
+    """
+    if not local:
+        rows = tgt_grid[bls]
+        return {"tgt_rows": rows, "ref_rows": ref_grid[bls], "tgt_vis": tgt_vis,
+                "tgt_ok": tgt_ok, "ref_vis": ref_vis, "ref_ok": ref_ok,
+                "ref_swapped": ref_swapped, "off_vis": off_vis, "off_ok": off_ok,
+                "tgt_picked": None}
+
     def localise(grid, arrays):
         rows = grid[bls]
         used = rows >= 0

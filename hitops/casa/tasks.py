@@ -145,9 +145,11 @@ def applycal(vis: str, gaintable: StrList, interp: StrList = None,
         flags = tab.getcol("FLAG")
     flagged = float(np.mean(flags)) if flags.size else 1.0
     log.info("%s: CORRECTED_DATA written, %.1f%% flagged", vis, 100 * flagged)
-    out = {"vis": vis, "gaintable": tables, "applymode": applymode, "flagged_fraction": flagged}
+    # only the cab's declared outputs are returned (Stimela rejects others)
+    out = {"flagged_fraction": flagged}
     if receipt:
-        _write_json(receipt, out)
+        _write_json(receipt, {"vis": vis, "gaintable": tables, "applymode": applymode,
+                              "flagged_fraction": flagged})
         out["receipt"] = receipt
     return out
 
@@ -197,18 +199,21 @@ def centre_box(imagename: str, half_width: int) -> str:
 
 
 def imfit(imagename: str, box: str = "", region: str = "", stokes: str = "I",
-          centre_half_width: int = 0, fallback: bool = False, label: str = "",
-          outfile: Optional[str] = None) -> Dict[str, object]:
+          centre_half_width: int = 0, fallback: bool = False,
+          fallback_image: Optional[str] = None, max_abs_peak: float = 0.0,
+          label: str = "", outfile: Optional[str] = None) -> Dict[str, object]:
     """Fit one 2-D Gaussian with CASA imfit; return its peak and error (Jy/beam).
 
     Also returns the integrated flux and its error and the fitted centre
     (pixels), all plain floats.  ``centre_half_width`` > 0 restricts the fit
     to a box of that many pixels around the image centre (the phase centre,
     where the simulated source sits), which keeps imfit off sidelobes and fast.
-    If the fit does not converge (e.g. the uncalibrated image, whose flux is
-    smeared into a ring of sidelobes) ``fallback`` reports the brightest pixel
-    in the box with the robust image rms as its error, marked
-    ``method: max-pixel``; otherwise the step fails.  ``outfile`` (JSON) keeps
+    A fit that does not converge, or whose |peak| exceeds ``max_abs_peak``
+    (> 0; CLEAN can diverge on incoherent data with sparse VLBI coverage and
+    restore a peak of 1e20 Jy) fails the step, unless ``fallback`` is set: then
+    the brightest pixel in the box of ``fallback_image`` (e.g. the dirty image,
+    which needs no deconvolution) or of the image itself is reported with the
+    robust rms as its error, marked ``method: max-pixel``.  ``outfile`` (JSON) keeps
     the result with its ``label`` (e.g. "pwc") for the peak-flux comparison,
     which reads files so that it still works when this step is skipped on a
     rerun.
@@ -243,18 +248,32 @@ def imfit(imagename: str, box: str = "", region: str = "", stokes: str = "I",
             "x_pix": float(pixel[0]),
             "y_pix": float(pixel[1]),
         }
+        bad = None
         if not all(math.isfinite(out[k]) for k in ("peak", "peak_err")):
-            raise ExternalToolError(f"imfit on '{imagename}' returned a non-finite peak")
-    else:
-        log.warning("%s; reporting the brightest pixel instead (fallback)", error)
-        stats = _image_shape_and_stats(imagename, box)
+            bad = f"imfit on '{imagename}' returned a non-finite peak"
+        elif max_abs_peak and abs(out["peak"]) > max_abs_peak:
+            bad = (f"imfit peak {out['peak']:.3g} Jy/beam on '{imagename}' exceeds "
+                   f"{max_abs_peak:g} Jy/beam: the deconvolution diverged")
+        if bad:
+            if not fallback:
+                raise ExternalToolError(bad)
+            error = bad
+    if error is not None:
+        source = fallback_image or imagename
+        if not Path(source).exists():
+            raise InputError(f"imfit fallback image '{source}' does not exist")
+        log.warning("%s; reporting the brightest pixel of %s instead (fallback)", error, source)
+        stats = _image_shape_and_stats(source, box)
         # no flux/flux_err: they are undefined without a fit (and NaN is not JSON)
         out = {"method": "max-pixel", "peak": stats["max"], "peak_err": stats["rms"],
                "x_pix": stats["maxpos"][0], "y_pix": stats["maxpos"][1]}
+        extra = {"fallback_image": str(source), "reason": str(error)}
+    else:
+        extra = {}
     log.info("imfit %s: peak %.5f +- %.5f Jy/beam (%s)", imagename, out["peak"],
              out["peak_err"], out["method"])
     if outfile:
         _write_json(outfile, {"label": label or Path(imagename).stem, "image": str(imagename),
-                              "box": box, **out})
+                              "box": box, **out, **extra})
         out["outfile"] = outfile
     return out

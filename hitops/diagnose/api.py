@@ -12,13 +12,10 @@ from __future__ import annotations
 import logging
 import time
 from pathlib import Path
-from typing import Optional
-
-import numpy as np
 
 from ..errors import InputError
 from . import tables
-from .metrics import compute_coherence, parse_intervals
+from .metrics import compute_coherence, parse_intervals, run_lengths
 from .read import read_grid
 
 log = logging.getLogger("hitops.diagnose")
@@ -92,7 +89,6 @@ def diagnose(ms, columns="DATA,CORRECTED_DATA", metric="coherence-factor", inter
     log.info("read %s: %d baselines x %d times x %d correlations, %d column(s) in %.1f s",
              ms, data.n_bl, data.n_time, len(data.corr_names), len(cols), t_read - t_start)
 
-    from .metrics import run_lengths
     longest = run_lengths(data.times, data.scan, data.dt)
     longest_all = float(longest.max(initial=0.0))
     if longest_all <= 0:
@@ -107,6 +103,13 @@ def diagnose(ms, columns="DATA,CORRECTED_DATA", metric="coherence-factor", inter
                         f"the longest scan ({longest_all:g} s) and were left out of the C(T) "
                         "grid")
         grid = grid[grid <= longest_all]
+    too_short = grid[grid < data.dt * (1 - 1e-9)]
+    if too_short.size:
+        # one sample per segment: C = 1 by definition, nothing to learn
+        warnings.append(f"intervals {', '.join(f'{t:g}' for t in too_short)} s are shorter "
+                        f"than the sampling interval ({data.dt:g} s) and were left out of the "
+                        "C(T) grid")
+        grid = grid[grid >= data.dt * (1 - 1e-9)]
     if interval < data.dt:
         warnings.append(f"--interval {interval:g} s is shorter than the sampling interval "
                         f"{data.dt:g} s: every segment holds one sample, so C = 1")
@@ -121,16 +124,17 @@ def diagnose(ms, columns="DATA,CORRECTED_DATA", metric="coherence-factor", inter
     for col in cols:
         if sum(rec["columns"][col]["n_usable"] for rec in records) == 0:
             warnings.append(f"column {col} has no usable sample on any selected baseline "
-                            "(all flagged, zero or NaN): its comparisons are undefined")
+                            "(all flagged, zero or not finite): its comparisons are undefined")
     if all(sum(rec["columns"][c]["n_usable"] for rec in records) == 0 for c in cols):
         raise InputError(f"{ms}: every sample of the selected baselines and correlations is "
-                         "flagged, zero or NaN in every column; nothing to diagnose")
+                         "flagged, zero or not finite in every column; nothing to diagnose")
     dead = [rec["baseline"] for rec in records
             if all(rec["columns"][c]["n_usable"] == 0 for c in cols)]
     if dead:
         warnings.append(f"baseline(s) {', '.join(dead)} fully flagged in every column")
 
-    comparisons = [tables.compare(records, cols[i], cols[j], metric, data.antenna_names)
+    comparisons = [tables.compare(records, cols[i], cols[j], metric, data.antenna_names,
+                                  intervals=[float(t) for t in res.intervals])
                    for i in range(len(cols)) for j in range(i + 1, len(cols))]
     if len(cols) == 1:
         warnings.append("only one column given: no comparison table (give two or more "

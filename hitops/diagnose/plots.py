@@ -72,8 +72,10 @@ def phase_figure(data: GridData, b: int, columns: Sequence[str],
         ax.set_ylim(-180, 180)
         ax.set_yticks([-180, -90, 0, 90, 180])
         ax.set_ylabel(f"{corr} phase (deg)")
-        ax.set_title(f"{name} {corr}", fontsize=9)
-        ax.legend(loc="upper right", fontsize=7, markerscale=6, ncols=len(columns) + 1)
+        ax.set_title(f"{name} {corr}", fontsize=9, loc="left")
+        # legend above the panel, so it never hides data
+        ax.legend(loc="lower right", bbox_to_anchor=(1.0, 1.0), fontsize=7, markerscale=6,
+                  ncols=len(columns) + 1, frameon=False, borderaxespad=0.1)
     axes[-1].set_xlabel(f"time since {mjd_label(t0)} (h)")
     return fig
 
@@ -152,7 +154,7 @@ def uv_figure(data: GridData, res: CoherenceResult, records: List[dict], step_s:
             value = np.full(ok.sum(), ratio[b])
             for sign in (1.0, -1.0):
                 if np.isfinite(ratio[b]):
-                    sc = ax.scatter(sign * uv[ok, 0], sign * uv[ok, 1], c=value, s=2,
+                    ax.scatter(sign * uv[ok, 0], sign * uv[ok, 1], c=value, s=2,
                                     cmap="viridis", norm=norm, rasterized=True)
                 else:
                     ax.scatter(sign * uv[ok, 0], sign * uv[ok, 1], s=2, color="0.7",

@@ -187,8 +187,7 @@ def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = 
     pol = _subtable(ms, "POLARIZATION", ["CORR_TYPE"])["CORR_TYPE"]
     spw = _subtable(ms, "SPECTRAL_WINDOW", ["REF_FREQUENCY"])["REF_FREQUENCY"]
 
-    wanted_cols = ["TIME", "ANTENNA1", "ANTENNA2", "FLAG", "FLAG_ROW", "SCAN_NUMBER",
-                   "INTERVAL"]
+    wanted_cols = ["TIME", "ANTENNA1", "ANTENNA2", "FLAG", "FLAG_ROW", "SCAN_NUMBER"]
     if want_uvw:
         wanted_cols.append("UVW")
     wanted_cols += list(dict.fromkeys(columns))
@@ -219,7 +218,7 @@ def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = 
     pair_key = ant1.astype(np.int64) * max(n_ant, 1) + ant2
     pairs = np.unique(pair_key[cross])
     mask = select_baselines(pairs // n_ant, pairs % n_ant, ant_names, baselines, ms)
-    keep = cross & np.isin(pair_key, pairs[mask])
+    keep = cross if mask.all() else cross & np.isin(pair_key, pairs[mask])
     # take every row without a copy when nothing is dropped (the usual case)
     rows = slice(None) if keep.all() else np.flatnonzero(keep)
 
@@ -264,7 +263,10 @@ def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = 
     if layout.n_time > 1:
         dt = float(np.median(np.diff(layout.times)))
     else:
-        dt = float(np.median(values["INTERVAL"][rows]))
+        from casacore import tables as pt
+
+        with pt.table(ms, ack=False) as tab:   # one time step only: fall back on INTERVAL
+            dt = float(np.median(tab.getcol("INTERVAL")))
     if not dt > 0:
         raise MeasurementSetError(f"{ms}: cannot find a positive sampling interval "
                                   "(TIME steps and INTERVAL are zero)")

@@ -72,7 +72,7 @@ def baseline_records(res: CoherenceResult, baseline_names: List[str], ant_names:
                      "per_correlation": per_corr,
                      "notes": [], "tau_note": None}
             if n_usable.sum() == 0:
-                entry["notes"].append(f"{col}: no usable sample (all flagged, zero or NaN)")
+                entry["notes"].append(f"{col}: no usable sample (all flagged, zero or not finite)")
             else:
                 dead = [corr for c, corr in enumerate(res.corr_names) if n_usable[c] == 0]
                 if dead:
@@ -130,10 +130,22 @@ def _stats(values: List[float]) -> Dict[str, Optional[float]]:
 
 
 def compare(records: List[dict], before: str, after: str, metric: str,
-            ant_names: List[str]) -> dict:
-    """Ranked table, array statistics and per-antenna summary of one column pair."""
+            ant_names: List[str], intervals: Optional[List[float]] = None) -> dict:
+    """Ranked table, array statistics and per-antenna summary of one column pair.
+
+    Each row also lists ``worse_at_s``: the grid intervals T at which the
+    "after" column's C(T) is below the "before" column's (the paper's claim
+    "PWC beats FF+SC at every averaging interval on all baselines" holds when
+    every list is empty).
+    """
     rows = []
     for rec in records:
+        worse = []
+        if intervals is not None:
+            for t, cb, ca in zip(intervals, rec["columns"][before]["curve"],
+                                 rec["columns"][after]["curve"]):
+                if cb is not None and ca is not None and ca < cb:
+                    worse.append(float(t))
         b_val, b_bound = metric_value(rec["columns"][before], metric)
         a_val, a_bound = metric_value(rec["columns"][after], metric)
         pct, bound = improvement(b_val, b_bound, a_val, a_bound)
@@ -148,6 +160,7 @@ def compare(records: List[dict], before: str, after: str, metric: str,
                      "after": a_val, "after_bound": a_bound or None,
                      "improvement_pct": _num(pct),
                      "improvement_bound": bound if pct is not None else None,
+                     "worse_at_s": worse,
                      "note": "; ".join(notes)})
     defined = [r for r in rows if r["improvement_pct"] is not None]
     undefined = [r for r in rows if r["improvement_pct"] is None]
@@ -165,6 +178,7 @@ def compare(records: List[dict], before: str, after: str, metric: str,
         "n_baselines": len(rows), "n_defined": len(defined),
         "n_undefined": len(undefined),
         "n_improved": sum(p > 0 for p in pcts),
+        "n_worse_at_some_interval": sum(bool(r["worse_at_s"]) for r in rows),
         "n_lower_bounds": n_lower, "n_upper_bounds": n_upper,
         "mean_improvement_pct": stats["mean"], "median_improvement_pct": stats["median"],
         "min_improvement_pct": stats["min"], "max_improvement_pct": stats["max"],
@@ -224,7 +238,7 @@ def _cell(value, bound=None, digits=4) -> str:
 def write_csv(path, comparisons: List[dict]) -> None:
     fields = ["comparison", "rank", "baseline", "ant1", "ant2", "metric", "before_column",
               "after_column", "before", "before_bound", "after", "after_bound",
-              "improvement_pct", "improvement_bound", "note"]
+              "improvement_pct", "improvement_bound", "n_intervals_worse", "note"]
     with open(path, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=fields)
         writer.writeheader()
@@ -242,6 +256,7 @@ def write_csv(path, comparisons: List[dict]) -> None:
                     "improvement_pct": ("" if r["improvement_pct"] is None
                                         else f"{r['improvement_pct']:.4f}"),
                     "improvement_bound": r["improvement_bound"] or "",
+                    "n_intervals_worse": len(r["worse_at_s"]),
                     "note": r["note"]})
 
 
@@ -297,8 +312,11 @@ def render_text(summary: dict) -> str:
             if comp["n_lower_bounds"] or comp["n_upper_bounds"]:
                 extra = (f" (includes {comp['n_lower_bounds']} lower and "
                          f"{comp['n_upper_bounds']} upper bounds)")
-            lines.append(f"array: mean improvement {comp['mean_improvement_pct']:+.1f}%, "
-                         f"median {comp['median_improvement_pct']:+.1f}%, range "
+            # every value a lower (upper) bound makes mean and median bounds too
+            pre = (">" if comp["n_lower_bounds"] == comp["n_defined"] else
+                   "<" if comp["n_upper_bounds"] == comp["n_defined"] else "")
+            lines.append(f"array: mean improvement {pre}{comp['mean_improvement_pct']:+.1f}%, "
+                         f"median {pre}{comp['median_improvement_pct']:+.1f}%, range "
                          f"{comp['min_improvement_pct']:+.1f}% ({comp['worst_baseline']}) to "
                          f"{comp['max_improvement_pct']:+.1f}% ({comp['best_baseline']}); "
                          f"{comp['n_improved']}/{comp['n_defined']} baselines improved{extra}")
@@ -306,7 +324,17 @@ def render_text(summary: dict) -> str:
             lines.append("array: no baseline has a defined improvement (see notes)")
         if comp["n_undefined"]:
             lines.append(f"       {comp['n_undefined']} baseline(s) undefined, listed last")
-        lines.append(f"per antenna (worst first):")
+        worse = [r for r in comp["ranking"] if r["worse_at_s"]]
+        if worse:
+            lines.append(f"       {after} has lower C(T) than {before} at some interval on "
+                         f"{len(worse)} baseline(s): " + ", ".join(
+                             f"{r['baseline']} (T={','.join(f'{t:.3g}' for t in r['worse_at_s'][:4])}"
+                             f"{',...' if len(r['worse_at_s']) > 4 else ''} s)" for r in worse[:8])
+                         + (", ..." if len(worse) > 8 else ""))
+        else:
+            lines.append(f"       {after} has C(T) >= {before} at every interval on every "
+                         "baseline with data")
+        lines.append("per antenna (worst first):")
         lines.append(f"  {'antenna':<8} {'n_bl':>4} {'median':>9} {'mean':>9}  worst baseline")
         for a in comp["antennas"]:
             mark = "  <-- outlier" if a["outlier"] else ""

@@ -10,7 +10,7 @@ station names, so the two bands' ANTENNA tables may be ordered differently.
 from __future__ import annotations
 
 import logging
-from typing import Dict, List, Optional
+from typing import Dict, List
 
 import numpy as np
 

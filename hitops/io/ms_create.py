@@ -152,8 +152,12 @@ def _fill_subtables(ms: str, layout: ArrayLayout, band: Band, field: Field,
         t.putcol("FLAG_ROW", np.array([False]))
 
     codes = np.array([[CORR_CODES[c] for c in band.corr_types]], np.int32)
+    # python-casacore shows a [2, NUM_CORR] cell as (NUM_CORR, 2): one receptor pair
+    # per correlation, e.g. RR LL -> [[0, 0], [1, 1]] (as casatools.simulator writes).
+    # (A transposed array here made CASA gaincal see only cross hands and stop with
+    # "Insufficient unflagged antennas".)
     products = np.array([[[receptors.index(c[0]), receptors.index(c[1])]
-                          for c in band.corr_types]], np.int32).transpose(0, 2, 1)
+                          for c in band.corr_types]], np.int32)
     with pt.table(f"{ms}::POLARIZATION", readonly=False, ack=False) as t:
         t.addrows(1)
         t.putcol("NUM_CORR", np.array([n_corr], np.int32))

@@ -77,9 +77,12 @@ def compute_columns(requests, scheduler=None) -> List[Dict[str, np.ndarray]]:
 
     graphs = []
     for ds, columns, rows in requests:
+        index = slice(None)
         if rows is not None:
-            ds = ds.isel(row=np.asarray(rows))
-        graphs.append({c: ds[c].data for c in columns})
+            rows = np.asarray(rows, dtype=np.int64)
+            contiguous = rows.size and rows[-1] - rows[0] + 1 == rows.size
+            index = slice(int(rows[0]), int(rows[-1]) + 1) if contiguous else rows
+        graphs.append({c: ds[c].data[index] for c in columns})
     # a callable scheduler avoids dask probing for a distributed client on every call
     return list(dask.compute(*graphs, scheduler=scheduler or dask.threaded.get))
 
@@ -109,7 +112,13 @@ def write_main_columns(ms: str, rows: np.ndarray, arrays: Dict[str, np.ndarray],
     n = rows.size
     variables = {}
     for name, value in arrays.items():
-        variables[name] = (dims[name], da.from_array(value, chunks=(n,) + value.shape[1:]))
-    ds = Dataset(variables, coords={"ROWID": ("row", da.from_array(rows, chunks=n))})
+        # name=False: a random key instead of hashing tens of MB of output
+        variables[name] = (dims[name], da.from_array(value, chunks=(n,) + value.shape[1:],
+                                                      name=False))
+    ds = Dataset(variables, coords={"ROWID": ("row", da.from_array(rows, chunks=n, name=False))})
     writes = xds_to_table(ds, ms, columns=list(arrays))
-    dask.compute(writes, scheduler=scheduler or dask.threaded.get)
+    writes = writes if isinstance(writes, (list, tuple)) else [writes]
+    # compute the write arrays, not the datasets: a dask-ms Dataset does not survive
+    # pickling to distributed workers
+    arrays_to_run = [var.data for w in writes for var in w.data_vars.values()]
+    dask.compute(arrays_to_run, scheduler=scheduler or dask.threaded.get)

@@ -42,7 +42,7 @@ def _wrap(x):
 
 
 @numba.njit(cache=True, nogil=True)
-def solve_antenna_phases(vis, valid, ant1, ant2, n_ant, refants, n_iter=50, tol=1e-8):
+def solve_antenna_phases(vis, valid, ant1, ant2, n_ant, refants, n_iter=30, tol=1e-4):
     """Per-sample phase-only antenna solutions at the reference band.
 
     vis: complex (n_bl, n_time), complex64 or complex128 (promoted to
@@ -70,15 +70,24 @@ def solve_antenna_phases(vis, valid, ant1, ant2, n_ant, refants, n_iter=50, tol=
     offset = 0.0
     prev_t = -1
     prev_ref = -1
+    # one time sample's baselines, copied contiguously (the grid is baseline-major)
+    v_re = np.zeros(n_bl)
+    v_im = np.zeros(n_bl)
+    use = np.zeros(n_bl, np.bool_)
     for t in range(n_time):
         present[:] = False
         for b in range(n_bl):
-            if valid[b, t]:
-                v = complex(vis[b, t])
-                if np.isfinite(v.real) and np.isfinite(v.imag) and (v.real != 0.0 or v.imag != 0.0):
-                    if ant1[b] != ant2[b]:
-                        present[ant1[b]] = True
-                        present[ant2[b]] = True
+            use[b] = False
+            if valid[b, t] and ant1[b] != ant2[b]:
+                v = vis[b, t]
+                re = np.float64(v.real)
+                im = np.float64(v.imag)
+                if np.isfinite(re) and np.isfinite(im) and (re != 0.0 or im != 0.0):
+                    use[b] = True
+                    v_re[b] = re
+                    v_im[b] = im
+                    present[ant1[b]] = True
+                    present[ant2[b]] = True
         ref = -1
         for r in refants:
             if 0 <= r < n_ant and present[r]:
@@ -96,24 +105,21 @@ def solve_antenna_phases(vis, valid, ant1, ant2, n_ant, refants, n_iter=50, tol=
             if not (prev_t >= 0 and ant_valid[p, prev_t]):
                 g_re[p] = 1.0
                 g_im[p] = 0.0
-        for _ in range(n_iter):
+        for it in range(n_iter):
             acc_re[:] = 0.0
             acc_im[:] = 0.0
             for b in range(n_bl):
-                if not valid[b, t]:
+                if not use[b]:
                     continue
                 p = ant1[b]
                 q = ant2[b]
-                if p == q:
-                    continue
-                v = complex(vis[b, t])
-                if not (np.isfinite(v.real) and np.isfinite(v.imag)):
-                    continue
+                re = v_re[b]
+                im = v_im[b]
                 # V_pq g_q -> g_p ; conj(V_pq) g_p -> g_q
-                acc_re[p] += v.real * g_re[q] - v.imag * g_im[q]
-                acc_im[p] += v.real * g_im[q] + v.imag * g_re[q]
-                acc_re[q] += v.real * g_re[p] + v.imag * g_im[p]
-                acc_im[q] += v.real * g_im[p] - v.imag * g_re[p]
+                acc_re[p] += re * g_re[q] - im * g_im[q]
+                acc_im[p] += re * g_im[q] + im * g_re[q]
+                acc_re[q] += re * g_re[p] + im * g_im[p]
+                acc_im[q] += re * g_im[p] - im * g_re[p]
             change = 0.0
             for p in range(n_ant):
                 if not present[p]:
@@ -121,9 +127,14 @@ def solve_antenna_phases(vis, valid, ant1, ant2, n_ant, refants, n_iter=50, tol=
                 amp = np.hypot(acc_re[p], acc_im[p])
                 if amp == 0.0:
                     continue
-                # average with the previous iterate (StEFCal's damping) and renormalise
-                n_re = 0.5 * (g_re[p] + acc_re[p] / amp)
-                n_im = 0.5 * (g_im[p] + acc_im[p] / amp)
+                # every second iterate is averaged with the previous one (StEFCal's
+                # damping, which stops the two-cycle oscillation), then renormalised
+                if it % 2 == 1:
+                    n_re = 0.5 * (g_re[p] + acc_re[p] / amp)
+                    n_im = 0.5 * (g_im[p] + acc_im[p] / amp)
+                else:
+                    n_re = acc_re[p] / amp
+                    n_im = acc_im[p] / amp
                 n_amp = np.hypot(n_re, n_im)
                 if n_amp == 0.0:
                     n_re = acc_re[p] / amp

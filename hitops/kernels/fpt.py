@@ -72,6 +72,32 @@ def gather_phase(rows, vis, ok, swapped, corr_map):
 
 
 @numba.njit(cache=True, nogil=True)
+def gather_valid(rows, vis, ok):
+    """Validity (n_bl, n_corr, n_time) of target samples, without computing phases.
+
+    Same rule as :func:`gather_phase` for unswapped rows with the identity
+    correlation map; PWC and CFPT need only this from the target band.
+    """
+    n_bl, n_time = rows.shape
+    n_corr = vis.shape[1]
+    valid = np.zeros((n_bl, n_corr, n_time), dtype=np.bool_)
+    for b in range(n_bl):
+        for t in range(n_time):
+            row = rows[b, t]
+            if row < 0:
+                continue
+            for c in range(n_corr):
+                if not ok[row, c]:
+                    continue
+                v = vis[row, c]
+                re = v.real
+                im = v.imag
+                if math.isfinite(re) and math.isfinite(im) and not (re == 0.0 and im == 0.0):
+                    valid[b, c, t] = True
+    return valid
+
+
+@numba.njit(cache=True, nogil=True)
 def transfer_phasors(tgt_rows, tgt_phase, tgt_valid, ref_phase, ref_valid, ref_wraps,
                      tgt_wraps, ratio, eps, method, offset, scan_of_time):
     """Unit phasors that turn the target visibility into the FPT-calibrated one.

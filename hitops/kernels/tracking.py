@@ -327,13 +327,15 @@ def slip_errors(counts, ref_phase, valid, true_phase):
 
 
 @numba.njit(cache=True, nogil=True)
-def count_slips(err, valid):
+def count_slips(err, valid, max_transient=3):
     """(persistent slips, transient samples) of a count-error series.
 
-    A transient is a valid sample whose error differs from both valid
-    neighbours, which agree with each other (a one-sample outlier); it is
-    replaced by its neighbours' value before counting.  Persistent slips are
-    the sum of |changes| of the cleaned error between consecutive valid samples.
+    A transient is a run of at most ``max_transient`` valid samples whose
+    error differs from the valid samples on both sides, which agree with each
+    other: an outlier excursion (samples whose own noise exceeds pi), not a
+    slip.  Transients are replaced by their neighbours' value; persistent
+    slips are the sum of |changes| of the cleaned error between consecutive
+    valid samples.
     """
     n_time = err.size
     m = 0
@@ -346,12 +348,24 @@ def count_slips(err, valid):
         if valid[i]:
             e[k] = err[i]
             k += 1
-    transients = 0
+    # runs of equal error
+    run_start = np.empty(m + 1, np.int64)
+    n_runs = 0
+    for k in range(m):
+        if k == 0 or e[k] != e[k - 1]:
+            run_start[n_runs] = k
+            n_runs += 1
+    run_start[n_runs] = m
     cleaned = e.copy()
-    for k in range(1, m - 1):
-        if e[k] != e[k - 1] and e[k] != e[k + 1] and e[k - 1] == e[k + 1]:
-            cleaned[k] = e[k - 1]
-            transients += 1
+    transients = 0
+    for r in range(1, n_runs - 1):
+        length = run_start[r + 1] - run_start[r]
+        before = cleaned[run_start[r] - 1]
+        after = e[run_start[r + 1]]
+        if length <= max_transient and before == after:
+            for k in range(run_start[r], run_start[r + 1]):
+                cleaned[k] = before
+            transients += length
     slips = 0
     for k in range(1, m):
         slips += abs(cleaned[k] - cleaned[k - 1])

@@ -49,6 +49,17 @@ def count_wraps(ref_phase, valid):
     return wraps
 
 
+@numba.njit(cache=True, nogil=True)
+def wrap_events(wraps):
+    """Number of wraps counted in each series of ``wraps`` (..., n_time): sum of |steps|."""
+    flat = wraps.reshape(-1, wraps.shape[-1])
+    events = np.zeros(flat.shape[0], dtype=np.int64)
+    for s in range(flat.shape[0]):
+        for t in range(1, flat.shape[1]):
+            events[s] += abs(flat[s, t] - flat[s, t - 1])
+    return events.reshape(wraps.shape[:-1])
+
+
 #: trackers by name; each maps (ref_phase[n_time], valid[n_time]) -> int64[n_time]
 TRACKERS = {"count": count_wraps}
 

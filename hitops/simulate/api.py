@@ -98,8 +98,12 @@ def observe(scene: Scene) -> Observation:
 def model_visibilities(scene: Scene, band_index: int, uvw: np.ndarray) -> np.ndarray:
     """Noise-free Stokes I visibility (Jy) per row: point source + Gaussians.
 
-    V = sum_k F_k exp(-2 pi i (u l_k + v m_k)) exp(-pi^2 (a_k^2 u'^2 + b_k^2 v'^2) / (4 ln 2)),
-    u, v in wavelengths, a/b the FWHM along the major/minor axis.
+    V = sum_k F_k exp(+2 pi i (u l_k + v m_k)) exp(-pi^2 (a_k^2 u'^2 + b_k^2 v'^2) / (4 ln 2)),
+    u, v the stored UVW (= uvw(ANT1) - uvw(ANT2)) in wavelengths, l east, m north,
+    a/b the FWHM along the major/minor axis.  In terms of the baseline
+    X2 - X1 this is the usual exp(-2 pi i (u l + v m)) (Thompson, Moran &
+    Swenson 2017, eq. 3.7); WSClean images it at +l (east), +m (north)
+    (tests/test_simulate_tools.py).
     """
     band = scene.bands[band_index]
     model = np.full(uvw.shape[0], scene.flux[band.name], dtype=np.complex128)
@@ -115,7 +119,7 @@ def model_visibilities(scene: Scene, band_index: int, uvw: np.ndarray) -> np.nda
         taper = np.exp(-(np.pi ** 2) / (4.0 * np.log(2.0)) *
                        ((comp.fwhm_major * uas * along_major) ** 2 +
                         (comp.fwhm_minor * uas * along_minor) ** 2))
-        shift = np.exp(-2j * np.pi * (u * comp.offset_ra * uas + v * comp.offset_dec * uas))
+        shift = np.exp(2j * np.pi * (u * comp.offset_ra * uas + v * comp.offset_dec * uas))
         model += comp.flux[band.name] * taper * shift
     return model
 

@@ -13,12 +13,11 @@ to well below a millimetre on Earth-sized baselines (checked against
 casacore row by row in tests/test_simulate_geometry.py).
 
 Sign convention: UVW of a row = uvw(ANTENNA1) - uvw(ANTENNA2), i.e.
-``to_uvw`` of the baseline X1 - X2, with V = sum I exp(-2 pi i (u l + v m)).
-This is what casatools.simulator writes (checked row by row in
-tests/test_simulate_casa.py) and what WSClean images with east to the left
-and north up (checked with an offset component in the WSClean test); it
-matches V_pq = <e_p e_q^*> with e_p ~ exp(-2 pi i u_p . l).  (casacore's
-TaQL ``MSCAL.UVWJ2000()`` returns the opposite sign.)
+``to_uvw`` of the baseline X1 - X2, as casatools.simulator writes it
+(checked row by row in tests/test_simulate_tools.py); a sky offset (l east,
+m north) then enters as V = exp(+2 pi i (u l + v m)) in the stored UVW,
+which WSClean images east-left, north-up (checked in the same tests).
+casacore's TaQL ``MSCAL.UVWJ2000()`` returns the opposite sign.
 """
 
 from __future__ import annotations
@@ -59,7 +58,12 @@ def _rz(theta: np.ndarray) -> np.ndarray:
 
 def casacore_uvw_matrix(times: np.ndarray, ra: float, dec: float,
                         position: np.ndarray) -> np.ndarray:
-    """M(t) (n, 3, 3) from casacore: uvw = M @ itrf_baseline, J2000 frame of (ra, dec)."""
+    """M(t) (n, 3, 3) from casacore: uvw = M @ itrf_baseline, J2000 frame of (ra, dec).
+
+    ``position`` is casacore's frame position: to_uvw applies the observer's
+    aberration, which moves UVW by ~20 m on 10^4 km baselines between
+    stations, so the simulator uses one array reference (the first station).
+    """
     from casacore import quanta as qa
     from casacore.measures import measures
 

@@ -119,11 +119,26 @@ def track_series(ref_phase: np.ndarray, valid: np.ndarray, mode: str = "smooth",
     return TrackResult(counts, segment, suspect, bridged, jump)
 
 
+def running_sum(ref_vis: np.ndarray, valid: np.ndarray, half_window: int) -> np.ndarray:
+    """Sum of the valid visibilities within +-``half_window`` samples (complex128, per baseline)."""
+    vis = np.where(valid & np.isfinite(ref_vis), ref_vis, 0).astype(np.complex128)
+    n_time = vis.shape[1]
+    csum = np.concatenate([np.zeros((vis.shape[0], 1), np.complex128), np.cumsum(vis, axis=1)], axis=1)
+    hi = np.minimum(np.arange(n_time) + half_window + 1, n_time)
+    lo = np.maximum(np.arange(n_time) - half_window, 0)
+    return csum[:, hi] - csum[:, lo]
+
+
 def track_antennas(ref_vis: np.ndarray, valid: np.ndarray, ant1, ant2, n_ant: int,
-                   refants=(), antenna_tracker: str = "smooth", **params) -> TrackResult:
+                   refants=(), antenna_tracker: str = "smooth", solve_half_window: int = 0,
+                   **params) -> TrackResult:
     """Antenna-based wrap counts for every baseline of a (n_bl, n_time) reference grid.
 
     ``ref_vis`` complex64 or complex128 visibilities at the reference band.
+    ``solve_half_window`` > 0 solves the antenna phases from visibilities
+    summed over +-that many samples (shorter than the coherence time): the
+    solve then has the SNR of the window, while each baseline sample is still
+    snapped individually to the antenna model.
     The result's arrays are per baseline; ``extra`` holds the per-antenna
     phases, counts and diagnostics (``antenna``: a TrackResult over antennas),
     the reference antenna used at each sample and the frame breaks.
@@ -140,7 +155,8 @@ def track_antennas(ref_vis: np.ndarray, valid: np.ndarray, ant1, ant2, n_ant: in
     if n_ant <= max(ant1.max(initial=-1), ant2.max(initial=-1)):
         raise InputError(f"n_ant={n_ant} is smaller than the largest antenna index in ant1/ant2")
     refants = np.asarray(list(refants), dtype=np.int64)
-    ant_phase, ant_valid, ref_used, frame_break = solve_antenna_phases(ref_vis, valid, ant1, ant2,
+    solve_vis = running_sum(ref_vis, valid, solve_half_window) if solve_half_window > 0 else ref_vis
+    ant_phase, ant_valid, ref_used, frame_break = solve_antenna_phases(solve_vis, valid, ant1, ant2,
                                                                        n_ant, refants)
     # a frame break makes every antenna phase jump arbitrarily: track the pieces separately
     cuts = [0] + list(np.flatnonzero(frame_break)) + [ref_vis.shape[1]]
@@ -177,3 +193,30 @@ def _concatenate(pieces: list[TrackResult]) -> TrackResult:
                        np.concatenate([p.suspect for p in pieces], axis=1),
                        np.concatenate([p.bridged for p in pieces], axis=1),
                        np.concatenate([p.jump for p in pieces], axis=1))
+
+
+def track_series_dask(ref_phase, valid, mode: str = "smooth", **params) -> dict:
+    """Dask version of :func:`track_series`: one task per baseline chunk.
+
+    ``ref_phase`` and ``valid`` are dask arrays (n_bl, n_time) chunked along
+    baselines only (a tracker needs the whole time axis).  Returns a dict of
+    dask arrays with the fields of :class:`TrackResult`; nothing is computed.
+    """
+    import dask
+    import dask.array as da
+
+    if len(ref_phase.chunks[1]) != 1:
+        raise InputError("track_series_dask needs the time axis in one chunk "
+                         f"(got {len(ref_phase.chunks[1])} time chunks); rechunk with {{1: -1}}")
+    valid = valid.rechunk(ref_phase.chunks)
+    fields = {"counts": np.int64, "segment": np.int64, "suspect": np.bool_, "bridged": np.bool_,
+              "jump": np.float64}
+    blocks = {name: [] for name in fields}
+    n_time = ref_phase.shape[1]
+    for phase_block, valid_block, n_rows in zip(ref_phase.to_delayed()[:, 0], valid.to_delayed()[:, 0],
+                                                ref_phase.chunks[0]):
+        result = dask.delayed(track_series, nout=None, pure=True)(phase_block, valid_block, mode, **params)
+        for name, dtype in fields.items():
+            part = dask.delayed(getattr, pure=True)(result, name)
+            blocks[name].append(da.from_delayed(part, (n_rows, n_time), dtype=dtype))
+    return {name: da.concatenate(parts, axis=0) for name, parts in blocks.items()}

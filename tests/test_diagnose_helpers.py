@@ -78,7 +78,7 @@ def build_ms(path: Path, phases: Dict[str, np.ndarray], stations: Sequence[str],
 
     def col_values(col):
         amp = 1.0 if amplitude is None or col not in amplitude else \
-            amplitude[col][b_idx, t_idx]
+            amplitude[col][b_idx, t_idx][:, None]
         return (amp * np.exp(1j * phases[col][b_idx, t_idx])).astype(np.complex64)
 
     main = {"TIME": times, "ANTENNA1": ant1, "ANTENNA2": ant2, "UVW": uvw,

@@ -1,0 +1,384 @@
+"""hitops calibrate on small synthetic Measurement Set pairs with a known troposphere.
+
+Each test builds its own pair (hitops.calibrate.synthetic.make_pair), runs the
+tool and checks the output against what the paper's algebra predicts.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from casacore import tables as pt
+
+from hitops.calibrate import calibrate
+from hitops.calibrate.synthetic import add_column, expected_pwc_phase, make_pair, wrap
+from hitops.errors import StationError
+
+
+def col(ms, name):
+    with pt.table(str(ms), ack=False) as t:
+        return t.getcol(name)
+
+
+def out_phase(ms, name="PWC_DATA"):
+    return np.angle(col(ms, name)[:, 0, :]).astype(np.float64)
+
+
+def true_wraps(truth):
+    """n(t): integer ambiguity of the wrapped reference phase (wrapped = true + 2*pi*n)."""
+    return np.rint((wrap(truth.ref_phase_true) - truth.ref_phase_true) / (2 * np.pi)).astype(int)
+
+
+def series(truth, values, bl_ant=(0, 1), corr=0):
+    """One baseline's values in time order."""
+    sel = (truth.ant1 == bl_ant[0]) & (truth.ant2 == bl_ant[1])
+    order = np.argsort(truth.time[sel])
+    return values[sel][order, corr]
+
+
+@pytest.mark.parametrize("ratio,jump_deg", [(230 / 86, -117.209), (2.5, 180.0), (340 / 255, 120.0)])
+def test_cfpt_jumps_by_2pi_eps_at_every_reference_wrap(tmp_path, ratio, jump_deg):
+    truth = make_pair(tmp_path, ratio=ratio, n_time=400, seed=3)
+    calibrate(truth.ref_ms, truth.target_ms, method="cfpt")
+    residual = wrap(out_phase(truth.target_ms, "CFPT_DATA") - truth.source_phase)
+    n = true_wraps(truth)
+    eps = ratio - math.floor(ratio)
+    checked = 0
+    for a1, a2 in [(0, 1), (1, 3), (0, 2)]:
+        for c in range(2):
+            r = series(truth, residual, (a1, a2), c)
+            dn = np.diff(series(truth, n, (a1, a2), c))
+            step = np.degrees(wrap(np.diff(r)))
+            # a jump of -2*pi*eps*dn (mod 2*pi) exactly where the reference wraps ...
+            expected = np.degrees(wrap(-2 * np.pi * eps * dn[dn != 0]))
+            assert np.allclose(np.abs(wrap(np.radians(step[dn != 0] - expected))), 0, atol=1e-4)
+            assert np.allclose(np.abs(wrap(np.radians(np.abs(step[dn != 0]) - abs(jump_deg)))), 0,
+                               atol=1e-4)
+            # ... and nowhere else
+            assert np.all(np.abs(step[dn == 0]) < 1e-3)
+            checked += int(np.count_nonzero(dn))
+    assert checked >= 10, "the scene must wrap often enough to test anything"
+
+
+def test_pwc_is_truth_up_to_n0_and_the_offset_step_removes_it(tmp_path):
+    truth = make_pair(tmp_path, n_time=300, phase_offset_rad=2.5, seed=1)
+    n0_expected = expected_pwc_phase(truth)
+    calibrate(truth.ref_ms, truth.target_ms, method="pwc")
+    pwc = out_phase(truth.target_ms)
+    assert np.max(np.abs(wrap(pwc - n0_expected))) < 1e-5
+    # the constant offset is really there on some baselines (n0 != 0) ...
+    assert np.max(np.abs(wrap(pwc - truth.source_phase))) > 0.5
+    # ... and a reference calibration (a noisy "FF+SC" CORRECTED_DATA) removes it
+    rng = np.random.default_rng(0)
+    reference = np.exp(1j * (truth.source_phase + rng.normal(0, 0.3, truth.source_phase.shape)))
+    add_column(truth.target_ms, "CORRECTED_DATA", reference)
+    report_path = tmp_path / "offsets.json"
+    calibrate(truth.ref_ms, truth.target_ms, method="pwc", overwrite=True,
+              offset_reference_column="CORRECTED_DATA", report=str(report_path))
+    pwc = out_phase(truth.target_ms)
+    assert np.max(np.abs(wrap(pwc - truth.source_phase))) < 1e-5
+    report = json.loads(report_path.read_text())
+    series_ = report["offset_step"]["series"]
+    assert len(series_) == 6 * 2
+    n0 = true_wraps(truth)
+    for entry in series_:
+        a1, a2 = ("AP", "SM", "PV", "GL").index(entry["baseline"][:2]), ("AP", "SM", "PV", "GL").index(entry["baseline"][3:])
+        c = ["RR", "LL"].index(entry["correlation"])
+        assert entry["k"] == series(truth, n0, (a1, a2), c)[0]
+        assert entry["residual_deg"] < 2.0 and not entry["ambiguous"]
+    assert any(e["k"] != 0 for e in series_)
+
+
+def test_offset_step_k_is_bounded(tmp_path):
+    truth = make_pair(tmp_path, n_time=200, phase_offset_rad=2.5, seed=1)
+    add_column(truth.target_ms, "CORRECTED_DATA", np.exp(1j * truth.source_phase))
+    report = calibrate(truth.ref_ms, truth.target_ms, offset_reference_column="CORRECTED_DATA",
+                       max_offset_wraps=0)
+    assert all(e["k"] == 0 for e in report["offset_step"]["series"])
+
+
+def test_cwu_equals_pwc(tmp_path):
+    truth = make_pair(tmp_path, n_time=300, phase_offset_rad=1.7, sigma_target=0.4, seed=5)
+    calibrate(truth.ref_ms, truth.target_ms, method="pwc,cwu")
+    pwc = col(truth.target_ms, "PWC_DATA")
+    cwu = col(truth.target_ms, "CWU_DATA")
+    assert np.max(np.abs(wrap(np.angle(pwc) - np.angle(cwu)))) < 1e-5
+    assert np.allclose(np.abs(cwu), np.abs(col(truth.target_ms, "DATA")), rtol=1e-6)
+
+
+def test_integer_ratio_all_three_agree(tmp_path):
+    truth = make_pair(tmp_path, ratio=3.0, n_time=300, phase_offset_rad=2.5, seed=2)
+    report = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu")
+    assert report["eps"] == 0.0 and report["r"] == 3
+    for name in ("PWC_DATA", "CFPT_DATA", "CWU_DATA"):
+        assert np.max(np.abs(wrap(out_phase(truth.target_ms, name) - truth.source_phase))) < 1e-4
+
+
+def test_thermal_noise_residual_variance(tmp_path):
+    sigma_r_cpt, sigma_t_cpt, ref_amp, tgt_amp = 0.03, 0.08, 1.1, 1.0
+    truth = make_pair(tmp_path, n_time=3000, step_rad=0.05, drift_rad=0.02, seed=11,
+                      sigma_ref=sigma_r_cpt, sigma_target=sigma_t_cpt, ref_amp=ref_amp,
+                      target_amp=tgt_amp)
+    calibrate(truth.ref_ms, truth.target_ms, method="pwc")
+    residual = wrap(out_phase(truth.target_ms) - expected_pwc_phase(truth))
+    # n0 may differ from the noise-free count where a series starts near +-pi: take out
+    # each series' circular mean before measuring the scatter
+    key = truth.ant1 * 10 + truth.ant2
+    centred = np.empty_like(residual)
+    for k in np.unique(key):
+        sel = key == k
+        mean = np.angle(np.exp(1j * residual[sel]).mean(axis=0))
+        centred[sel] = wrap(residual[sel] - mean)
+    sigma_r, sigma_t = sigma_r_cpt / ref_amp, sigma_t_cpt / tgt_amp
+    predicted = sigma_t ** 2 + truth.ratio ** 2 * sigma_r ** 2
+    measured = float(np.var(centred))
+    assert measured == pytest.approx(predicted, rel=0.05)
+    # and R^2 sigma_r^2 really matters here (the test would fail without it)
+    assert abs(measured - sigma_t ** 2) > 0.2 * predicted
+
+
+def test_reordered_rows_and_swapped_antennas_give_the_same_answer(tmp_path):
+    kw = dict(n_time=200, phase_offset_rad=2.0, seed=4, corr_types=("RR", "RL", "LR", "LL"))
+    plain = make_pair(tmp_path / "plain", **kw)
+    mixed = make_pair(tmp_path / "mixed", shuffle_ref=True, shuffle_target=True,
+                      swap_ref_baselines=(0, 3, 5), **kw)
+    calibrate(plain.ref_ms, plain.target_ms, method="pwc,cfpt")
+    calibrate(mixed.ref_ms, mixed.target_ms, method="pwc,cfpt")
+    for name in ("PWC_DATA", "CFPT_DATA"):
+        a = out_phase(plain.target_ms, name)
+        b = out_phase(mixed.target_ms, name)
+        # compare row by row through (time, ant1, ant2), never by position
+        ka = np.lexsort((plain.ant2, plain.ant1, plain.time))
+        kb = np.lexsort((mixed.ant2, mixed.ant1, mixed.time))
+        assert np.max(np.abs(wrap(a[ka] - b[kb]))) < 1e-5
+    assert np.max(np.abs(wrap(out_phase(mixed.target_ms) - expected_pwc_phase(mixed)))) < 1e-5
+
+
+def test_flags_nans_and_zero_amplitudes(tmp_path):
+    truth = make_pair(tmp_path, n_time=300, seed=6, step_rad=0.08)
+    n_row = truth.time.size
+    rng = np.random.default_rng(1)
+    with pt.table(str(truth.ref_ms), readonly=False, ack=False) as t:
+        data, flag = t.getcol("DATA"), t.getcol("FLAG")
+        bad = rng.choice(n_row, 60, replace=False)
+        flag[bad[:20], 0, 0] = True
+        data[bad[20:40], 0, 1] = np.nan
+        data[bad[40:], 0, :] = 0
+        t.putcol("DATA", data)
+        t.putcol("FLAG", flag)
+    with pt.table(str(truth.target_ms), readonly=False, ack=False) as t:
+        tflag, trow = t.getcol("FLAG"), t.getcol("FLAG_ROW")
+        tbad = rng.choice(n_row, 30, replace=False)
+        tflag[tbad[:15], 0, 1] = True
+        trow[tbad[15:]] = True
+        t.putcol("FLAG", tflag)
+        t.putcol("FLAG_ROW", trow)
+    ref_flag_cells = np.zeros((n_row, 2), bool)
+    ref_flag_cells[bad[:20], 0] = True
+    ref_flag_cells[bad[20:40], 1] = True
+    ref_flag_cells[bad[40:], :] = True
+    before = {c: col(truth.target_ms, c) for c in ("DATA", "FLAG", "FLAG_ROW", "UVW", "TIME", "WEIGHT")}
+    report = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cwu")
+    flag = col(truth.target_ms, "FLAG")[:, 0, :]
+    expected_flag = before["FLAG"][:, 0, :] | before["FLAG_ROW"][:, None] | ref_flag_cells
+    assert np.array_equal(flag, expected_flag)
+    assert np.array_equal(col(truth.target_ms, "FLAG_HITOPS_BACKUP"), before["FLAG"])
+    for c in ("DATA", "FLAG_ROW", "UVW", "TIME", "WEIGHT"):
+        assert np.array_equal(col(truth.target_ms, c), before[c], equal_nan=True), c
+    # the unflagged samples are still right: flagged samples do not break wrap counting
+    good = ~flag
+    pwc = out_phase(truth.target_ms)
+    assert np.max(np.abs(wrap(pwc - expected_pwc_phase(truth))[good])) < 1e-5
+    assert np.all(col(truth.target_ms, "PWC_DATA")[:, 0, :][ref_flag_cells] == 0)
+    s = report["samples"]
+    assert s["reference_invalid"] + s["target_invalid"] == int(expected_flag.sum())
+    # a second run (--overwrite) is idempotent and keeps the first backup
+    calibrate(truth.ref_ms, truth.target_ms, method="pwc,cwu", overwrite=True)
+    assert np.array_equal(col(truth.target_ms, "FLAG")[:, 0, :], expected_flag)
+    assert np.array_equal(col(truth.target_ms, "FLAG_HITOPS_BACKUP"), before["FLAG"])
+
+
+def test_unmatched_rows_are_flagged_and_other_columns_untouched(tmp_path):
+    truth = make_pair(tmp_path, n_time=200, seed=7)
+    # move the reference rows of one baseline for the second half of the track a day
+    # later, so the target rows there have no counterpart
+    with pt.table(str(truth.ref_ms), readonly=False, ack=False) as t:
+        a1, a2, tm = t.getcol("ANTENNA1"), t.getcol("ANTENNA2"), t.getcol("TIME")
+        drop = np.flatnonzero((a1 == 1) & (a2 == 2) & (tm > np.median(tm)))
+        tm[drop] += 86400.0
+        t.putcol("TIME", tm)
+    with pt.table(str(truth.target_ms), ack=False) as t:
+        names = [c for c in t.colnames() if c != "FLAG"]
+        before = {c: t.getcol(c) for c in names if c != "FLAG_CATEGORY"}
+    report = calibrate(truth.ref_ms, truth.target_ms)
+    flag = col(truth.target_ms, "FLAG")[:, 0, :]
+    missing = (truth.ant1 == 1) & (truth.ant2 == 2) & (truth.time > np.median(truth.time))
+    assert np.array_equal(flag, np.repeat(missing[:, None], 2, axis=1))
+    assert report["rows"]["matched"] == truth.time.size - drop.size
+    assert report["samples"]["no_reference_row"] == 2 * drop.size
+    for c, value in before.items():
+        assert np.array_equal(col(truth.target_ms, c), value), c
+
+
+def test_antenna_map_pairs_differently_named_stations(tmp_path):
+    truth = make_pair(tmp_path, n_time=150, seed=8, ref_names=("AP", "JC", "PV", "GL"),
+                      target_names=("AP", "SM", "PV", "GL"))
+    with pytest.raises(StationError, match="SM.*--antenna-map"):
+        calibrate(truth.ref_ms, truth.target_ms)
+    calibrate(truth.ref_ms, truth.target_ms, antenna_map="JC=SM")
+    assert np.max(np.abs(wrap(out_phase(truth.target_ms) - expected_pwc_phase(truth)))) < 1e-5
+
+
+def test_scans_restart_wrap_counting(tmp_path):
+    truth = make_pair(tmp_path, n_time=600, n_scans=3, seed=9, drift_rad=0.08)
+    report = calibrate(truth.ref_ms, truth.target_ms)
+    pwc = out_phase(truth.target_ms)
+    assert np.max(np.abs(wrap(pwc - expected_pwc_phase(truth)))) < 1e-5
+    # the per-scan restart matters: counting through the scans would give another answer
+    single_scan = make_pair(tmp_path / "one", n_time=600, n_scans=1, seed=9, drift_rad=0.08)
+    assert np.max(np.abs(wrap(expected_pwc_phase(single_scan) - expected_pwc_phase(truth)))) > 0.5
+    assert report["rows"]["matched"] == truth.time.size
+
+
+def test_time_chunks_carry_the_wrap_count(tmp_path):
+    truth = make_pair(tmp_path, n_time=500, n_scans=2, seed=10, phase_offset_rad=1.0)
+    add_column(truth.target_ms, "CORRECTED_DATA", np.exp(1j * truth.source_phase))
+    calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu",
+              offset_reference_column="CORRECTED_DATA")
+    whole = {c: col(truth.target_ms, c) for c in ("PWC_DATA", "CFPT_DATA", "CWU_DATA", "FLAG")}
+    report = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu", overwrite=True,
+                       offset_reference_column="CORRECTED_DATA", chunk_rows=97)
+    for c, value in whole.items():
+        assert np.array_equal(col(truth.target_ms, c), value), c
+    assert np.max(np.abs(wrap(out_phase(truth.target_ms) - truth.source_phase))) < 1e-5
+    assert report["rows"]["target"] == truth.time.size
+
+
+def test_ref_model_column_removes_source_structure(tmp_path):
+    truth = make_pair(tmp_path, n_time=200, seed=12)
+    # give the reference band a known source phase and a model column holding it
+    structure = np.random.default_rng(3).uniform(-2, 2, truth.ref_phase_true.shape)
+    with pt.table(str(truth.ref_ms), readonly=False, ack=False) as t:
+        t.putcol("DATA", t.getcol("DATA") * np.exp(1j * structure[:, None, :]).astype(np.complex64))
+    add_column(truth.ref_ms, "MODEL_DATA", 0.7 * np.exp(1j * structure))
+    calibrate(truth.ref_ms, truth.target_ms, ref_model_column="MODEL_DATA")
+    assert np.max(np.abs(wrap(out_phase(truth.target_ms) - expected_pwc_phase(truth)))) < 1e-4
+
+
+def test_report_and_log(tmp_path, caplog):
+    truth = make_pair(tmp_path, n_time=100, seed=13)
+    with caplog.at_level("INFO", logger="hitops"):
+        report = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt")
+    text = caplog.text
+    assert "R = 2.674418605" in text and "eps = 0.674418604" in text
+    assert "matched 600 of 600 target rows" in text
+    assert "wraps AP-SM: RR" in text and "flagged 0 of 1200" in text
+    on_disk = json.loads((tmp_path / "target.ms.hitops-calibrate.json").read_text())
+    assert on_disk["columns"] == {"pwc": "PWC_DATA", "cfpt": "CFPT_DATA"}
+    assert on_disk["ratio"] == pytest.approx(230 / 86)
+    assert len(on_disk["wraps"]) == 12 and report["samples"]["target"] == 1200
+
+
+@pytest.mark.slow
+def test_distributed_local_cluster_gives_identical_output(tmp_path):
+    from distributed import LocalCluster
+
+    truth = make_pair(tmp_path, n_time=300, seed=14, n_scans=2)
+    calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu")
+    threads = {c: col(truth.target_ms, c) for c in ("PWC_DATA", "CFPT_DATA", "CWU_DATA", "FLAG")}
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster:
+        report = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu",
+                           overwrite=True, scheduler=cluster.scheduler_address, chunk_rows=400)
+    for c, value in threads.items():
+        assert np.array_equal(col(truth.target_ms, c), value), c
+    assert report["rows"]["matched"] == truth.time.size
+
+
+def test_all_reference_flagged_flags_everything_without_failing(tmp_path):
+    truth = make_pair(tmp_path, n_time=50, seed=15)
+    with pt.table(str(truth.ref_ms), readonly=False, ack=False) as t:
+        t.putcol("FLAG", np.ones_like(t.getcol("FLAG")))
+    add_column(truth.target_ms, "CORRECTED_DATA", np.exp(1j * truth.source_phase))
+    report = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu",
+                       offset_reference_column="CORRECTED_DATA")
+    assert col(truth.target_ms, "FLAG").all()
+    assert not np.any(col(truth.target_ms, "PWC_DATA"))
+    assert report["samples"]["reference_invalid"] == report["samples"]["target"]
+    assert all(e["samples"] == 0 and e["k"] == 0 for e in report["offset_step"]["series"])
+
+
+def test_one_sample_baseline_and_ratio_below_one(tmp_path):
+    truth = make_pair(tmp_path, n_time=60, seed=16, ratio=0.6)
+    # baseline AP-SM keeps one sample in the reference band; its other rows move away
+    with pt.table(str(truth.ref_ms), readonly=False, ack=False) as t:
+        a1, a2, tm = t.getcol("ANTENNA1"), t.getcol("ANTENNA2"), t.getcol("TIME")
+        move = np.flatnonzero((a1 == 0) & (a2 == 1) & (tm != tm.min()))
+        tm[move] += 86400.0
+        t.putcol("TIME", tm)
+    report = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cwu")
+    assert report["r"] == 0 and report["eps"] == pytest.approx(0.6)
+    flag = col(truth.target_ms, "FLAG")[:, 0, 0]
+    one = (truth.ant1 == 0) & (truth.ant2 == 1)
+    assert flag[one].sum() == one.sum() - 1
+    good = ~col(truth.target_ms, "FLAG")[:, 0, :]
+    assert np.max(np.abs(wrap(out_phase(truth.target_ms) - expected_pwc_phase(truth))[good])) < 1e-5
+
+
+def _two_channel_copy(src, dest, channel_gain=(1.0, 0.5), flag_second=None):
+    """A 2-channel copy of a 1-channel MS (same subtables; both channels carry DATA)."""
+    with pt.table(str(src), ack=False) as t:
+        cols = {c: t.getcol(c) for c in ("TIME", "ANTENNA1", "ANTENNA2", "UVW", "SCAN_NUMBER",
+                                          "INTERVAL", "EXPOSURE", "TIME_CENTROID", "DATA")}
+    n_row, _, n_corr = cols["DATA"].shape
+    desc = pt.maketabdesc([
+        pt.makearrcoldesc("DATA", 0j, shape=[2, n_corr], valuetype="complex", options=4),
+        pt.makearrcoldesc("FLAG", False, shape=[2, n_corr], valuetype="boolean", options=4)])
+    ms = pt.default_ms(str(dest), desc)
+    ms.addrows(n_row)
+    for c, v in cols.items():
+        if c != "DATA":
+            ms.putcol(c, v)
+    data = np.concatenate([cols["DATA"] * g for g in channel_gain], axis=1).astype(np.complex64)
+    flag = np.zeros((n_row, 2, n_corr), bool)
+    if flag_second is not None:
+        flag[flag_second, 1, :] = True
+        data[flag_second, 1, :] = np.nan        # flagged channels must not leak in
+    ms.putcol("DATA", data)
+    ms.putcol("FLAG", flag)
+    ms.close()
+    for sub in ("ANTENNA", "SPECTRAL_WINDOW", "POLARIZATION", "DATA_DESCRIPTION", "FIELD",
+                "FEED", "OBSERVATION"):
+        with pt.table(f"{src}::{sub}", ack=False) as s, \
+                pt.table(f"{dest}::{sub}", readonly=False, ack=False) as d:
+            s.copyrows(d)
+    with pt.table(f"{dest}::SPECTRAL_WINDOW", readonly=False, ack=False) as t:
+        f = t.getcell("CHAN_FREQ", 0)[0]
+        t.putcol("NUM_CHAN", np.array([2], np.int32))
+        for c in ("CHAN_FREQ", "CHAN_WIDTH", "EFFECTIVE_BW", "RESOLUTION"):
+            t.putcell(c, 0, np.array([f - 1e6, f + 1e6]) if c == "CHAN_FREQ" else np.array([2e6, 2e6]))
+    return data, flag
+
+
+def test_average_channels(tmp_path):
+    truth = make_pair(tmp_path, n_time=100, seed=17, phase_offset_rad=1.3)
+    ref2, tgt2 = tmp_path / "ref2.ms", tmp_path / "tgt2.ms"
+    _two_channel_copy(truth.ref_ms, ref2, flag_second=np.arange(0, 600, 7))
+    data, flag = _two_channel_copy(truth.target_ms, tgt2, flag_second=np.arange(3, 600, 5))
+    from hitops.errors import MeasurementSetError
+    with pytest.raises(MeasurementSetError, match="has 2 channels"):
+        calibrate(ref2, tgt2)
+    calibrate(ref2, tgt2, average_channels=True)
+    out = col(tgt2, "PWC_DATA")
+    assert out.shape == (600, 2, 2)
+    expected = expected_pwc_phase(truth)
+    ok = ~col(tgt2, "FLAG")
+    assert np.array_equal(ok[:, 0, :], np.ones((600, 2), bool))
+    assert np.array_equal(ok[:, 1, :], ~flag[:, 1, :])
+    for ch in range(2):
+        good = ok[:, ch, :]
+        assert np.max(np.abs(wrap(np.angle(out[:, ch, :]) - expected)[good])) < 1e-5
+        assert np.allclose(np.abs(out[:, ch, :])[good], np.abs(data[:, ch, :])[good], rtol=1e-5)

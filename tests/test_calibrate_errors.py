@@ -1,0 +1,144 @@
+"""Bad input to hitops calibrate: a clear message naming the thing and the remedy,
+a non-zero exit, and both Measurement Sets unchanged (every file but the lock)."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from casacore import tables as pt
+
+from hitops.calibrate import calibrate
+from hitops.calibrate.synthetic import add_column, make_pair
+from hitops.errors import (ColumnError, InputError, MeasurementSetError, OutputExistsError,
+                           StationError)
+
+
+def snapshot(*paths):
+    digests = {}
+    for root in paths:
+        for dirpath, _, files in os.walk(root):
+            for name in files:
+                if name == "table.lock":
+                    continue
+                path = Path(dirpath) / name
+                digests[str(path)] = hashlib.sha1(path.read_bytes()).hexdigest()
+    return digests
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    return make_pair(tmp_path_factory.mktemp("errors"), n_time=50, seed=21)
+
+
+def check(pair, error, match, **kwargs):
+    ref = kwargs.pop("ref_ms", pair.ref_ms)
+    tgt = kwargs.pop("target_ms", pair.target_ms)
+    before = snapshot(pair.ref_ms, pair.target_ms)
+    with pytest.raises(error, match=match):
+        calibrate(ref, tgt, **kwargs)
+    assert snapshot(pair.ref_ms, pair.target_ms) == before
+    assert not Path(str(pair.target_ms) + ".hitops-calibrate.json").exists()
+
+
+def test_missing_measurement_set(pair, tmp_path):
+    check(pair, MeasurementSetError, r"reference-band .*nope\.ms' does not exist",
+          ref_ms=tmp_path / "nope.ms")
+    check(pair, MeasurementSetError, r"target-band .*nope\.ms' does not exist",
+          target_ms=tmp_path / "nope.ms")
+
+
+def test_missing_columns(pair):
+    check(pair, ColumnError, r"has no column CORRECTED_DATA; check --ref-column",
+          ref_column="CORRECTED_DATA")
+    check(pair, ColumnError, r"has no column MODEL_DATA.*--ref-model-column",
+          ref_model_column="MODEL_DATA")
+    check(pair, ColumnError, r"target-band .* has no column FFSC; check .*--offset-reference-column",
+          offset_reference_column="FFSC")
+
+
+def test_bad_ratio_and_options(pair):
+    check(pair, InputError, r"--ratio -1.0: R = nu_target / nu_reference must be a positive", ratio=-1.0)
+    check(pair, InputError, r"--ratio 0.0", ratio=0.0)
+    check(pair, InputError, r"unknown method 'fpt'; choose from pwc, cfpt, cwu", method="pwc,fpt")
+    check(pair, InputError, r"--output-column X names one column but --method lists 2",
+          method="pwc,cfpt", output_column="X")
+    check(pair, InputError, r"output column DATA .* is an input or flag column", output_column="DATA")
+    check(pair, InputError, r"--antenna-map entry 'JC' is not REF=TARGET", antenna_map="JC")
+    check(pair, StationError, r"reference station JC is not in", antenna_map="JC=SM")
+    check(pair, InputError, r"same set", target_ms=pair.ref_ms)
+
+
+def test_existing_output_column_needs_overwrite(tmp_path):
+    truth = make_pair(tmp_path, n_time=40, seed=22)
+    add_column(truth.target_ms, "PWC_DATA", np.ones((truth.time.size, 2)))
+    check(truth, OutputExistsError, r"column PWC_DATA already exists in .*target\.ms; pass --overwrite")
+    calibrate(truth.ref_ms, truth.target_ms, overwrite=True)
+    with pt.table(str(truth.target_ms), ack=False) as t:
+        assert not np.allclose(t.getcol("PWC_DATA"), 1)
+
+
+def test_stations_without_counterpart(tmp_path):
+    truth = make_pair(tmp_path, n_time=40, seed=23, ref_names=("AP", "JC", "PV", "GL"),
+                      target_names=("AP", "SM", "PV", "GL"))
+    check(truth, StationError,
+          r"target station\(s\) SM of .* have no counterpart in .*unpaired reference stations: JC.*"
+          r"--antenna-map REF=TARGET")
+
+
+def test_no_overlapping_times(tmp_path):
+    truth = make_pair(tmp_path, n_time=40, seed=24, ref_time_shift=3600.0)
+    check(truth, MeasurementSetError, r"no row of .*target\.ms has a counterpart in .*ref\.ms at "
+          r"the same time \(tolerance 0.5 s\)")
+
+
+def _add_subtable_row(ms, subtable):
+    with pt.table(f"{ms}::{subtable}", readonly=False, ack=False) as t:
+        t.addrows(1)
+        for c in t.colnames():
+            try:
+                t.putcell(c, 1, t.getcell(c, 0))
+            except Exception:
+                pass
+
+
+def test_several_spectral_windows_or_fields(tmp_path):
+    truth = make_pair(tmp_path, n_time=40, seed=25)
+    _add_subtable_row(truth.target_ms, "DATA_DESCRIPTION")
+    with pt.table(str(truth.target_ms), readonly=False, ack=False) as t:
+        dd = t.getcol("DATA_DESC_ID")
+        dd[::2] = 1
+        t.putcol("DATA_DESC_ID", dd)
+    check(truth, MeasurementSetError, r"target-band .* holds 2 data descriptions \(spectral "
+          r"windows\) \[0, 1\].*split them")
+    _add_subtable_row(truth.ref_ms, "FIELD")
+    with pt.table(str(truth.ref_ms), readonly=False, ack=False) as t:
+        field = t.getcol("FIELD_ID")
+        field[::3] = 1
+        t.putcol("FIELD_ID", field)
+    check(truth, MeasurementSetError, r"reference-band .* holds 2 fields \[0, 1\].*split the fields")
+
+
+def test_more_than_one_channel(tmp_path):
+    truth = make_pair(tmp_path, n_time=40, seed=26)
+    with pt.table(f"{truth.ref_ms}::SPECTRAL_WINDOW", readonly=False, ack=False) as t:
+        t.putcol("NUM_CHAN", np.array([4], np.int32))
+    check(truth, MeasurementSetError, r"reference-band .* has 4 channels in spectral window 0.*"
+          r"--average-channels")
+
+
+@pytest.mark.slow
+def test_cli_exit_status_and_message(pair, tmp_path):
+    before = snapshot(pair.ref_ms, pair.target_ms)
+    hitops = Path(sys.executable).with_name("hitops")
+    proc = subprocess.run([str(hitops), "calibrate", str(pair.ref_ms), str(pair.target_ms),
+                           "--ratio", "-2"], capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert "--ratio -2.0: R = nu_target / nu_reference must be a positive" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert snapshot(pair.ref_ms, pair.target_ms) == before

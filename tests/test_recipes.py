@@ -1,0 +1,143 @@
+"""The recipes load and validate through Stimela, and the demo runs end to end.
+
+The end-to-end test runs `stimela run recipes/fpt-demo.yml` for real (hitops
+simulate, CASA fringefit/gaincal/applycal, hitops calibrate and diagnose,
+WSClean, CASA imfit, hitops compare) and checks what a real experiment would:
+PWC coherence at least FF+SC's on every baseline, PWC peak-flux recovery at
+least 0.9, and CFPT residuals carrying the 2*pi*eps jumps that PWC removes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+RECIPES = ROOT / "recipes"
+BIN = Path(sys.executable).parent
+
+
+def stimela(*args, cwd, timeout=900):
+    env = dict(os.environ)
+    # the python-flavour cabs run `python`, and the binary cabs `hitops`: both from the venv
+    env["PATH"] = f"{BIN}:{env.get('PATH', '')}"
+    env.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".venv" / "numba-cache"))
+    return subprocess.run([str(BIN / "stimela"), *args], cwd=cwd, capture_output=True,
+                          text=True, env=env, timeout=timeout)
+
+
+@pytest.mark.parametrize("recipe", ["fpt-demo.yml", "fpt-paper.yml"])
+def test_recipe_loads_and_validates(recipe, tmp_path):
+    done = stimela("doc", str(RECIPES / recipe), cwd=tmp_path)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    for step in ("simulate", "fringefit", "gaincal", "applycal", "calibrate", "diagnose",
+                 "images", "compare"):
+        assert step in done.stdout
+
+
+def test_recipe_with_a_wrong_parameter_is_refused(tmp_path):
+    # every scene/calibration parameter is a recipe input; a misspelt one must not pass
+    done = stimela("run", str(RECIPES / "fpt-demo.yml"), "fringefit_solnt=30s",
+                   f"dir={tmp_path}/x", cwd=tmp_path, timeout=120)
+    assert done.returncode != 0
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory):
+    work = tmp_path_factory.mktemp("demo")
+    out = work / "out"
+    done = stimela("run", str(RECIPES / "fpt-demo.yml"), f"dir={out}", cwd=work)
+    assert done.returncode == 0, done.stdout[-6000:] + done.stderr[-3000:]
+    return work, out, done
+
+
+@pytest.mark.slow
+def test_demo_pwc_coherence_at_least_ffsc_on_every_baseline(demo_run):
+    _, out, _ = demo_run
+    summary = json.loads((out / "diagnose" / "summary.json").read_text())
+    assert len(summary["baselines"]) == 6  # 4 stations
+    for bl in summary["baselines"]:
+        cols = bl["columns"]
+        pwc = cols["PWC_DATA"]["coherence_factor"]
+        ffsc = cols["CORRECTED_DATA"]["coherence_factor"]
+        raw = cols["DATA"]["coherence_factor"]
+        assert pwc >= ffsc, f"{bl['baseline']}: PWC {pwc:.3f} < FF+SC {ffsc:.3f}"
+        assert pwc > raw + 0.2, f"{bl['baseline']}: PWC {pwc:.3f} barely above raw {raw:.3f}"
+
+
+@pytest.mark.slow
+def test_demo_pwc_peak_flux_recovery(demo_run):
+    _, out, _ = demo_run
+    rows = {r["label"]: r for r in json.loads((out / "peak-flux.json").read_text())["rows"]}
+    assert set(rows) == {"raw", "ffsc", "cfpt", "pwc"}
+    pwc, ffsc = rows["pwc"], rows["ffsc"]
+    assert pwc["fit"] == "gaussian" and ffsc["fit"] == "gaussian"
+    assert pwc["recovery"] >= 0.9
+    assert pwc["recovery"] <= 1.05  # a peak above the input would mean a broken image
+    assert pwc["recovery"] > ffsc["recovery"]
+    # the images themselves exist as the table says
+    for label in rows:
+        assert (out / "images" / f"{label}-image.fits").is_file()
+    for name in ("peak-flux.md", "peak-flux.csv"):
+        assert (out / name).stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_demo_cfpt_residuals_jump_where_pwc_does_not(demo_run):
+    from casacore import tables as pt
+
+    _, out, _ = demo_run
+    with pt.table(str(out / "sim-230.ms"), ack=False) as tab:
+        a1, a2 = tab.getcol("ANTENNA1"), tab.getcol("ANTENNA2")
+        time = tab.getcol("TIME")
+        flag = tab.getcol("FLAG")[:, 0, 0]
+        cfpt = tab.getcol("CFPT_DATA")[:, 0, 0]
+        pwc = tab.getcol("PWC_DATA")[:, 0, 0]
+    eps = 230.0 / 86.0 - 2.0
+    jump = 2 * math.pi * eps
+    n_jumps_total = 0
+    for p, q in sorted(set(zip(a1.tolist(), a2.tolist()))):
+        sel = (a1 == p) & (a2 == q) & ~flag
+        order = np.argsort(time[sel])
+        # CFPT - PWC = -2*pi*eps*n(t) (+ the n0 offset): constant between wraps of
+        # the 86 GHz phase, stepping by a multiple of 2*pi*eps at each wrap
+        diff = np.angle(cfpt[sel][order] * np.conj(pwc[sel][order]))
+        steps = np.angle(np.exp(1j * np.diff(diff)))
+        moved = np.abs(steps) > np.deg2rad(1.0)
+        assert moved.sum() >= 5, f"baseline {p}-{q}: CFPT shows no jumps relative to PWC"
+        # every step sits on the lattice 2*pi*eps*k (mod 2*pi) within a degree:
+        # these are the CFPT jumps (-117.2 deg for one wrap), absent from PWC
+        k = np.arange(-43, 44)
+        distance = np.abs(np.angle(np.exp(1j * (steps[moved][:, None] - k[None, :] * jump))))
+        assert np.all(distance.min(axis=1) < np.deg2rad(1.0)), f"baseline {p}-{q}"
+        n_jumps_total += int(moved.sum())
+    # one CFPT jump per 86 GHz wrap that PWC counted (the report), give or take
+    # wraps undone at the next sample and the per-scan n0 offset changes
+    report = json.loads((out / "sim-230.ms.hitops-calibrate.json").read_text())
+    wraps = sum(w["wrap_events"] for w in report["wraps"] if w["correlation"] == "RR")
+    assert 0.8 * wraps <= n_jumps_total <= wraps + 6 * 6
+
+
+@pytest.mark.slow
+def test_demo_rerun_picks_up_where_it_stopped(demo_run):
+    work, out, _ = demo_run
+    # lose the last image fit and the table, as if the run had died there
+    (out / "images" / "pwc-imfit.json").unlink()
+    before = (out / "diagnose" / "summary.json").stat().st_mtime
+    done = stimela("run", str(RECIPES / "fpt-demo.yml"), f"dir={out}", cwd=work)
+    assert done.returncode == 0, done.stdout[-4000:]
+    assert (out / "images" / "pwc-imfit.json").is_file()
+    assert (out / "diagnose" / "summary.json").stat().st_mtime == before  # not redone
+    log = done.stdout
+    # CASA was not run again (the wrappers log "CASA <task>(vis=..." when they run)
+    assert "fringefit(vis=" not in log and "gaincal(vis=" not in log
+    assert "imfit(imagename=" in log
