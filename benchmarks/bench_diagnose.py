@@ -59,7 +59,7 @@ def main() -> None:
     # first run warms the numba cache and the page cache; not reported
     run_process(base + ["--outdir", str(workdir / "warm")], env=env)
     runs = [run_process(base + ["--outdir", str(workdir / f"run{i}")], env=env)
-            for i in range(3)]
+            for i in range(5)]
     plots = run_process(base + ["--outdir", str(workdir / "plots"),
                                 "--plots", "coherence,uv"], env=env)
     walls = [r["wall_s"] for r in runs]
@@ -76,13 +76,13 @@ def main() -> None:
 `hitops diagnose` on a paper-sized MS: 8 stations (28 baselines), 43 200 one-second samples
 (1 209 600 rows), 4 correlations, three columns (DATA, CORRECTED_DATA, PWC_DATA), C(T) on
 31 intervals (log:1:3600:30 plus --interval 60). Whole process (start-up, imports, dask-ms read,
-numba kernel on 2 threads, tables and JSON), no plots; median of 3 runs after one warm-up run.
+numba kernel on 2 threads, tables and JSON), no plots; median of 5 runs after one warm-up run.
 Machine: {machine_line()}; benchmarks/bench_diagnose.py.
 
 | quantity | value |
 |---|---|
-| wall, median of 3 (s) | {median(walls):.2f} (runs: {', '.join(f'{w:.2f}' for w in walls)}) |
-| wall, best of 3 (s) | {min(walls):.2f} |
+| wall, median of 5 (s) | {median(walls):.2f} (runs: {', '.join(f'{w:.2f}' for w in walls)}) |
+| wall, best of 5 (s) | {min(walls):.2f} |
 | CPU, median (s) | {median(cpus):.2f} |
 | peak RSS (MB) | {rss:.0f} |
 | inside the median run: read / coherence / total (s) | {timing['read']:.2f} / {timing['coherence']:.2f} / {timing['total']:.2f} |

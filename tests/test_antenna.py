@@ -10,7 +10,6 @@ import pytest
 from hitops.errors import InputError
 from hitops.kernels.antenna import closure_phases, solve_antenna_phases
 from hitops.kernels.tracking import count_slips, slip_errors
-from hitops.kernels.wraps import count_wraps
 from hitops.simulate.troposphere import fbm_circulant
 from hitops.tracking import theory
 from hitops.tracking.modes import regular_grid, track_antennas, track_series

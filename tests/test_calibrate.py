@@ -293,6 +293,10 @@ def test_distributed_local_cluster_gives_identical_output(tmp_path):
                       dashboard_address=None) as cluster:
         report = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu",
                            overwrite=True, scheduler=cluster.scheduler_address, chunk_rows=400)
+        # the work really went to the cluster: kernel tasks, dask-ms reads and writes
+        prefixes = set(cluster.scheduler.task_prefixes)
+        assert "transfer_group" in prefixes, prefixes
+        assert len(prefixes) > 3
     for c, value in threads.items():
         assert np.array_equal(col(truth.target_ms, c), value), c
     assert report["rows"]["matched"] == truth.time.size
@@ -382,3 +386,22 @@ def test_average_channels(tmp_path):
         good = ok[:, ch, :]
         assert np.max(np.abs(wrap(np.angle(out[:, ch, :]) - expected)[good])) < 1e-5
         assert np.allclose(np.abs(out[:, ch, :])[good], np.abs(data[:, ch, :])[good], rtol=1e-5)
+
+
+@pytest.mark.slow
+def test_command_line_run(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    truth = make_pair(tmp_path, n_time=80, seed=18, ref_names=("AP", "JC", "PV", "GL"),
+                      target_names=("AP", "SM", "PV", "GL"))
+    hitops = Path(sys.executable).with_name("hitops")
+    proc = subprocess.run([str(hitops), "calibrate", str(truth.ref_ms), str(truth.target_ms),
+                           "--method", "pwc", "--antenna-map", "JC=SM", "--output-column",
+                           "FPT_PWC", "--report", str(tmp_path / "r.json")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert "wrote FPT_PWC" in proc.stderr and "R = 2.674418605" in proc.stderr
+    assert np.max(np.abs(wrap(out_phase(truth.target_ms, "FPT_PWC") - expected_pwc_phase(truth)))) < 1e-5
+    assert json.loads((tmp_path / "r.json").read_text())["columns"] == {"pwc": "FPT_PWC"}

@@ -141,6 +141,11 @@ def test_choose_offset_picks_bounded_k_and_flags_ambiguity():
     # a bound of 0 forces k = 0; no samples -> None
     assert choose_offset(np.exp(1j * 2), 1, eps, 0, 2.0).k == 0
     assert choose_offset(0j, 0, eps, 10, 2.0) is None
+    # |k| <= 50 spans every lobe of eps = 29/43: k and k +- 43 are the same offset modulo
+    # 2*pi (up to rounding); the smallest |k| is reported
+    for k in (0, 3, -5):
+        c = choose_offset(np.exp(1j * 2 * np.pi * eps * k), 1, eps, 50, 2.0)
+        assert c.k == k and not c.ambiguous
     # eps = 1/2: k = 0 and k = 2 are the same offset; the smaller |k| wins, not ambiguous
     c = choose_offset(1 + 0j, 1, 0.5, 4, 2.0)
     assert c.k == 0 and not c.ambiguous and c.runner_up_residual_deg == pytest.approx(180)

@@ -10,7 +10,6 @@ from casacore.measures import measures
 
 from hitops.simulate import simulate
 from hitops.simulate.geometry import earth_rotation_angle, time_grid
-from hitops.simulate.scene import load_scene_mapping
 
 
 @pytest.fixture(scope="module")

@@ -388,3 +388,33 @@ def test_count_slips_separates_outliers_from_slips():
     long_excursion = np.array([0, 0, 1, 1, 1, 1, 0, 0, 0, 0, 0, 0])
     assert count_slips(long_excursion, valid) == (2, 0)
     assert count_slips(long_excursion, valid, max_transient=4) == (0, 4)
+
+
+def test_zero_window_is_naive_and_zero_max_gap_segments_every_gap():
+    truth = kolmogorov_track(3000, 20.0, seed=71)
+    phase = noisy_phase(truth, 20.0, seed=72)
+    valid = np.ones(truth.size, bool)
+    counts = track_wraps_smooth(phase, valid, half_window=0)[0]
+    assert np.array_equal(counts, count_wraps(phase, valid))
+    valid[[500, 1500, 2500]] = False
+    _, segment, _, bridged, _ = track_wraps_smooth(phase, valid, max_gap=0)
+    assert segment.max() == 3 and not bridged.any()
+
+
+def test_per_sample_windows_follow_local_coherence():
+    """Turbulence 10x faster in the second half (low elevation): a long fixed window slips
+    there, per-sample windows from the local coherence time do not."""
+    slow = kolmogorov_track(20000, coherence_s=60.0, seed=81)
+    fast = kolmogorov_track(20000, coherence_s=4.0, seed=82)
+    truth = np.concatenate([slow, slow[-1] + fast])
+    phase = noisy_phase(truth, 3.0, seed=83)
+    valid = np.ones(truth.size, bool)
+    t_c = np.where(np.arange(truth.size) < 20000, 60.0, 4.0)
+    windows = theory.recommended_half_windows(3.0, t_c)
+    assert windows[0] > windows[-1] >= 1
+    fixed = track_wraps_smooth(phase, valid, half_window=int(windows[0]))[0]
+    local = track_wraps_smooth(phase, valid, half_window=int(windows[0]), half_windows=windows)[0]
+    assert slips(fixed, phase, valid, truth)[0] > 0
+    assert slips(local, phase, valid, truth)[0] <= 2
+    sin_el = np.array([1.0, 0.5, np.sin(np.radians(10))])
+    assert np.allclose(theory.local_coherence_time(33.0, sin_el), 33.0 * sin_el ** 0.6)

@@ -29,11 +29,11 @@ import math
 import os
 import time
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List
 
 import numpy as np
 
-from ..errors import ColumnError, InputError, MeasurementSetError, OutputExistsError
+from ..errors import InputError, MeasurementSetError, OutputExistsError
 from ..io import read as msio
 from ..io.match import BandRows, match_bands, parse_antenna_map
 
@@ -167,10 +167,7 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
     ``<target_ms>.hitops-calibrate.json``).  Returns the report as a dict.
     """
     started = time.perf_counter()
-    from ..kernels import fpt
     from ..kernels.wraps import get_tracker
-    from .offsets import choose_offset
-    from .transfer import Carry, group_inputs, plan_groups, transfer_group
 
     # ---- 1. inputs, all checked before anything is written
     methods = parse_methods(method)
@@ -286,6 +283,7 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
 
 
 def _run(ctx: Dict, started: float) -> Dict:
+    """Stages 2-5 of :func:`calibrate`; ``ctx`` holds its validated inputs and metadata."""
     import dask
 
     from ..kernels import fpt
@@ -370,7 +368,6 @@ def _run(ctx: Dict, started: float) -> Dict:
         wrap_events = np.zeros((match.n_bl, n_corr), dtype=np.int64)
         sums = np.zeros((match.n_bl, n_corr, n_scan), dtype=np.complex128)
         counts = np.zeros((match.n_bl, n_corr, n_scan), dtype=np.int64)
-        written = []
         for i in range(n_chunks):
             ch = load(i)
             stage = time.perf_counter()
@@ -423,8 +420,7 @@ def _run(ctx: Dict, started: float) -> Dict:
             timings["transfer"] += time.perf_counter() - stage
             if write:
                 stage = time.perf_counter()
-                written.append(_write_chunk(g, ch, phasor_rows, calibrated, codes, outputs,
-                                            io_scheduler))
+                _write_chunk(g, ch, phasor_rows, calibrated, codes, outputs, io_scheduler)
                 timings["write"] += time.perf_counter() - stage
         return totals, wrap_events, sums, counts
 
@@ -494,7 +490,7 @@ def _run(ctx: Dict, started: float) -> Dict:
     report = {
         "ref_ms": ref_ms, "target_ms": target_ms, "methods": methods, "columns": outputs,
         "ratio": ratio, "r": g["r"], "eps": eps, "ratio_source": g["source"],
-        "time_tolerance_s": match.tolerance, "tracker": g["tracker"],
+        "time_tolerance_s": match.tolerance, "tracker": g["tracker"], "chunks": n_chunks,
         "flags": {"column": "FLAG", "backup_column": FLAG_BACKUP,
                   "flag_updated": bool(state.get("flag_written")),
                   "backup_created": bool(state.get("backup_written"))},

@@ -54,7 +54,9 @@ def choose_offset(z_sum: complex, count: int, eps: float, max_k: int,
     ks = ks[np.argsort(np.abs(ks), kind="stable")]          # 0, -1, 1, -2, 2, ...
     offsets = np.array([_wrap(2 * math.pi * eps * k) for k in ks])
     residuals = np.abs(np.array([_wrap(measured - o) for o in offsets]))
-    best = int(np.argmin(residuals))                          # first minimum: smallest |k|
+    # first candidate within rounding of the minimum: the smallest |k| among candidates
+    # that are the same offset modulo 2*pi (k and k + 43 for eps = 29/43)
+    best = int(np.flatnonzero(residuals <= residuals.min() + 1e-9)[0])
     distinct = np.abs(np.array([_wrap(o - offsets[best]) for o in offsets])) > 1e-9
     runner_k = runner_res = None
     ambiguous = False

@@ -146,6 +146,38 @@ def correlation_map(ref_types: Sequence[int], tgt_types: Sequence[int]) -> np.nd
     return out
 
 
+def _distinct(values: np.ndarray):
+    """(sorted distinct values, index of each value) like np.unique(return_inverse=True).
+
+    Measurement Sets are nearly always stored in time order; then one pass finds the
+    distinct values without the sort np.unique does (~10x faster on 10^6 rows).
+    """
+    values = np.asarray(values)
+    if values.size and np.all(values[1:] >= values[:-1]):
+        new = np.empty(values.size, dtype=bool)
+        new[0] = True
+        np.not_equal(values[1:], values[:-1], out=new[1:])
+        return values[new], np.cumsum(new) - 1
+    # stable argsort is a merge sort that exploits sorted runs (baseline-major tables
+    # are one sorted run per baseline), unlike np.unique's quicksort
+    order = np.argsort(values, kind="stable")
+    ordered = values[order]
+    new = np.empty(values.size, dtype=bool)
+    new[:1] = True
+    np.not_equal(ordered[1:], ordered[:-1], out=new[1:])
+    inverse = np.empty(values.size, dtype=np.int64)
+    inverse[order] = np.cumsum(new) - 1
+    return ordered[new], inverse
+
+
+def _distinct_ints(values: np.ndarray) -> np.ndarray:
+    """Sorted distinct values of small non-negative integers (SCAN_NUMBER) without a sort."""
+    values = np.asarray(values)
+    if values.size and values.min() >= 0 and values.max() < 10_000_000:
+        return np.flatnonzero(np.bincount(values))
+    return np.unique(values)
+
+
 def _check_unique(bl, time_idx, n_time, band: BandRows, names, times):
     key = bl * n_time + time_idx
     counts = np.bincount(key, minlength=len(names) * n_time)
@@ -179,7 +211,10 @@ def match_bands(ref: BandRows, tgt: BandRows, antenna_map: Mapping[str, str],
     # target baselines: (ant1, ant2) pairs as the target stores them
     n_ant_t = len(tgt.antenna_names)
     tkey = tgt.ant1.astype(np.int64) * n_ant_t + tgt.ant2
-    pairs, tgt_bl = np.unique(tkey, return_inverse=True)
+    # few antennas: a lookup table over all n_ant^2 pairs instead of np.unique's sort
+    present = np.bincount(tkey, minlength=n_ant_t * n_ant_t) > 0
+    pairs = np.flatnonzero(present)
+    tgt_bl = (np.cumsum(present) - 1)[tkey]
     bl_a1, bl_a2 = pairs // n_ant_t, pairs % n_ant_t
     # unordered lookup: a pair stored both ways in the target would be two baselines
     lookup = np.full(n_ant_t * n_ant_t, -1, dtype=np.int64)
@@ -198,11 +233,11 @@ def match_bands(ref: BandRows, tgt: BandRows, antenna_map: Mapping[str, str],
 
     # union time axis: distinct times of each band first (many rows share a time), then
     # merge the two short lists within the tolerance
-    tgt_unique, tgt_inverse = np.unique(tgt.time, return_inverse=True)
-    ref_unique, ref_inverse = np.unique(ref.time, return_inverse=True)
+    tgt_unique, tgt_inverse = _distinct(tgt.time)
+    ref_unique, ref_inverse = _distinct(ref.time)
     times, group = unique_times(np.concatenate([tgt_unique, ref_unique]), tolerance)
-    tgt_time = group[:tgt_unique.size][tgt_inverse.ravel()]
-    ref_time = group[tgt_unique.size:][ref_inverse.ravel()]
+    tgt_time = group[:tgt_unique.size][tgt_inverse]
+    ref_time = group[tgt_unique.size:][ref_inverse]
     names = [f"{tgt.antenna_names[a]}-{tgt.antenna_names[b]}" for a, b in zip(bl_a1, bl_a2)]
     _check_unique(tgt_bl, tgt_time, times.size, tgt, names, times)
     used = ref_bl >= 0
@@ -227,7 +262,7 @@ def match_bands(ref: BandRows, tgt: BandRows, antenna_map: Mapping[str, str],
     n_ref_unused = int(ref.n_row - np.count_nonzero(has_tgt[ref_cells]))
 
     # scans: target's SCAN_NUMBER where the target has a row at that time, else the reference's
-    scans = np.unique(np.concatenate([tgt.scan, ref.scan]))
+    scans = np.union1d(_distinct_ints(tgt.scan), _distinct_ints(ref.scan))
     scan_of_time = np.zeros(n_time, dtype=np.int64)
     scan_of_time[ref_time] = np.searchsorted(scans, ref.scan)
     scan_of_time[tgt_time] = np.searchsorted(scans, tgt.scan)

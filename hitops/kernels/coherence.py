@@ -221,4 +221,5 @@ def segment_coherence_dask(vis, flag, times, scan, intervals, dt, min_fill):
                         flag, ("bl", "time", "flagcorr"),
                         scan, ("bl", "time"),
                         new_axes={"int": intervals.size, "field": len(FIELDS)},
-                        concatenate=True, dtype=np.float64)
+                        concatenate=True, dtype=np.float64,
+                        meta=np.empty((0, 0, 0, 0), dtype=np.float64))

@@ -181,14 +181,21 @@ def _predicted_step(index, unwrapped, smooth_phase, k, seg_lo_before, seg_hi_aft
 
 @numba.njit(cache=True, nogil=True)
 def track_wraps_smooth(ref_phase, valid, half_window=5, max_gap=30, jump_window=5,
-                       jump_threshold=0.0, min_coherence=0.2):
+                       jump_threshold=0.0, min_coherence=0.2, half_windows=None):
     """Wrap counts from a smoothed unit-phasor track, with gap bridging and jump detection.
 
     Parameters (samples unless stated): ``half_window`` h, smoothing over 2h+1
     samples (0: no smoothing, i.e. snapping to the raw track); ``max_gap``,
     the longest run of invalid samples bridged by prediction; ``jump_window``
-    and ``jump_threshold`` (rad; <= 0 disables), instrumental-jump detection;
-    ``min_coherence``, mean resultant below which a smoothed sample is suspect.
+    and ``jump_threshold`` (rad; <= 0, the default, disables),
+    instrumental-jump detection: size both with
+    :func:`hitops.tracking.theory.recommended_jump_params` (coherence time and
+    SNR), because a fixed threshold either misses jumps or flags turbulence;
+    ``min_coherence``, mean resultant below which a smoothed sample is suspect;
+    ``half_windows`` (optional int64[n_time]): a half-window per sample,
+    overriding ``half_window`` for the smoothing (``half_window`` still sets
+    the base of the gap-bridging rates), e.g. from the local coherence time
+    (:func:`hitops.tracking.theory.recommended_half_windows`).
 
     Returns ``(counts, segment, suspect, bridged, jump)``; see the module doc.
     """
@@ -239,22 +246,29 @@ def track_wraps_smooth(ref_phase, valid, half_window=5, max_gap=30, jump_window=
         if seg_first[k]:
             hi = k
 
-    # 3. smoothed phasor over +-h samples (by time index) within the segment
+    # 3. smoothed phasor over +-h samples (by time index) within the segment;
+    # with ``half_windows`` each sample has its own h (e.g. from the local
+    # coherence time, which shrinks as sin(el)^(3/5) towards low elevation)
     smooth_phase = np.empty(m)
     coherence = np.empty(m)
+    h = max(half_window, 0)
     a = 0
     b = 0
-    h = max(half_window, 0)
     for k in range(m):
-        if seg_first[k]:
-            a = k
-            b = k
-        while index[a] < index[k] - h:
-            a += 1
-        if b < k + 1:
-            b = k + 1
-        while b < seg_hi[k] and index[b] <= index[k] + h:
-            b += 1
+        if half_windows is None:
+            if seg_first[k]:
+                a = k
+                b = k
+            while index[a] < index[k] - h:
+                a += 1
+            if b < k + 1:
+                b = k + 1
+            while b < seg_hi[k] and index[b] <= index[k] + h:
+                b += 1
+        else:
+            hk = max(half_windows[index[k]], 0)
+            a = max(np.searchsorted(index, index[k] - hk), seg_lo[k])
+            b = min(np.searchsorted(index, index[k] + hk, side="right"), seg_hi[k])
         s_re = pre_re[b] - pre_re[a]
         s_im = pre_im[b] - pre_im[a]
         smooth_phase[k] = np.arctan2(s_im, s_re)

@@ -69,7 +69,7 @@ def get_tracker(name: str):
     from ..errors import InputError
 
     try:
-        from . import tracking  # noqa: F401  (registers further trackers when present)
+        from . import tracking  # noqa: F401  (importing it registers its trackers)
     except ImportError:
         pass
     if name not in TRACKERS:

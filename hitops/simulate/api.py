@@ -16,7 +16,7 @@ import time as _time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, Optional
 
 import numpy as np
 
@@ -214,7 +214,7 @@ def simulate(scene, outdir, prefix: str = "sim", seed: Optional[int] = None,
              save_truth: bool = False, overwrite: bool = False, duration=None,
              integration=None, coherence_scale=None, no_noise: bool = False,
              no_troposphere: bool = False, stations=None, start=None, scan_length=None,
-             scan_gap=None, correlations=None, threads: int = 2) -> Dict[str, Path]:
+             scan_gap=None, correlations=None, threads: int = 1) -> Dict[str, Path]:
     """Simulate a scene; return {band name: MS path, ['truth': npz path]}.
 
     ``scene`` is a :class:`Scene`, a YAML path, a packaged scene name
@@ -246,7 +246,8 @@ def simulate(scene, outdir, prefix: str = "sim", seed: Optional[int] = None,
     try:
         for tmp in staging.values():
             _remove(tmp)
-        # casacore releases the GIL while it writes, so two bands overlap on two cores
+        # threads > 1 overlaps the bands (numpy/numba release the GIL); casacore
+        # does not promise thread safety, so the default writes one band at a time
         with ThreadPoolExecutor(max_workers=max(1, min(threads, len(scene.bands)))) as pool:
             futures = [pool.submit(_write_band, scene, i, obs, staging[b.name])
                        for i, b in enumerate(scene.bands)]

@@ -8,7 +8,7 @@ from .api import simulate
 def run(scene, outdir, prefix="sim", seed=None, save_truth=False, overwrite=False,
         duration=None, integration=None, coherence_scale=None, no_noise=False,
         no_troposphere=False, stations=None, start=None, scan_length=None, scan_gap=None,
-        correlations=None, threads=2):
+        correlations=None, threads=1):
     return simulate(scene, outdir, prefix=prefix, seed=seed, save_truth=save_truth,
                     overwrite=overwrite, duration=duration, integration=integration,
                     coherence_scale=coherence_scale, no_noise=no_noise,

@@ -31,7 +31,8 @@ from hitops.kernels.tracking import track_wraps_smooth
 from hitops.kernels.wraps import count_wraps
 
 MODES = ("naive", "smooth", "antenna")
-SMOOTH_PARAMS = ("half_window", "max_gap", "jump_window", "jump_threshold", "min_coherence")
+SMOOTH_PARAMS = ("half_window", "max_gap", "jump_window", "jump_threshold", "min_coherence",
+                 "half_windows")
 
 
 @dataclass
@@ -111,9 +112,13 @@ def track_series(ref_phase: np.ndarray, valid: np.ndarray, mode: str = "smooth",
             segment[s][valid[s] & np.isfinite(ref_phase[s])] = 0
     elif mode == "smooth":
         kwargs = _smooth_kwargs(params)
+        per_sample = kwargs.pop("half_windows", None)
+        if per_sample is not None:
+            per_sample = np.ascontiguousarray(np.broadcast_to(per_sample, ref_phase.shape), dtype=np.int64)
         for s in range(n_series):
+            extra = {} if per_sample is None else {"half_windows": per_sample[s]}
             counts[s], segment[s], suspect[s], bridged[s], jump[s] = \
-                track_wraps_smooth(ref_phase[s], valid[s], **kwargs)
+                track_wraps_smooth(ref_phase[s], valid[s], **kwargs, **extra)
     else:
         raise InputError(f"unknown tracking mode '{mode}' for single series; use naive or smooth")
     return TrackResult(counts, segment, suspect, bridged, jump)

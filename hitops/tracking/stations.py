@@ -26,24 +26,27 @@ import numpy as np
 
 from hitops.errors import InputError
 
-BOLTZMANN = 1.380649e-23        # J/K
-JANSKY = 1e-26                  # W m^-2 Hz^-1
 ETA_2BIT = 0.88
 
 
 def system_temperature(t_rx: float, tau_zenith: float, elevation_deg: float, t_atm: float = 260.0) -> float:
-    """Tsys* (K) above the atmosphere for receiver temperature ``t_rx`` and zenith opacity."""
+    """Tsys* (K) above the atmosphere for receiver temperature ``t_rx`` and zenith opacity.
+
+    Same formula as the simulator's noise (hitops.simulate.noise), which it calls.
+    """
+    from hitops.simulate import noise
+
     if not 0 < elevation_deg <= 90:
         raise InputError(f"elevation must be in (0, 90] deg, got {elevation_deg}")
     airmass = 1.0 / math.sin(math.radians(elevation_deg))
-    extinction = math.exp(tau_zenith * airmass)
-    return (t_rx + t_atm * (1.0 - 1.0 / extinction)) * extinction
+    return float(noise.system_temperature(t_rx, t_atm, tau_zenith, np.float64(airmass)))
 
 
 def sefd(tsys: float, diameter_m: float, aperture_efficiency: float = 0.6) -> float:
-    """System equivalent flux density (Jy) of a dish of ``diameter_m``."""
-    area = math.pi * diameter_m ** 2 / 4.0
-    return 2.0 * BOLTZMANN * tsys / (aperture_efficiency * area) / JANSKY
+    """System equivalent flux density (Jy) of a dish of ``diameter_m`` (hitops.simulate.noise.sefd)."""
+    from hitops.simulate import noise
+
+    return float(noise.sefd(np.float64(tsys), diameter_m, aperture_efficiency))
 
 
 def per_sample_snr(flux_jy: float, sefd_p: float, sefd_q: float, bandwidth_hz: float, dt_s: float,

@@ -45,6 +45,7 @@ Gaussian model of S.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -132,7 +133,8 @@ def gaussian_failure_probability(rho: float) -> float:
     return math.erfc(math.pi * rho / 2.0)
 
 
-def mean_resultant_length(rho: float, n_grid: int = 20001) -> float:
+@functools.lru_cache(maxsize=4096)
+def mean_resultant_length(rho: float, n_grid: int = 4001) -> float:
     """E[cos theta]: the expected length of one unit phasor along the signal."""
     theta, pdf, _, _ = _phase_grid(_check_rho(rho), n_grid)
     integrand = pdf * np.cos(theta)
@@ -140,7 +142,8 @@ def mean_resultant_length(rho: float, n_grid: int = 20001) -> float:
     return float(h * (np.sum(integrand) - 0.5 * (integrand[0] + integrand[-1])))
 
 
-def mean_sin_squared(rho: float, n_grid: int = 20001) -> float:
+@functools.lru_cache(maxsize=4096)
+def mean_sin_squared(rho: float, n_grid: int = 4001) -> float:
     """E[sin^2 theta]: the variance of one unit phasor across the signal direction."""
     theta, pdf, _, _ = _phase_grid(_check_rho(rho), n_grid)
     integrand = pdf * np.sin(theta) ** 2
@@ -195,6 +198,36 @@ def recommended_half_window(rho: float, coherence_time: float, dt: float = 1.0,
         if smoothed_slip_bound(rho, 2 * half + 1, t_c_samples) * n_steps <= target_slips:
             return half
     return cap
+
+
+def local_coherence_time(coherence_time_zenith: float, sin_elevation) -> np.ndarray:
+    """Coherence time at elevation el: t_c sin(el)^(3/5) (phase variance grows with airmass)."""
+    sin_el = np.clip(np.asarray(sin_elevation, dtype=np.float64), 1e-3, 1.0)
+    return coherence_time_zenith * sin_el ** 0.6
+
+
+def _two_digits(x: np.ndarray) -> np.ndarray:
+    """Round positive values to 2 significant digits (vectorised)."""
+    exponent = np.floor(np.log10(x)) - 1
+    return np.round(x / 10.0 ** exponent) * 10.0 ** exponent
+
+
+def recommended_half_windows(rho, coherence_time, dt: float = 1.0, **kwargs) -> np.ndarray:
+    """Per-sample half-windows: :func:`recommended_half_window` for arrays of SNR and
+    (local) coherence time, broadcast together; evaluated once per distinct pair
+    after rounding both to 2 significant digits.  Non-finite or non-positive
+    inputs give 1."""
+    rho_arr, tc_arr = np.broadcast_arrays(np.asarray(rho, dtype=np.float64),
+                                          np.asarray(coherence_time, dtype=np.float64))
+    out = np.ones(rho_arr.shape, np.int64)
+    ok = np.isfinite(rho_arr) & np.isfinite(tc_arr) & (rho_arr > 0) & (tc_arr > 0)
+    if not ok.any():
+        return out
+    keys = np.stack([_two_digits(rho_arr[ok]), _two_digits(tc_arr[ok])], axis=1)
+    unique, inverse = np.unique(keys, axis=0, return_inverse=True)
+    values = np.array([recommended_half_window(r, t, dt, **kwargs) for r, t in unique], np.int64)
+    out[ok] = values[inverse.ravel()]
+    return out
 
 
 def gap_bridge_failure_probability(gap_s: float, coherence_time: float, noise_rad: float = 0.0) -> float:

@@ -1,0 +1,143 @@
+"""What can be checked here of the containerised/HPC route (no Docker daemon,
+Apptainer or slurm on this machine):
+
+* the container definitions parse and name only files that exist;
+* the cabs name the hitops image, and Stimela's singularity backend and slurm
+  wrapper build the expected command lines.  For the latter, stand-ins for
+  `singularity` and `srun` record the command line Stimela builds and then
+  run the wrapped command here, so the step really runs.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import stat
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+BIN = Path(sys.executable).parent
+IMAGE = "ghcr.io/hitops/hitops:0.1.0"
+
+DOCKER_INSTRUCTIONS = {"FROM", "RUN", "CMD", "LABEL", "EXPOSE", "ENV", "ADD", "COPY",
+                       "ENTRYPOINT", "VOLUME", "USER", "WORKDIR", "ARG", "ONBUILD",
+                       "STOPSIGNAL", "HEALTHCHECK", "SHELL"}
+
+
+def docker_instructions(text):
+    """(instruction, arguments) of a Dockerfile, continuation lines joined."""
+    out, current = [], ""
+    for raw in text.splitlines():
+        line = raw.strip()
+        if not current and (not line or line.startswith("#")):
+            continue
+        current += " " + line.rstrip("\\").strip() if current else line.rstrip("\\").strip()
+        if not line.endswith("\\"):
+            word, _, args = current.partition(" ")
+            out.append((word, args))
+            current = ""
+    assert not current, "Dockerfile ends inside a continued line"
+    return out
+
+
+def test_dockerfile_parses_and_copies_existing_files():
+    instructions = docker_instructions((ROOT / "docker" / "Dockerfile").read_text())
+    words = [w for w, _ in instructions]
+    assert words[0] == "FROM"
+    assert set(words) <= DOCKER_INSTRUCTIONS, set(words) - DOCKER_INSTRUCTIONS
+    for word, args in instructions:
+        if word == "COPY":
+            for src in args.split()[:-1]:
+                assert (ROOT / src).exists(), f"COPY {src}: no such file in the repository"
+    text = " ".join(a for _, a in instructions)
+    assert "wsclean" in text and "pip install ." in text
+    assert "CASASITECONFIG=/opt/hitops/casasiteconfig.py" in text
+    # the image tag documented in the Dockerfile is the one the cabs name
+    assert IMAGE in (ROOT / "docker" / "Dockerfile").read_text()
+
+
+def test_apptainer_definition_parses_and_names_existing_files():
+    text = (ROOT / "docker" / "hitops.def").read_text()
+    header = dict(re.findall(r"^(Bootstrap|From):\s*(\S+)", text, re.M))
+    assert header == {"Bootstrap": "docker", "From": "debian:bookworm-slim"}
+    sections = re.findall(r"^%(\w+)", text, re.M)
+    assert set(sections) <= {"files", "environment", "post", "test", "runscript", "labels",
+                             "help", "setup", "startscript", "arguments"}
+    assert {"files", "post", "environment"} <= set(sections)
+    files = text.split("%files", 1)[1].split("\n%", 1)[0]
+    for line in files.strip().splitlines():
+        src = line.split()[0]
+        assert (ROOT / src).exists(), f"%files {src}: no such file in the repository"
+    assert "wsclean" in text and "pip install /opt/hitops/src" in text
+    # same base as the Dockerfile
+    assert "FROM debian:bookworm-slim" in (ROOT / "docker" / "Dockerfile").read_text()
+
+
+SINGULARITY_SHIM = """#!/bin/bash
+if [ "$1" = "--version" ]; then echo "singularity-ce version 4.1.0-recording-stand-in"; exit 0; fi
+echo "singularity $*" >> "$SHIM_LOG"
+if [ "$1" = "build" ]; then touch "$2"; exit 0; fi
+if [ "$1" = "exec" ]; then
+  shift
+  while [ $# -gt 0 ]; do
+    case "$1" in
+      --pwd) cd "$2"; shift 2;;
+      --bind|-B|--env) shift 2;;
+      --*) shift;;
+      *) shift; break;;
+    esac
+  done
+  exec "$@"
+fi
+exit 1
+"""
+
+SRUN_SHIM = """#!/bin/bash
+echo "srun $*" >> "$SHIM_LOG"
+while [ $# -gt 0 ]; do
+  case "$1" in
+    -J|--*) shift 2;;
+    *) break;;
+  esac
+done
+exec "$@"
+"""
+
+
+def _executable(path, text):
+    path.write_text(text)
+    path.chmod(path.stat().st_mode | stat.S_IXUSR)
+
+
+@pytest.mark.slow
+def test_singularity_and_slurm_commands_name_the_image(tmp_path):
+    shims = tmp_path / "bin"
+    shims.mkdir()
+    _executable(shims / "singularity", SINGULARITY_SHIM)
+    _executable(shims / "srun", SRUN_SHIM)
+    log = tmp_path / "commands.log"
+    env = dict(os.environ)
+    env["PATH"] = f"{shims}:{BIN}:{env.get('PATH', '')}"
+    env["SHIM_LOG"] = str(log)
+    env.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".venv" / "numba-cache"))
+    out = tmp_path / "out"
+    cmd = [str(BIN / "stimela"), "run", "-S", "--slurm", "-s", "simulate",
+           "-c", f"opts.backend.singularity.image_dir={tmp_path / 'images'}",
+           "-c", "opts.backend.slurm.srun_opts.cpus-per-task=2",
+           str(ROOT / "recipes" / "fpt-demo.yml"), f"dir={out}"]
+    done = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stdout[-4000:] + done.stderr[-2000:]
+    lines = log.read_text().splitlines()
+    build = [l for l in lines if l.startswith("singularity build")]
+    assert build and build[0].endswith(f"docker://{IMAGE}")
+    srun = [l for l in lines if l.startswith("srun")]
+    assert srun and srun[0].startswith("srun -J simulate.fpt-demo --cpus-per-task 2")
+    assert "singularity exec" in srun[0] and "hitops simulate" in srun[0]
+    assert "ghcr.io-hitops-hitops:0.1.0.simg hitops simulate" in srun[0]
+    # the wrapped command really ran
+    assert (out / "sim-86.ms").is_dir() and (out / "sim-230.ms").is_dir()
