@@ -214,3 +214,20 @@ def test_imfit_recovers_known_peak(casa, tmp_path):
 def test_imfit_missing_image_is_input_error(casa, tmp_path):
     with pytest.raises(InputError, match="does not exist"):
         casa.imfit(str(tmp_path / "nothing.fits"))
+
+
+def test_imfit_divergence_check_and_fallback(casa, tmp_path):
+    image = _gaussian_image(tmp_path / "g.im", peak=0.8, noise=0.005)
+    # a |peak| above max_abs_peak means CLEAN diverged: an error without fallback
+    with pytest.raises(ExternalToolError, match="diverged"):
+        casa.imfit(image, max_abs_peak=0.5)
+    out = tmp_path / "fit.json"
+    fit = casa.imfit(image, max_abs_peak=0.5, fallback=True, centre_half_width=20,
+                     label="cfpt", outfile=str(out))
+    assert fit["method"] == "max-pixel"
+    # the brightest pixel of a Gaussian centred at (64.3, 63.6) is near its peak
+    assert fit["peak"] == pytest.approx(0.8, abs=0.03)
+    assert 0 < fit["peak_err"] < 0.02  # robust rms of the box
+    stored = json.loads(out.read_text())
+    assert stored["method"] == "max-pixel" and "diverged" in stored["reason"]
+    assert stored["box"] == "44,44,84,84"

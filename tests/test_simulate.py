@@ -305,3 +305,22 @@ def test_packaged_paper_scene_matches_the_paper():
     assert all(b.bandwidth_hz == 2e9 for b in scene.bands)
     trx = {s.code: (s.bands["86"].t_rx, s.bands["230"].t_rx, s.diameter) for s in scene.stations}
     assert trx["AP"] == (40, 85, 12) and trx["PB"] == (50, 80, 50) and trx["PV"] == (30, 60, 30)
+
+
+def test_gaussian_component_visibilities(tmp_path):
+    """A centred circular Gaussian: V = F exp(-pi^2 theta^2 |uv|^2 / (4 ln 2)), uv in wavelengths."""
+    scene = small_scene(corruptions={"troposphere": False, "noise": False},
+                        observation={"duration": 600, "integration": 10})
+    scene["source"]["flux"] = {"86": 0.0, "230": 0.0}
+    scene["source"]["components"] = [{"flux": {"86": 2.0, "230": 1.5}, "fwhm_major": 20.0}]
+    paths = simulate(scene, tmp_path)
+    theta = np.radians(20.0 / 3600e6)
+    amplitudes = {}
+    for band, freq, flux in (("86", 86e9, 2.0), ("230", 230e9, 1.5)):
+        data, uvw = read(paths[band], "DATA", "UVW")
+        rho = np.hypot(uvw[:, 0], uvw[:, 1]) * freq / 299792458.0
+        expected = flux * np.exp(-(np.pi * theta * rho) ** 2 / (4 * np.log(2)))
+        np.testing.assert_allclose(data[:, 0, 0], expected, atol=1e-6)
+        amplitudes[band] = np.abs(data[:, 0, 0]) / flux
+    # a 20 uas source is resolved on these baselines at 230 GHz, much less at 86 GHz
+    assert amplitudes["230"].min() < 0.3 < amplitudes["86"].min()

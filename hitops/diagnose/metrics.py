@@ -139,7 +139,11 @@ def compute_coherence(vis_stack: np.ndarray, columns: List[str], flag: np.ndarra
                                      da.from_array(flag, chunks=(chunk, -1, -1)), times,
                                      da.from_array(scan, chunks=(chunk, -1)),
                                      grid, dt, min_fill)
-    (arr,) = dask.compute(stacked, scheduler=scheduler)
+    # schedulers as functions, so dask does not import distributed to look for a client
+    import dask.local
+    import dask.threaded
+    get = {"threads": dask.threaded.get, "sync": dask.local.get_sync}.get(scheduler, scheduler)
+    (arr,) = dask.compute(stacked, scheduler=get)
     arr = arr.reshape(n_bl, n_col, n_corr, grid.size, len(FIELDS))
     out = {name: {} for name in FIELDS}
     for i, col in enumerate(columns):

@@ -207,9 +207,11 @@ def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = 
     corr_idx, corr_names = select_correlations(corr_types, correlations, ms)
 
     arrays = {c: xds[c].data for c in wanted_cols}
-    # a named scheduler: without one dask looks for a distributed client, whose
-    # import alone costs ~0.2 s of a run budgeted at a few seconds
-    values = dict(zip(arrays, dask.compute(*arrays.values(), scheduler="threads")))
+    # the threaded scheduler passed as a function: named or default schedulers
+    # make dask look for a distributed client, whose import alone costs ~0.2 s
+    # of a run budgeted at a few seconds
+    import dask.threaded
+    values = dict(zip(arrays, dask.compute(*arrays.values(), scheduler=dask.threaded.get)))
 
     time = values["TIME"]
     ant1, ant2 = values["ANTENNA1"], values["ANTENNA2"]
