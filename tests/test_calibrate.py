@@ -405,3 +405,35 @@ def test_command_line_run(tmp_path):
     assert "wrote FPT_PWC" in proc.stderr and "R = 2.674418605" in proc.stderr
     assert np.max(np.abs(wrap(out_phase(truth.target_ms, "FPT_PWC") - expected_pwc_phase(truth)))) < 1e-5
     assert json.loads((tmp_path / "r.json").read_text())["columns"] == {"pwc": "FPT_PWC"}
+
+
+def test_failure_while_writing_rolls_back(tmp_path, monkeypatch):
+    import hitops.io.read as msio
+
+    truth = make_pair(tmp_path, n_time=120, seed=19)
+    with pt.table(str(truth.target_ms), readonly=False, ack=False) as t:
+        flag = t.getcol("FLAG")
+        flag[::7, 0, 1] = True
+        t.putcol("FLAG", flag)
+    with pt.table(str(truth.ref_ms), readonly=False, ack=False) as t:
+        rflag = t.getcol("FLAG")
+        rflag[::5, 0, 0] = True            # so that the run adds flags
+        t.putcol("FLAG", rflag)
+    before = {c: col(truth.target_ms, c) for c in ("FLAG", "DATA")}
+    original = msio.write_main_columns
+    calls = []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise OSError("disk full (simulated)")
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(msio, "write_main_columns", failing)
+    with pytest.raises(OSError, match="simulated"):
+        calibrate(truth.ref_ms, truth.target_ms, chunk_rows=150)
+    with pt.table(str(truth.target_ms), ack=False) as t:
+        names = t.colnames()
+    assert "PWC_DATA" not in names and "FLAG_HITOPS_BACKUP" not in names
+    for c, value in before.items():
+        assert np.array_equal(col(truth.target_ms, c), value), c

@@ -190,11 +190,14 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
     outputs = {m: (output_column or DEFAULT_COLUMNS[m]) for m in methods}
     antenna_map = parse_antenna_map(antenna_map)
 
-    ref_needed = [ref_column, "FLAG"] + ([ref_model_column] if ref_model_column else [])
-    tgt_needed = [target_column, "FLAG"] + ([offset_reference_column] if offset_reference_column else [])
-    msio.require_columns(ref_ms, ref_needed + META_COLUMNS, "reference-band Measurement Set",
+    if time_tolerance is not None and not float(time_tolerance) > 0:
+        raise InputError(f"--time-tolerance {time_tolerance} must be a positive number of "
+                         "seconds; omit it to use half the smallest INTERVAL")
+    ref_cols = [ref_column, "FLAG"] + ([ref_model_column] if ref_model_column else [])
+    tgt_cols = [target_column, "FLAG"] + ([offset_reference_column] if offset_reference_column else [])
+    msio.require_columns(ref_ms, ref_cols + META_COLUMNS, "reference-band Measurement Set",
                          "check --ref-column / --ref-model-column")
-    msio.require_columns(target_ms, tgt_needed + META_COLUMNS, "target-band Measurement Set",
+    msio.require_columns(target_ms, tgt_cols + META_COLUMNS, "target-band Measurement Set",
                          "check --target-column / --offset-reference-column")
     protected = {target_column, "FLAG", FLAG_BACKUP, "DATA", offset_reference_column} - {None}
     present = set(msio.column_names(target_ms))
@@ -207,8 +210,6 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
                                     "--overwrite to replace it or --output-column to write "
                                     "another column")
 
-    ref_cols = [ref_column, "FLAG"] + ([ref_model_column] if ref_model_column else [])
-    tgt_cols = [target_column, "FLAG"] + ([offset_reference_column] if offset_reference_column else [])
     ref_meta_cols = META_COLUMNS + _selection_columns(ref_ms)
     tgt_meta_cols = META_COLUMNS + _selection_columns(target_ms)
     timings = {"checks": time.perf_counter() - started}
@@ -537,16 +538,21 @@ def _write_chunk(g, ch, phasor_rows, calibrated, codes, outputs, io_scheduler):
     # FLAG is rewritten only when this run adds flags; the backup is made the first time
     # (with several chunks and no backup yet, every chunk writes both so the backup is whole)
     changed = not np.array_equal(new_flag, ch["tgt_flag"])
-    if changed or (g["_backup_needed"] and g["_n_chunks"] > 1):
-        arrays["FLAG"] = new_flag
-        dims["FLAG"] = vis_dims
-        if g["_backup_needed"]:
-            arrays[FLAG_BACKUP] = ch["tgt_flag"]
-            dims[FLAG_BACKUP] = vis_dims
-            g["_state"]["backup_written"] = True
-        g["_state"]["flag_written"] = True
+    write_flag = changed or (g["_backup_needed"] and g["_n_chunks"] > 1)
+    state = g["_state"]
+    if write_flag and g["_backup_needed"]:
+        arrays[FLAG_BACKUP] = ch["tgt_flag"]
+        dims[FLAG_BACKUP] = vis_dims
+    # outputs and the backup first, FLAG after: a failure in between leaves FLAG
+    # restorable from the backup of exactly the rows that have one
     msio.write_main_columns(g["target_ms"], ch["tgt_rows"], arrays, dims, scheduler=io_scheduler)
-    return ch["tgt_rows"].size
+    if FLAG_BACKUP in arrays:
+        state["backup_written"] = True
+        state.setdefault("backup_rows", []).append(ch["tgt_rows"])
+    if write_flag:
+        msio.write_main_columns(g["target_ms"], ch["tgt_rows"], {"FLAG": new_flag},
+                                {"FLAG": vis_dims}, scheduler=io_scheduler)
+        state["flag_written"] = True
 
 
 def _rollback(g):
@@ -558,7 +564,11 @@ def _rollback(g):
         with pt.table(g["target_ms"], readonly=False, ack=False) as t:
             t.lock(write=True)
             if state["backup_created"] and FLAG_BACKUP in t.colnames():
-                t.putcol("FLAG", t.getcol(FLAG_BACKUP))
+                rows = np.concatenate(state.get("backup_rows") or [np.zeros(0, np.int64)])
+                if rows.size:   # only rows this run backed up may have a changed FLAG
+                    flag = t.getcol("FLAG")
+                    flag[rows] = t.getcol(FLAG_BACKUP)[rows]
+                    t.putcol("FLAG", flag)
                 t.removecols([FLAG_BACKUP])
             drop = [c for c in state["created"] if c in t.colnames()]
             if drop:
