@@ -141,7 +141,9 @@ def main(argv=None) -> None:
     shutil.rmtree(cold_cache, ignore_errors=True)
 
     import json
-    stages = json.loads((workdir / "report.json").read_text()).get("timings_s", {})
+    last_report = json.loads((workdir / "report.json").read_text())
+    stages = last_report.get("timings_s", {})
+    in_tool = last_report.get("time_s", float("nan"))
     n_chunks = json.loads((workdir / "report-chunked.json").read_text()).get("chunks")
     floor = median([r["wall_s"] for r in floor_runs])
     warm = median([r["wall_s"] for r in warm_runs])
@@ -178,16 +180,32 @@ times much less).  Scene: {N_ANT} stations (28 baselines), {N_TIME} times of 1 s
 Verdict: {verdict}.
 
 Stages of the last warm run (seconds, from the report's `timings_s`): {stage_line}.
-`open` is dask-ms building the two datasets (its row-ordering TaQL query over every
-row of each table), `metadata` reading TIME/ANTENNA1/ANTENNA2/SCAN_NUMBER/INTERVAL/FLAG_ROW
-of both bands, `read` the DATA and FLAG columns, `transfer` gridding, wrap counting and
-the PWC kernels, `write` the output column through dask-ms.
+They add up to {in_tool:.2f} s inside `calibrate()`; the rest of the process wall time
+(about {warm - in_tool:.2f} s) is Python start-up and imports (numpy, numba, dask,
+dask-ms, python-casacore, click) not done lazily.  `checks` is input validation (and
+the casacore import), `open` is importing dask-ms (about 0.35 s, most of it dask.array)
+and dask-ms building the two datasets (its row-ordering TaQL query,
+`SELECT ROWID() ... FROM $1`, over every row of each table: about 0.2 s per
+1.2 M-row table when the machine is idle), `metadata` reading TIME/ANTENNA1/ANTENNA2/SCAN_NUMBER/INTERVAL/
+FLAG_ROW of both bands, `match` the band matching, `read` the DATA and FLAG columns,
+`transfer` gridding, wrap counting and the PWC kernels (it includes numba's first
+kernel load from the cache, about 0.2 s of LLVM start-up per process), `write` the
+output column through dask-ms.
+
+Why the wall-time targets are missed: start-up and imports, numba's first load and
+dask-ms's ordering query are fixed costs of the required stack (numba kernels, I/O
+through dask-ms) that together take about 1.5 s before any data is touched; the
+tiled I/O floor of this scene is far below that.  The work proper (metadata, match,
+read, FPT, write) is well under a second.  Memory: one chunk holds the whole scene;
+`--chunk-rows` bounds it (row above) at the price of per-chunk dask-ms overhead.
 
 Run: `python -m benchmarks.bench_calibrate [--workdir DIR]`.
 """
     print(markdown)
     replace_section("calibrate", markdown)
     print("figure:", figure(PLOT_DIR / "calibrate_cfpt_vs_pwc.png"))
+    if not args.workdir:   # a pair built in a temporary directory is not kept
+        shutil.rmtree(workdir, ignore_errors=True)
 
 
 if __name__ == "__main__":
