@@ -48,7 +48,8 @@ def load_schema(tool: str) -> Dict[str, Any]:
     if tool not in tools():
         raise InputError(f"unknown tool '{tool}'; known tools: {', '.join(tools())}")
     text = importlib.resources.files("hitops.schemas").joinpath(f"{tool}.yml").read_text()
-    schema = yaml.safe_load(text)
+    # libyaml's parser when PyYAML has it: same result, ~10x faster (CLI start-up)
+    schema = yaml.load(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
     schema.setdefault("inputs", {})
     schema.setdefault("outputs", {})
     return schema

@@ -231,3 +231,43 @@ def test_imfit_divergence_check_and_fallback(casa, tmp_path):
     stored = json.loads(out.read_text())
     assert stored["method"] == "max-pixel" and "diverged" in stored["reason"]
     assert stored["box"] == "44,44,84,84"
+
+
+def test_single_refant_that_sets_mid_track_fails_and_leaves_no_table(casa, tmp_path):
+    # GUIDE.md section 3: a single refant that sets stops fringefit with
+    # "No valid reference antenna supplied"; here PV is flagged for the second half
+    from casacore import tables as pt
+
+    vis, _ = build_ms(tmp_path / "t.ms", n_time=60)
+    with pt.table(vis, readonly=False, ack=False) as tab:
+        time, a1, a2 = tab.getcol("TIME"), tab.getcol("ANTENNA1"), tab.getcol("ANTENNA2")
+        flag = tab.getcol("FLAG")
+        flag[(time > np.median(time)) & ((a1 == 1) | (a2 == 1))] = True
+        tab.putcol("FLAG", flag)
+    table = tmp_path / "ff.tbl"
+    with pytest.raises(ExternalToolError, match="No valid reference antenna"):
+        casa.fringefit(vis, str(table), solint="60s", refant="PV")
+    assert not table.exists()
+    # a priority list lets CASA switch to the next reference when PV sets
+    ff = casa.fringefit(vis, str(table), solint="60s", refant=["PV", "PB"])
+    assert ff["n_rows"] > 0 and table.exists()
+
+
+def test_imfit_on_a_nan_image_falls_back_instead_of_aborting(casa, tmp_path):
+    # a CLEAN that diverged to NaN (seen with a beam as large as the field):
+    # CASA imfit itself would abort the process on it
+    from hitops.casa_env import ensure_casa_offline
+
+    ensure_casa_offline()
+    import casatools
+
+    nan_image = str(tmp_path / "nan.im")
+    ia = casatools.image()
+    ia.fromshape(outfile=nan_image, shape=[64, 64], overwrite=True)
+    ia.putchunk(np.full((64, 64), np.nan))
+    ia.done()
+    with pytest.raises(ExternalToolError, match="no finite pixel"):
+        casa.imfit(nan_image)
+    dirty = _gaussian_image(tmp_path / "dirty.im", peak=0.6, noise=0.005)
+    fit = casa.imfit(nan_image, fallback=True, fallback_image=dirty)
+    assert fit["method"] == "max-pixel" and fit["peak"] == pytest.approx(0.6, abs=0.03)

@@ -12,6 +12,7 @@ import json
 import logging
 import math
 import shutil
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Union
 
@@ -48,6 +49,19 @@ def _prepare_output(path: str, overwrite: bool) -> None:
             raise OutputExistsError(f"calibration table '{path}' exists; pass overwrite=True "
                                     "(cab: overwrite=true) to replace it")
         shutil.rmtree(target)
+
+
+@contextmanager
+def _no_table_on_failure(caltable: str):
+    """Remove a (partial) table when the solve fails, so that a pipeline rerun
+    does not mistake it for a finished result and skip the step."""
+    try:
+        yield
+    except BaseException:
+        if Path(caltable).exists():
+            log.warning("removing %s left by the failed solve", caltable)
+            shutil.rmtree(caltable, ignore_errors=True)
+        raise
 
 
 def table_summary(caltable: str, task: str) -> Dict[str, float]:
@@ -89,10 +103,12 @@ def fringefit(vis: str, caltable: str, solint: str = "20s", refant: StrList = ""
     _check_ms(vis)
     _prepare_output(caltable, overwrite)
     refants = _as_list(refant)
-    run_task("fringefit", vis=vis, caltable=caltable, field=field, spw=spw, solint=solint,
-             refant=",".join(refants), minsnr=float(minsnr), zerorates=bool(zerorates),
-             globalsolve=bool(globalsolve), gaintable=_as_list(gaintable))
-    summary = table_summary(caltable, "fringefit")
+    with _no_table_on_failure(caltable):
+        run_task("fringefit", vis=vis, caltable=caltable, field=field, spw=spw,
+                 solint=solint, refant=",".join(refants), minsnr=float(minsnr),
+                 zerorates=bool(zerorates), globalsolve=bool(globalsolve),
+                 gaintable=_as_list(gaintable))
+        summary = table_summary(caltable, "fringefit")
     return {"caltable": caltable, **summary}
 
 
@@ -109,11 +125,12 @@ def gaincal(vis: str, caltable: str, solint: str = "10s", refant: StrList = "",
     if calmode not in ("p", "a", "ap"):
         raise InputError(f"gaincal calmode '{calmode}' must be one of p, a, ap")
     _prepare_output(caltable, overwrite)
-    run_task("gaincal", vis=vis, caltable=caltable, field=field, spw=spw, solint=solint,
-             refant=",".join(_as_list(refant)), calmode=calmode, gaintype=gaintype,
-             minsnr=float(minsnr), gaintable=_as_list(gaintable),
-             minblperant=int(minblperant))
-    summary = table_summary(caltable, "gaincal")
+    with _no_table_on_failure(caltable):
+        run_task("gaincal", vis=vis, caltable=caltable, field=field, spw=spw,
+                 solint=solint, refant=",".join(_as_list(refant)), calmode=calmode,
+                 gaintype=gaintype, minsnr=float(minsnr), gaintable=_as_list(gaintable),
+                 minblperant=int(minblperant))
+        summary = table_summary(caltable, "gaincal")
     return {"caltable": caltable, **summary}
 
 
@@ -167,8 +184,12 @@ def _quantity(q) -> float:
     return float(np.asarray(q["value"]).ravel()[0])
 
 
-def _image_shape_and_stats(imagename: str, box: str) -> Dict[str, float]:
-    """Shape, brightest pixel and robust rms inside ``box`` (casatools image tool)."""
+def _image_shape_and_stats(imagename: str, box: str) -> Dict[str, object]:
+    """Shape, brightest pixel and robust rms inside ``box`` (casatools image tool).
+
+    ``max`` is NaN when the box holds no finite pixel (e.g. a CLEAN that
+    diverged to NaN), which CASA imfit would abort on.
+    """
     from ..casa_env import ensure_casa_offline
 
     ensure_casa_offline()
@@ -185,7 +206,11 @@ def _image_shape_and_stats(imagename: str, box: str) -> Dict[str, float]:
         rg.done()
     finally:
         ia.done()
-    return {"shape": shape, "max": float(np.asarray(stats["max"]).ravel()[0]),
+    peak = np.asarray(stats.get("max", [])).ravel()
+    if peak.size == 0 or not np.isfinite(peak[0]):
+        return {"shape": shape, "max": float("nan"), "maxpos": [float("nan")] * 2,
+                "rms": float("nan")}
+    return {"shape": shape, "max": float(peak[0]),
             "maxpos": [float(v) for v in np.asarray(stats["maxpos"]).ravel()[:2]],
             "rms": float(np.asarray(stats["medabsdevmed"]).ravel()[0]) * 1.4826}
 
@@ -224,6 +249,11 @@ def imfit(imagename: str, box: str = "", region: str = "", stokes: str = "I",
         box = centre_box(imagename, centre_half_width)
     error = None
     try:
+        # CASA imfit aborts the whole process (C++ ArrayError) on an image without
+        # finite pixels, so look first
+        if not math.isfinite(_image_shape_and_stats(imagename, box)["max"]):
+            raise ExternalToolError(f"'{imagename}' has no finite pixel in box '{box}' "
+                                    "(the deconvolution produced NaN)")
         result = run_task("imfit", imagename=str(imagename), box=box, region=region,
                           stokes=stokes)
         if not result or not result.get("converged", [False])[0]:
@@ -264,6 +294,9 @@ def imfit(imagename: str, box: str = "", region: str = "", stokes: str = "I",
             raise InputError(f"imfit fallback image '{source}' does not exist")
         log.warning("%s; reporting the brightest pixel of %s instead (fallback)", error, source)
         stats = _image_shape_and_stats(source, box)
+        if not math.isfinite(stats["max"]):
+            raise ExternalToolError(f"{error}; the fallback image '{source}' has no finite "
+                                    "pixel either")
         # no flux/flux_err: they are undefined without a fit (and NaN is not JSON)
         out = {"method": "max-pixel", "peak": stats["max"], "peak_err": stats["rms"],
                "x_pix": stats["maxpos"][0], "y_pix": stats["maxpos"][1]}

@@ -83,6 +83,7 @@ def build_rows(fit_files: Sequence[str], labels: Sequence[str], input_peak: floa
             "method": METHOD_NAMES.get(label, label),
             "image": fit.get("image", ""),
             "fit": fit.get("method", "gaussian"),
+            "note": _fallback_note(fit),
             "peak_jy": float(fit["peak"]),
             "peak_err_jy": float(fit["peak_err"]),
             "input_peak_jy": float(input_peak),
@@ -99,6 +100,17 @@ def build_rows(fit_files: Sequence[str], labels: Sequence[str], input_peak: floa
     if duplicates:
         raise InputError(f"labels {duplicates} appear more than once; pass --labels")
     return rows
+
+
+def _fallback_note(fit: Dict) -> str:
+    """Why a row is not a Gaussian fit (empty for a fit)."""
+    if fit.get("method", "gaussian") == "gaussian":
+        return ""
+    reason = str(fit.get("reason", ""))
+    source = "dirty-image" if "dirty" in str(fit.get("fallback_image", "")) else "image"
+    if "diverged" in reason or "no finite" in reason:
+        return f"max-pixel: CLEAN diverged, brightest {source} pixel"
+    return f"max-pixel: fit did not converge, brightest {source} pixel"
 
 
 def _fmt(value, digits=4) -> str:
@@ -118,7 +130,7 @@ def markdown(rows: List[Dict], coherence: Optional[Dict], reference: str) -> str
     out.append("| " + " | ".join(header) + " |")
     out.append("|" + "---|" * len(header))
     for r in rows:
-        note = "" if r["fit"] == "gaussian" else f" ({r['fit']}: fit did not converge)"
+        note = f" ({r['note']})" if r.get("note") else ""
         cells = [r["method"] + note, f"{r['peak_jy']:.4f} ± {r['peak_err_jy']:.4f}",
                  f"{r['recovery']:.4f} ± {r['recovery_err']:.4f}"]
         if reference == "paper":

@@ -1,15 +1,19 @@
 """Read the columns diagnose needs from a Measurement Set onto a (baseline, time) grid.
 
-dask-ms reads only the columns asked for (TIME, ANTENNA1, ANTENNA2, FLAG,
-FLAG_ROW, SCAN_NUMBER, UVW when a (u,v) plot is wanted, and the compared
-data columns) in large row chunks, in one ``dask.compute``; casacore I/O is
-not the bottleneck (GUIDE: ~0.1 s for a 1.2 M-row one-channel column), so
+The Measurement Set access is the package's shared reader
+(:mod:`hitops.io.read`, the one ``hitops calibrate`` uses): dask-ms reads
+only the columns asked for (TIME, ANTENNA1, ANTENNA2, FLAG, FLAG_ROW,
+SCAN_NUMBER, UVW when a (u,v) plot is wanted, and the compared data columns)
+in storage order and large row chunks, in one ``dask.compute``; casacore I/O
+is not the bottleneck (GUIDE: ~0.1 s for a 1.2 M-row one-channel column), so
 the rows are then laid out in memory with
 :func:`hitops.io.layout.baseline_time_layout`.
 
 FLAG_ROW is folded into FLAG; several channels (the package expects
 frequency-averaged data) are vector-averaged over their unflagged channels
-with a warning; autocorrelations are dropped.
+with a warning; autocorrelations are dropped.  A set holding several fields
+or spectral windows is refused (FIELD_ID / DATA_DESC_ID are read only when
+the FIELD / DATA_DESCRIPTION subtables have more than one row).
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 
 from ..errors import ColumnError, InputError, MeasurementSetError
+from ..io import read as msio
 from ..io.layout import baseline_time_layout
 
 log = logging.getLogger("hitops.diagnose")
@@ -74,17 +79,11 @@ def _check_ms(ms: str) -> None:
 
 
 def _subtable(ms: str, name: str, columns: Sequence[str]):
-    from casacore import tables as pt
-
-    with pt.table(f"{ms}::{name}", ack=False) as tab:
-        return {c: tab.getcol(c) for c in columns}
+    return msio.read_subtable(ms, name, columns)
 
 
 def main_columns(ms: str) -> List[str]:
-    from casacore import tables as pt
-
-    with pt.table(ms, ack=False) as tab:
-        return list(tab.colnames())
+    return msio.column_names(ms)
 
 
 def data_columns(ms: str) -> List[str]:
@@ -172,9 +171,6 @@ def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = 
               baselines: Optional[str] = None, want_uvw: bool = False,
               row_chunk: int = 400_000) -> GridData:
     """Read ``columns`` of ``ms`` for the selected baselines and correlations."""
-    import dask
-    from daskms import xds_from_ms
-
     ms = str(ms)
     _check_ms(ms)
     available = data_columns(ms)
@@ -191,27 +187,26 @@ def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = 
     if want_uvw:
         wanted_cols.append("UVW")
     wanted_cols += list(dict.fromkeys(columns))
-    datasets = xds_from_ms(ms, columns=wanted_cols, chunks={"row": row_chunk})
-    if not datasets:
+    selection = msio.selection_columns(ms)
+    xds = msio.open_main(ms, wanted_cols + selection, chunk_rows=row_chunk)
+    # the threaded scheduler passed as a function (inside compute_columns): named or
+    # default schedulers make dask look for a distributed client, whose import alone
+    # costs ~0.2 s of a run budgeted at a few seconds
+    values = msio.compute_columns([(xds, wanted_cols + selection, None)])[0]
+    if values["TIME"].size == 0:
         raise MeasurementSetError(f"{ms}: the main table has no rows")
-    if len(datasets) > 1:
-        groups = ", ".join(f"FIELD_ID={ds.attrs.get('FIELD_ID')}/DATA_DESC_ID="
-                           f"{ds.attrs.get('DATA_DESC_ID')}" for ds in datasets)
-        raise MeasurementSetError(f"{ms} holds several fields or spectral windows ({groups}); "
-                                  "split them (e.g. CASA split by field/spw) and diagnose each")
-    xds = datasets[0]
-    ddid = int(xds.attrs.get("DATA_DESC_ID", 0))
+    ddid = 0
+    if selection:
+        groups = sorted(set(zip(values["FIELD_ID"].tolist(), values["DATA_DESC_ID"].tolist())))
+        if len(groups) > 1:
+            text = ", ".join(f"FIELD_ID={f}/DATA_DESC_ID={d}" for f, d in groups)
+            raise MeasurementSetError(f"{ms} holds several fields or spectral windows ({text}); "
+                                      "split them (e.g. CASA split by field/spw) and diagnose each")
+        ddid = int(groups[0][1])
     dd = _subtable(ms, "DATA_DESCRIPTION", ["SPECTRAL_WINDOW_ID", "POLARIZATION_ID"])
     corr_types = pol[int(dd["POLARIZATION_ID"][ddid])]
     freq_hz = float(spw[int(dd["SPECTRAL_WINDOW_ID"][ddid])])
     corr_idx, corr_names = select_correlations(corr_types, correlations, ms)
-
-    arrays = {c: xds[c].data for c in wanted_cols}
-    # the threaded scheduler passed as a function: named or default schedulers
-    # make dask look for a distributed client, whose import alone costs ~0.2 s
-    # of a run budgeted at a few seconds
-    import dask.threaded
-    values = dict(zip(arrays, dask.compute(*arrays.values(), scheduler=dask.threaded.get)))
 
     time = values["TIME"]
     ant1, ant2 = values["ANTENNA1"], values["ANTENNA2"]

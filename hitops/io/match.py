@@ -117,7 +117,10 @@ def pair_antennas(ref: BandRows, tgt: BandRows, antenna_map: Mapping[str, str]) 
         raise StationError("two reference stations map to the same target station; "
                            "check --antenna-map and the ANTENNA tables of "
                            f"{ref.ms} and {tgt.ms}")
-    used_tgt = np.unique(np.concatenate([tgt.ant1, tgt.ant2]))
+    # stations used by the target rows: counts over the few antenna indices (no sort)
+    n_ant_t = len(tgt.antenna_names)
+    used_tgt = np.flatnonzero(np.bincount(tgt.ant1, minlength=n_ant_t)
+                              + np.bincount(tgt.ant2, minlength=n_ant_t))
     paired = set(mapped.tolist())
     orphans = [tgt.antenna_names[a] for a in used_tgt if a not in paired]
     if orphans:

@@ -57,13 +57,66 @@ def read_subtable(ms: str, subtable: str, columns: Sequence[str]) -> Dict[str, n
         return {c: (t.getcol(c) if t.nrows() else np.array([])) for c in columns}
 
 
-def open_main(ms: str, columns: Sequence[str], chunk_rows: int = 1 << 21):
-    """Lazy dask-ms dataset of the main table: one group, storage order, ROWID coordinate."""
-    from daskms import xds_from_ms
+def selection_columns(ms: str) -> List[str]:
+    """``["DATA_DESC_ID", "FIELD_ID"]`` when ``ms`` may mix spectral windows or fields.
 
-    (ds,) = xds_from_ms(ms, columns=list(columns), index_cols=[], group_cols=[],
-                        chunks={"row": int(chunk_rows)})
-    return ds
+    With one DATA_DESCRIPTION row and one FIELD row every row has the same
+    values, so reading 2 x n_row integers to check them is skipped.
+    """
+    from casacore import tables as pt
+
+    with pt.table(f"{ms}::DATA_DESCRIPTION", ack=False) as t:
+        n_dd = t.nrows()
+    with pt.table(f"{ms}::FIELD", ack=False) as t:
+        n_field = t.nrows()
+    return ["DATA_DESC_ID", "FIELD_ID"] if (n_dd > 1 or n_field > 1) else []
+
+
+def open_main(ms: str, columns: Sequence[str], chunk_rows: int = 1 << 21):
+    """Lazy dask-ms dataset of the main table: one group, storage order, ROWID coordinate.
+
+    Storage order is what every caller here wants (rows are laid out by
+    (baseline, time) afterwards), so the dataset is built by dask-ms's own
+    dataset factory with the row order given directly, not found by dask-ms's
+    ordering query ``SELECT ROWID() AS __tablerow__ FROM $1``: that query
+    evaluates an expression on every row (about 0.2 s per 1.2 M-row table
+    here, holding the GIL) only to return 0..n_row-1.  Reads still run through
+    dask-ms (its TableProxy, executor and getcol wrappers), and the result is
+    identical to ``xds_from_ms(ms, columns, index_cols=[], group_cols=[])``
+    (tests/test_io_read.py checks it).  If a dask-ms release changes those
+    internals, the public call is used instead.
+    """
+    columns = list(columns)
+    try:
+        return _storage_order_dataset(ms, columns, int(chunk_rows))
+    except (ImportError, AttributeError, TypeError):   # dask-ms internals moved
+        from daskms import xds_from_ms
+
+        (ds,) = xds_from_ms(ms, columns=columns, index_cols=[], group_cols=[],
+                            chunks={"row": int(chunk_rows)})
+        return ds
+
+
+def _storage_order_dataset(ms: str, columns: List[str], chunk_rows: int):
+    """dask-ms Dataset of ``columns`` in storage order without the ordering TaQL query."""
+    import dask.array as da
+    from dask.array.core import normalize_chunks
+    from daskms.ordering import row_run_factory
+    from daskms.reads import DatasetFactory
+
+    class _StorageOrderFactory(DatasetFactory):
+        def datasets(self):
+            table_proxy = self._table_proxy_factory()
+            n_row = table_proxy.nrows().result()
+            chunks = normalize_chunks(self.chunks[0]["row"], shape=(n_row,))
+            # the rows dask-ms's query would return for no index_cols and no where clause
+            rows = da.arange(n_row, chunks=chunks, dtype=np.int64)
+            row_runs = rows.map_blocks(row_run_factory, sort_dir="read", dtype=object)
+            return self._single_dataset(table_proxy, (rows, row_runs))
+
+    # the keyword arguments xds_from_ms passes for a Measurement Set main table
+    return _StorageOrderFactory(ms, columns, [], [], chunks={"row": chunk_rows},
+                                table_schema="MS", context="ms").datasets()
 
 
 def _take_rows(array, rows: Optional[np.ndarray]):
@@ -114,6 +167,24 @@ def read_main_columns(ms: str, columns: Sequence[str], rows: Optional[np.ndarray
     return compute_columns([(ds, list(columns), rows)], scheduler)[0]
 
 
+def _single_block(value: np.ndarray):
+    """A one-chunk dask array holding ``value`` itself.
+
+    ``da.from_array`` copies numpy input (dask >= 2024) and hashes it unless
+    named: about 0.1 s for one 1.2 M-row, 4-correlation output column.  The
+    array is not modified afterwards, so the graph can hold it directly.
+    """
+    import uuid
+
+    import dask.array as da
+
+    value = np.asarray(value)
+    name = f"hitops-write-{uuid.uuid4().hex}"
+    key = (name,) + (0,) * value.ndim
+    return da.Array({key: value}, name, chunks=tuple((s,) for s in value.shape),
+                    dtype=value.dtype)
+
+
 def write_main_columns(ms: str, rows: np.ndarray, arrays: Dict[str, np.ndarray],
                        dims: Dict[str, tuple], scheduler=None) -> None:
     """Write ``arrays`` (first axis = ``rows``) into main-table columns via dask-ms.
@@ -129,10 +200,8 @@ def write_main_columns(ms: str, rows: np.ndarray, arrays: Dict[str, np.ndarray],
     n = rows.size
     variables = {}
     for name, value in arrays.items():
-        # name=False: a random key instead of hashing tens of MB of output
-        variables[name] = (dims[name], da.from_array(value, chunks=(n,) + value.shape[1:],
-                                                      name=False))
-    ds = Dataset(variables, coords={"ROWID": ("row", da.from_array(rows, chunks=n, name=False))})
+        variables[name] = (dims[name], _single_block(value))
+    ds = Dataset(variables, coords={"ROWID": ("row", _single_block(rows))})
     writes = xds_to_table(ds, ms, columns=list(arrays))
     writes = writes if isinstance(writes, (list, tuple)) else [writes]
     # compute the write arrays, not the datasets: a dask-ms Dataset does not survive

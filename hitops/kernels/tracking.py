@@ -295,7 +295,11 @@ def track_wraps_smooth(ref_phase, valid, half_window=5, max_gap=30, jump_window=
                 rate, _ok = _local_rate(index, unwrapped, j0, k - 1)
             predicted = unwrapped[k - 1] + jumps[k] + rate * (h + 1 - jump_window)
         elif gap > 1:
-            span = max(base, gap)
+            # the rates are measured over max(2h+1, gap) samples, but never more
+            # than max_gap + 1: beyond it the gap starts an unresolved segment anyway,
+            # and a bounded reach lets calibrate chunk the time axis exactly with a
+            # finite context (hitops.calibrate.robust.context_samples)
+            span = max(base, min(gap, max_gap + 1))
             predicted = unwrapped[k - 1] + _predicted_step(index, unwrapped, smooth_phase, k,
                                                            seg_lo[k - 1], seg_hi[k], span)
             if not seg_first[k]:

@@ -1,0 +1,832 @@
+"""Robust reference-band wrap tracking inside ``hitops calibrate`` (issue 6, part B).
+
+The paper's tracker (``--tracker count``) compares consecutive samples and
+runs inside the baseline-group tasks of :mod:`hitops.calibrate.transfer`,
+carrying one sample across time chunks.  The robust trackers look further:
+
+* ``smooth``  - :func:`hitops.kernels.tracking.track_wraps_smooth` per
+  (baseline, correlation): smoothed unit phasor over a window sized from the
+  per-sample SNR and the coherence time, gap bridging, jump detection;
+* ``antenna`` - :func:`hitops.tracking.modes.track_antennas` per parallel-hand
+  correlation: per-sample antenna phase solve, wraps tracked per antenna,
+  baseline counts snapped to the antenna model, so n0 is per antenna and
+  closure phases carry no 2 pi eps k.  Cross-hand correlations (RL, LR, XY,
+  YX) have no antenna model here and use ``smooth``.
+
+Both run here, in the driver, on the whole array of one time chunk *with
+context*: the reference rows of ``context`` extra time samples on either
+side are read too, the tracker runs on the extended chunk, and its counts
+are aligned to the counts already written for the overlapping context
+(:class:`History`).  The kernels' reach is bounded (smoothing +-h, bridged
+gaps <= max_gap, jump windows, the SNR window), so with
+``context >= context_samples(...)`` the output does not depend on the chunk
+size (tested).  Across a gap longer than the context, which is a new,
+unresolved segment anyway, the count continues from the last one.
+
+Time axis: the kernels work on a regular grid, so within each scan the
+union time axis of calibrate is mapped onto a grid of step dt (the median
+time step); missing times are invalid samples, so gaps are visible.
+
+Per-sample SNR (for the smoothing windows, docs/tracking.md): from SIGMA
+(or WEIGHT = 1/SIGMA^2) when the reference set has informative values,
+rho(t) = sqrt(|<V>|^2 - 2 sigma^2 / n) / sigma with <V> the mean of the n
+valid visibilities within +-snr_window samples; otherwise from the data:
+|<exp(i (phi_{t+1} - phi_t))>| = m^2, m the mean resultant length of one
+noisy unit phasor, inverted through
+:func:`hitops.tracking.theory.mean_resultant_length`.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from ..errors import InputError, StationError
+
+log = logging.getLogger("hitops.calibrate")
+
+TRACKER_CHOICES = ("count", "smooth", "antenna")
+JUMP_ACTIONS = ("segment", "flag")
+TWO_PI = 2.0 * math.pi
+#: smoothed-phasor mean resultant below which a sample is suspect (kernel default)
+MIN_COHERENCE = 0.2
+#: antenna tracks are smoothed over +-2 samples after a windowed solve (docs/tracking.md)
+ANTENNA_TRACK_HALF_WINDOW = 2
+#: nominal per-sample SNR for the jump threshold when --snr is not given (conservative:
+#: a lower SNR gives a higher threshold, hence fewer false jumps)
+NOMINAL_JUMP_SNR = 2.0
+
+
+@dataclass
+class TrackingSetup:
+    """Resolved tracking parameters (samples of the regular grid unless stated)."""
+
+    tracker: str
+    dt: float
+    coherence_time: float          # s, reference band
+    snr: float                     # fixed per-sample SNR, 0: per sample
+    snr_source: str                # 'fixed', 'sigma', 'weight', 'data'
+    half_window: int               # fixed smoothing half-window, 0: per sample
+    max_half_window: int           # cap of per-sample half-windows
+    max_gap: int
+    jump_window: int
+    jump_threshold: float          # rad, 0: off
+    jump_action: str
+    refants: np.ndarray            # int64 target antenna indices, in order of preference
+    solve_half_window: int         # antenna mode
+    snr_window: int
+    context: int
+
+    def as_dict(self) -> dict:
+        return {"tracker": self.tracker, "dt_s": self.dt, "coherence_time_s": self.coherence_time,
+                "snr": self.snr, "snr_source": self.snr_source,
+                "half_window": self.half_window if self.half_window > 0 else "per-sample",
+                "max_half_window": self.max_half_window, "max_gap": self.max_gap,
+                "jump_window": self.jump_window,
+                "jump_threshold_deg": math.degrees(self.jump_threshold),
+                "jump_action": self.jump_action, "refants": self.refants.tolist(),
+                "solve_half_window": self.solve_half_window, "snr_window": self.snr_window,
+                "context_samples": self.context}
+
+
+def check_options(tracker, half_window, coherence_time, snr, max_gap, jump_threshold,
+                  jump_window, jump_action, solve_half_window) -> None:
+    """Validate the tracking options (before anything is read or written)."""
+    if tracker not in TRACKER_CHOICES:
+        raise InputError(f"--tracker {tracker!r}: choose one of {', '.join(TRACKER_CHOICES)}")
+    checks = [
+        (half_window, "--half-window", lambda v: int(v) == v and v >= 0,
+         "an integer >= 0 (0: per-sample windows from the SNR and --coherence-time)"),
+        (coherence_time, "--coherence-time", lambda v: math.isfinite(v) and v > 0,
+         "a positive number of seconds (reference-band coherence time, e.g. 20)"),
+        (snr, "--snr", lambda v: math.isfinite(v) and v >= 0,
+         "a number >= 0 (0: per-sample SNR from SIGMA/WEIGHT or the data)"),
+        (max_gap, "--max-gap", lambda v: int(v) == v and v >= -1,
+         "an integer >= 0 samples, or -1 for the default from --coherence-time"),
+        (jump_threshold, "--jump-threshold", lambda v: math.isfinite(v) and (v == -1 or 0 <= v < 180),
+         "degrees in (0, 180), 0 to switch jump detection off, or -1 for the default"),
+        (jump_window, "--jump-window", lambda v: int(v) == v and v >= 0,
+         "an integer >= 0 samples (0: the default from the SNR and --coherence-time)"),
+        (solve_half_window, "--solve-half-window", lambda v: int(v) == v and v >= -1,
+         "an integer >= 0 samples, or -1 for the default"),
+    ]
+    for value, name, ok, what in checks:
+        try:
+            good = ok(float(value))
+        except (TypeError, ValueError):
+            good = False
+        if not good:
+            raise InputError(f"{name} {value!r} must be {what}")
+    if jump_action not in JUMP_ACTIONS:
+        raise InputError(f"--jump-action {jump_action!r}: choose segment (start a new, reported "
+                         "segment at each jump) or flag (flag the reference samples from each "
+                         "jump to the end of its segment)")
+
+
+def parse_refants(refant, antenna_names: List[str]) -> np.ndarray:
+    """Target antenna indices of the comma-separated station names (or indices) in ``refant``."""
+    if not refant:
+        return np.zeros(0, np.int64)
+    out = []
+    for item in str(refant).split(","):
+        item = item.strip()
+        if not item:
+            continue
+        if item in antenna_names:
+            out.append(antenna_names.index(item))
+        elif item.isdigit() and int(item) < len(antenna_names):
+            out.append(int(item))
+        else:
+            raise StationError(f"--refant: station {item!r} is not in the target set's ANTENNA "
+                               f"table ({', '.join(antenna_names)})")
+    return np.asarray(out, np.int64)
+
+
+def sigma_source(ref_ms: str) -> str:
+    """'sigma' or 'weight' when that column of ``ref_ms`` holds informative values, else 'data'.
+
+    CASA fills SIGMA and WEIGHT with 1 when nothing better is known; such
+    columns say nothing about the SNR, and the SNR is then taken from the data.
+    """
+    from casacore import tables as pt
+
+    with pt.table(ref_ms, ack=False) as t:
+        names = set(t.colnames())
+        for column, kind in (("SIGMA", "sigma"), ("WEIGHT", "weight")):
+            if column not in names or t.nrows() == 0:
+                continue
+            values = t.getcol(column)
+            if values.size and np.all(np.isfinite(values)) and np.all(values > 0) \
+                    and not np.all(values == 1.0):
+                return kind
+    return "data"
+
+
+@functools.lru_cache(maxsize=4096)
+def _half_window_for(rho2: float, coherence_time: float, dt: float) -> int:
+    from ..tracking.theory import recommended_half_window
+    return int(recommended_half_window(rho2, coherence_time, dt))
+
+
+def _two_digits(x: float) -> float:
+    if not (x > 0 and math.isfinite(x)):
+        return x
+    e = math.floor(math.log10(x)) - 1
+    return round(x / 10 ** e) * 10 ** e
+
+
+def setup_tracking(tracker, half_window, coherence_time, snr, max_gap, jump_threshold,
+                   jump_window, jump_action, refant, solve_half_window, dt, antenna_names,
+                   snr_from: str) -> TrackingSetup:
+    """Resolve the defaults of docs/tracking.md ("Recommended defaults for calibrate")."""
+    from ..tracking import theory
+
+    coherence_time = float(coherence_time)
+    t_c_samples = coherence_time / dt
+    cap = max(1, int((t_c_samples - 1) // 2))          # windows stay below t_c
+    snr = float(snr)
+    h_fixed = int(half_window)
+    if h_fixed == 0 and snr > 0:
+        h_fixed = _half_window_for(_two_digits(snr), coherence_time, dt)
+    m_gap = int(max_gap) if int(max_gap) >= 0 else theory.recommended_max_gap(coherence_time, dt)
+    jump_snr = snr if snr > 0 else NOMINAL_JUMP_SNR
+    rec_window, rec_threshold = theory.recommended_jump_params(jump_snr, coherence_time, dt)
+    if float(jump_threshold) == -1:
+        threshold = rec_threshold
+    else:
+        threshold = math.radians(float(jump_threshold))
+    window = int(jump_window) if int(jump_window) > 0 else rec_window
+    solve_h = int(solve_half_window)
+    if solve_h < 0:
+        solve_h = h_fixed if h_fixed > 0 else _half_window_for(
+            _two_digits(NOMINAL_JUMP_SNR), coherence_time, dt)
+        solve_h = min(solve_h, cap)
+    h_max = h_fixed if h_fixed > 0 else cap
+    if tracker == "antenna":
+        h_max = max(h_max, solve_h + ANTENNA_TRACK_HALF_WINDOW)
+    snr_window = 10 if snr_from in ("sigma", "weight") else 30
+    # reach of the kernels: smoothing and rate bases (2h+1), bridged gaps, jump windows
+    # (statistic and peak search), the SNR window; doubled for the solve window
+    context = 2 * (2 * h_max + 1) + (m_gap + 1) + 2 * window + snr_window + 16
+    if tracker == "smooth" and threshold == 0:
+        log.info("jump detection is off (threshold 0: at SNR %.3g and t_c %.3g s noise and "
+                 "turbulence would hide jumps of pi)", jump_snr, coherence_time)
+    return TrackingSetup(tracker=tracker, dt=float(dt), coherence_time=coherence_time, snr=snr,
+                         snr_source="fixed" if snr > 0 else snr_from, half_window=h_fixed,
+                         max_half_window=cap, max_gap=m_gap, jump_window=window,
+                         jump_threshold=float(threshold), jump_action=jump_action,
+                         refants=parse_refants(refant, antenna_names), solve_half_window=solve_h,
+                         snr_window=snr_window, context=int(context))
+
+
+def grid_positions(times: np.ndarray, scan_of_time: np.ndarray):
+    """(position on a regular grid of each union time, dt); positions count from 0 per run.
+
+    dt is the median step within scans; times off that grid by more than 1 per
+    cent of a step make the union index itself the position (logged).
+    """
+    steps = np.diff(times)
+    same_scan = np.diff(scan_of_time) == 0
+    inside = steps[same_scan & (steps > 0)]
+    dt = float(np.median(inside)) if inside.size else 1.0
+    pos = np.round((times - times[0]) / dt)
+    if times.size and np.max(np.abs((times - times[0]) / dt - pos)) > 0.01:
+        log.warning("times are not on a regular %.4g s grid; the robust trackers treat each "
+                    "time as one step (gaps in time are then not seen as gaps)", dt)
+        return np.arange(times.size, dtype=np.int64), dt
+    return pos.astype(np.int64), dt
+
+
+# ----------------------------------------------------------------------------- gathering
+
+def gather_grid(rows, vis, ok, swapped, corr_map, sigma=None):
+    """(n_bl, n_corr, n_t) complex128 visibilities (0 where invalid), validity, sigma.
+
+    Same validity rule as :func:`hitops.kernels.fpt.gather_phase` (unflagged,
+    finite, non-zero); swapped rows are conjugated.
+    """
+    n_bl, n_t = rows.shape
+    n_corr = corr_map.shape[1]
+    out = np.zeros((n_bl, n_corr, n_t), np.complex128)
+    good = np.zeros((n_bl, n_corr, n_t), bool)
+    sig = np.full((n_bl, n_corr, n_t), np.nan) if sigma is not None else None
+    has = rows >= 0
+    r = rows[has]
+    sw = swapped[r].astype(bool)
+    for c in range(n_corr):
+        ci = np.where(sw, corr_map[1, c], corr_map[0, c])
+        usable = ci >= 0
+        v = np.zeros(r.size, np.complex128)
+        o = np.zeros(r.size, bool)
+        v[usable] = vis[r[usable], ci[usable]]
+        o[usable] = ok[r[usable], ci[usable]]
+        v = np.where(sw, np.conj(v), v)
+        o &= np.isfinite(v.real) & np.isfinite(v.imag) & (v != 0)
+        out[:, c][has] = np.where(o, v, 0)
+        good[:, c][has] = o
+        if sigma is not None:
+            s = np.full(r.size, np.nan)
+            s[usable] = sigma[r[usable], ci[usable]]
+            sig[:, c][has] = s
+    return out, good, sig
+
+
+def _running(values: np.ndarray, k: int) -> np.ndarray:
+    """Sum over +-k samples along the last axis."""
+    n = values.shape[-1]
+    csum = np.concatenate([np.zeros(values.shape[:-1] + (1,), values.dtype),
+                           np.cumsum(values, axis=-1)], axis=-1)
+    hi = np.minimum(np.arange(n) + k + 1, n)
+    lo = np.maximum(np.arange(n) - k, 0)
+    return csum[..., hi] - csum[..., lo]
+
+
+@functools.lru_cache(maxsize=1)
+def _resultant_table():
+    from ..tracking.theory import mean_resultant_length
+    rho = np.concatenate([np.linspace(0.02, 1, 50), np.linspace(1.02, 12, 200)])
+    m = np.array([mean_resultant_length(r, 1001) for r in rho])
+    return rho, m
+
+
+def per_sample_snr(vis: np.ndarray, valid: np.ndarray, sigma: Optional[np.ndarray],
+                   window: int) -> np.ndarray:
+    """Per-sample SNR estimate of each regular series (n, L); NaN where unknown."""
+    v = np.where(valid, vis, 0)
+    n = _running(valid.astype(np.float64), window)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if sigma is not None:
+            s2 = _running(np.where(valid, sigma, 0.0) ** 2, window) / n
+            mean = _running(v, window) / n
+            amp2 = np.abs(mean) ** 2 - 2.0 * s2 / n
+            rho = np.sqrt(np.clip(amp2, 0, None) / s2)
+        else:
+            unit = np.where(valid, v / np.where(valid, np.abs(v), 1), 0)
+            pair = unit[:, 1:] * np.conj(unit[:, :-1])
+            pair = np.concatenate([pair, np.zeros((pair.shape[0], 1), pair.dtype)], axis=1)
+            pair_ok = np.concatenate([valid[:, 1:] & valid[:, :-1],
+                                      np.zeros((valid.shape[0], 1), bool)], axis=1)
+            m2 = np.abs(_running(pair, window)) / _running(pair_ok.astype(np.float64), window)
+            grid_rho, grid_m = _resultant_table()
+            rho = np.interp(np.sqrt(np.clip(m2, 0, 1)), grid_m, grid_rho)
+    return np.where(valid, rho, np.nan)
+
+
+def half_windows_from_snr(rho: np.ndarray, setup: TrackingSetup) -> np.ndarray:
+    """Per-sample half-windows from per-sample SNR (cached per 2-digit SNR)."""
+    out = np.ones(rho.shape, np.int64)
+    ok = np.isfinite(rho) & (rho > 0)
+    if not ok.any():
+        return out
+    digits = np.floor(np.log10(rho[ok])) - 1
+    keys = np.round(rho[ok] / 10.0 ** digits) * 10.0 ** digits
+    unique, inverse = np.unique(keys, return_inverse=True)
+    values = np.array([_half_window_for(float(u), setup.coherence_time, setup.dt) for u in unique],
+                      np.int64)
+    out[ok] = values[inverse.ravel()]
+    # SNR below the table: the widest window allowed
+    out[np.isfinite(rho) & (rho <= 0)] = setup.max_half_window
+    return out
+
+
+# ----------------------------------------------------------------------------- state
+
+@dataclass
+class History:
+    """Aligned results of the last ``context`` time samples, and per-series state."""
+
+    context: int
+    n_bl: int
+    n_corr: int
+    n_ant: int
+    t_start: int = 0                      # time index of column 0 of the arrays below
+    counts: np.ndarray = None             # (n_bl, n_corr, ctx) int64
+    valid: np.ndarray = None              # (n_bl, n_corr, ctx) bool
+    seg: np.ndarray = None                # (n_bl, n_corr, ctx) int64
+    ant_unw: np.ndarray = None            # (n_corr, n_ant, ctx) float64 unwrapped antenna phases
+    ant_counts: np.ndarray = None         # (n_corr, n_ant, ctx) int64
+    ant_seg: np.ndarray = None            # (n_corr, n_ant, ctx) int64
+    ant_valid: np.ndarray = None          # (n_corr, n_ant, ctx) bool
+    last_scan: np.ndarray = None          # (n_bl, n_corr) scan of the last valid sample (-1)
+    last_count: np.ndarray = None
+    last_seg: np.ndarray = None
+    last_suspect: np.ndarray = None
+    ant_last_scan: np.ndarray = None      # (n_corr, n_ant)
+    ant_last_count: np.ndarray = None
+    ant_last_seg: np.ndarray = None
+    flag_seg: np.ndarray = None           # (n_bl, n_corr, 2): (scan, segment) flagged after a jump
+    ant_flag_seg: np.ndarray = None       # (n_corr, n_ant, 2)
+
+    @classmethod
+    def empty(cls, context, n_bl, n_corr, n_ant):
+        h = cls(context, n_bl, n_corr, n_ant)
+        h.counts = np.zeros((n_bl, n_corr, 0), np.int64)
+        h.valid = np.zeros((n_bl, n_corr, 0), bool)
+        h.seg = np.zeros((n_bl, n_corr, 0), np.int64)
+        h.ant_unw = np.zeros((n_corr, n_ant, 0))
+        h.ant_counts = np.zeros((n_corr, n_ant, 0), np.int64)
+        h.ant_seg = np.zeros((n_corr, n_ant, 0), np.int64)
+        h.ant_valid = np.zeros((n_corr, n_ant, 0), bool)
+        h.last_scan = np.full((n_bl, n_corr), -1, np.int64)
+        h.last_count = np.zeros((n_bl, n_corr), np.int64)
+        h.last_seg = np.full((n_bl, n_corr), -1, np.int64)
+        h.last_suspect = np.zeros((n_bl, n_corr), bool)
+        h.ant_last_scan = np.full((n_corr, n_ant), -1, np.int64)
+        h.ant_last_count = np.zeros((n_corr, n_ant), np.int64)
+        h.ant_last_seg = np.full((n_corr, n_ant), -1, np.int64)
+        h.flag_seg = np.full((n_bl, n_corr, 2), -1, np.int64)
+        h.ant_flag_seg = np.full((n_corr, n_ant, 2), -1, np.int64)
+        return h
+
+
+@dataclass
+class Stats:
+    """Confidence numbers per series (baseline x correlation) and per antenna x correlation."""
+
+    n_bl: int
+    n_corr: int
+    n_ant: int
+    per_series: Dict[str, np.ndarray] = field(default_factory=dict)
+    per_antenna: Dict[str, np.ndarray] = field(default_factory=dict)
+    jumps: List[tuple] = field(default_factory=list)        # (bl, corr, time index, rad)
+    ant_jumps: List[tuple] = field(default_factory=list)    # (corr, ant, time index, rad)
+    frame_breaks: int = 0
+
+    KEYS = ("suspected_slips", "suspect_samples", "bridged_gaps", "segments",
+            "long_gap_segments", "jumps", "jump_flagged", "wrap_events", "unmodelled")
+
+    def __post_init__(self):
+        for k in self.KEYS:
+            self.per_series[k] = np.zeros((self.n_bl, self.n_corr), np.int64)
+            self.per_antenna[k] = np.zeros((self.n_corr, self.n_ant), np.int64)
+
+
+# ----------------------------------------------------------------------------- tracking
+
+def _scan_runs(scan: np.ndarray):
+    if scan.size == 0:
+        return []
+    cuts = np.flatnonzero(np.diff(scan)) + 1
+    starts = np.concatenate([[0], cuts])
+    stops = np.concatenate([cuts, [scan.size]])
+    return list(zip(starts.tolist(), stops.tolist()))
+
+
+def _smooth_series(args):
+    from ..kernels.tracking import track_wraps_smooth
+    phase, valid, hw, setup = args
+    kwargs = dict(half_window=max(setup.half_window, 1) if hw is None else 1,
+                  max_gap=setup.max_gap, jump_window=setup.jump_window,
+                  jump_threshold=setup.jump_threshold, min_coherence=MIN_COHERENCE)
+    if hw is None:
+        kwargs["half_window"] = setup.half_window
+        return track_wraps_smooth(phase, valid, **kwargs)
+    # per-sample windows; the scalar half_window still sets the gap-rate base
+    kwargs["half_window"] = setup.max_half_window
+    return track_wraps_smooth(phase, valid, half_windows=hw, **kwargs)
+
+
+class ReferenceTracker:
+    """Runs the robust tracker chunk by chunk (see the module doc)."""
+
+    def __init__(self, setup: TrackingSetup, match, corr_names: List[str], n_ant: int,
+                 antenna_names: List[str], workers: int = 0):
+        self.setup = setup
+        self.match = match
+        self.n_bl = match.n_bl
+        self.n_corr = len(corr_names)
+        self.n_ant = n_ant
+        self.corr_names = corr_names
+        self.antenna_names = antenna_names
+        self.parallel = [len(c) == 2 and c[0] == c[1] for c in corr_names]
+        self.pos, _ = grid_positions(match.times, match.scan_of_time)
+        self.hist = History.empty(setup.context, self.n_bl, self.n_corr, n_ant)
+        self.stats = Stats(self.n_bl, self.n_corr, n_ant)
+        self.workers = workers or (os.cpu_count() or 1)
+        if setup.tracker == "antenna" and not any(self.parallel):
+            log.warning("antenna tracking needs parallel-hand correlations (RR, LL, XX, YY); "
+                        "%s are tracked per baseline with the smooth tracker",
+                        ",".join(corr_names))
+
+    # -- the extended range of a chunk
+    def extended(self, t0: int, t1: int):
+        ctx = self.setup.context
+        return max(0, t0 - ctx), min(self.match.n_time, t1 + ctx)
+
+    def track(self, t_lo: int, t0: int, t1: int, t_hi: int, vis, valid, sigma):
+        """Counts (n_bl, n_corr, t1-t0) and reference samples to exclude (jump flagging).
+
+        vis/valid/sigma: (n_bl, n_corr, t_hi - t_lo) gridded reference samples.
+        """
+        setup = self.setup
+        scan = self.match.scan_of_time[t_lo:t_hi]
+        n_ext = t_hi - t_lo
+        counts = np.zeros((self.n_bl, self.n_corr, n_ext), np.int64)
+        seg = np.full((self.n_bl, self.n_corr, n_ext), -1, np.int64)
+        suspect = np.zeros((self.n_bl, self.n_corr, n_ext), bool)
+        bridged = np.zeros_like(suspect)
+        jump = np.zeros((self.n_bl, self.n_corr, n_ext))
+        unmodelled = np.zeros_like(suspect)
+        ant = {}
+        phase = np.where(valid, np.angle(vis), np.nan)
+        for a, b in _scan_runs(scan):
+            pos = self.pos[t_lo + a:t_lo + b] - self.pos[t_lo + a]
+            length = int(pos[-1]) + 1
+            reg_vis = np.zeros((self.n_bl, self.n_corr, length), np.complex128)
+            reg_valid = np.zeros((self.n_bl, self.n_corr, length), bool)
+            reg_vis[..., pos] = vis[..., a:b]
+            reg_valid[..., pos] = valid[..., a:b]
+            reg_phase = np.where(reg_valid, np.angle(reg_vis), np.nan)
+            antenna_corrs = [c for c in range(self.n_corr)
+                             if setup.tracker == "antenna" and self.parallel[c]]
+            smooth_corrs = [c for c in range(self.n_corr) if c not in antenna_corrs]
+            if smooth_corrs:
+                hw = None
+                if setup.half_window == 0:
+                    reg_sigma = None
+                    if sigma is not None:
+                        reg_sigma = np.full((self.n_bl, self.n_corr, length), np.nan)
+                        reg_sigma[..., pos] = sigma[..., a:b]
+                    hw = np.ones((self.n_bl, self.n_corr, length), np.int64)
+                    for c in smooth_corrs:
+                        rho = per_sample_snr(reg_vis[:, c], reg_valid[:, c],
+                                             None if reg_sigma is None else reg_sigma[:, c],
+                                             setup.snr_window)
+                        hw[:, c] = half_windows_from_snr(rho, setup)
+                jobs = [(np.ascontiguousarray(reg_phase[bl, c]),
+                         np.ascontiguousarray(reg_valid[bl, c]),
+                         None if hw is None else np.ascontiguousarray(hw[bl, c]), setup)
+                        for bl in range(self.n_bl) for c in smooth_corrs]
+                keys = [(bl, c) for bl in range(self.n_bl) for c in smooth_corrs]
+                if self.workers > 1 and len(jobs) > 1:
+                    with ThreadPoolExecutor(self.workers) as pool:
+                        results = list(pool.map(_smooth_series, jobs))
+                else:
+                    results = [_smooth_series(j) for j in jobs]
+                for (bl, c), res in zip(keys, results):
+                    counts[bl, c, a:b] = res[0][pos]
+                    seg[bl, c, a:b] = res[1][pos]
+                    suspect[bl, c, a:b] = res[2][pos]
+                    bridged[bl, c, a:b] = res[3][pos]
+                    jump[bl, c, a:b] = res[4][pos]
+            for c in antenna_corrs:
+                out = self._antenna(reg_vis[:, c], reg_valid[:, c], pos)
+                counts[:, c, a:b], seg[:, c, a:b] = out["counts"], out["seg"]
+                suspect[:, c, a:b], bridged[:, c, a:b] = out["suspect"], out["bridged"]
+                unmodelled[:, c, a:b] = out["unmodelled"]
+                ant.setdefault(c, []).append((a, b, out))
+        seg = np.where(valid, seg, -1)
+        counts, seg, ant = self._align(t_lo, t0, t1, scan, valid, counts, seg, ant)
+        exclude = self._jump_flags(t_lo, t0, t1, scan, valid, seg, jump, ant)
+        self._collect(t_lo, t0, t1, scan, valid, counts, seg, suspect, bridged, jump,
+                      unmodelled, ant, exclude)
+        self._remember(t_lo, t0, t1, scan, valid, counts, seg, ant)
+        i0, i1 = t0 - t_lo, t1 - t_lo
+        return counts[..., i0:i1], exclude[..., i0:i1]
+
+    def _antenna(self, vis, valid, pos):
+        """Antenna mode on one regular scan run of one correlation; results at ``pos``."""
+        from ..kernels.tracking import track_wraps_smooth  # noqa: F401  (numba warm)
+        from ..tracking.modes import track_antennas
+
+        setup = self.setup
+        res = track_antennas(vis, valid, self.match.ant1, self.match.ant2, self.n_ant,
+                             refants=setup.refants, antenna_tracker="smooth",
+                             solve_half_window=setup.solve_half_window,
+                             half_window=ANTENNA_TRACK_HALF_WINDOW, max_gap=setup.max_gap,
+                             jump_window=setup.jump_window, jump_threshold=setup.jump_threshold,
+                             min_coherence=MIN_COHERENCE)
+        ant_res = res.extra["antenna"]
+        self.stats.frame_breaks += int(res.extra["frame_break"][pos].sum())
+        return {"counts": res.counts[:, pos], "seg": res.segment[:, pos],
+                "suspect": res.suspect[:, pos], "bridged": res.bridged[:, pos],
+                "unmodelled": res.extra["unmodelled"][:, pos],
+                "ant_phase": res.extra["ant_phase"][:, pos], "ant_valid": res.extra["ant_valid"][:, pos],
+                "ant_counts": ant_res.counts[:, pos], "ant_seg": ant_res.segment[:, pos],
+                "ant_suspect": ant_res.suspect[:, pos], "ant_bridged": ant_res.bridged[:, pos],
+                "ant_jump": ant_res.jump[:, pos], "bl_phase": np.angle(vis[:, pos]),
+                "bl_valid": valid[:, pos]}
+
+    # -- alignment with what earlier chunks wrote
+    def _align(self, t_lo, t0, t1, scan, valid, counts, seg, ant):
+        from ..kernels.antenna import baseline_counts_from_antennas
+
+        h = self.hist
+        i0 = t0 - t_lo
+        if i0 == 0 or h.counts.shape[-1] == 0:
+            return counts, seg, ant
+        cont = scan[i0] == scan[i0 - 1] if i0 < scan.size else False
+        if not cont:
+            return counts, seg, ant
+        run_a = i0
+        while run_a > 0 and scan[run_a - 1] == scan[i0]:
+            run_a -= 1
+        run_b = i0
+        while run_b < scan.size and scan[run_b] == scan[i0]:
+            run_b += 1
+        # history columns of the context [run_a, i0)
+        hcol = np.arange(run_a, i0) + t_lo - h.t_start
+        okcol = (hcol >= 0) & (hcol < h.counts.shape[-1])
+        cols = np.arange(run_a, i0)[okcol]
+        hcol = hcol[okcol]
+        this_scan = int(scan[i0])
+        antenna_corrs = set(ant)
+        for c in range(self.n_corr):
+            if c in antenna_corrs:
+                continue
+            for bl in range(self.n_bl):
+                both = valid[bl, c, cols] & h.valid[bl, c, hcol]
+                if both.any():
+                    j = np.flatnonzero(both)[-1]
+                    off = h.counts[bl, c, hcol[j]] - counts[bl, c, cols[j]]
+                    soff = h.seg[bl, c, hcol[j]] - seg[bl, c, cols[j]]
+                elif h.last_scan[bl, c] == this_scan:
+                    # gap longer than the context: a new segment that continues the count
+                    later = np.flatnonzero(valid[bl, c, i0:run_b])
+                    if not later.size:
+                        continue
+                    k = i0 + later[0]
+                    off = h.last_count[bl, c] - counts[bl, c, k]
+                    soff = h.last_seg[bl, c] + 1 - seg[bl, c, k]
+                else:
+                    continue
+                counts[bl, c, run_a:run_b] += off
+                seg[bl, c, run_a:run_b] = np.where(seg[bl, c, run_a:run_b] >= 0,
+                                                   seg[bl, c, run_a:run_b] + soff, -1)
+        for c in antenna_corrs:
+            for a, b, out in ant[c]:
+                if not (a <= i0 < b):
+                    continue
+                sl = slice(run_a - a, i0 - a)
+                new_unw = out["ant_phase"] - TWO_PI * out["ant_counts"]
+                offs = np.zeros(self.n_ant, np.int64)
+                soffs = np.zeros(self.n_ant, np.int64)
+                diffs = {}
+                for p in range(self.n_ant):
+                    both = out["ant_valid"][p, sl] & h.ant_valid[c, p, hcol]
+                    if both.any():
+                        j = np.flatnonzero(both)[-1]
+                        diffs[p] = (new_unw[p, sl][j] - h.ant_unw[c, p, hcol[j]],
+                                    h.ant_seg[c, p, hcol[j]] - out["ant_seg"][p, sl][j])
+                if diffs:
+                    # common frame rotation between the two solves (same for all antennas)
+                    frame = math.atan2(sum(math.sin(d) for d, _ in diffs.values()),
+                                       sum(math.cos(d) for d, _ in diffs.values()))
+                    for p, (d, s) in diffs.items():
+                        offs[p] = int(round((d - frame) / TWO_PI))
+                        soffs[p] = s
+                for p in range(self.n_ant):
+                    if p not in diffs and h.ant_last_scan[c, p] == this_scan:
+                        later = np.flatnonzero(out["ant_valid"][p, i0 - a:])
+                        if later.size:
+                            k = i0 - a + later[0]
+                            offs[p] = h.ant_last_count[c, p] - out["ant_counts"][p, k]
+                            soffs[p] = h.ant_last_seg[c, p] + 1 - out["ant_seg"][p, k]
+                out["ant_counts"] = out["ant_counts"] + offs[:, None]
+                out["ant_seg"] = np.where(out["ant_seg"] >= 0, out["ant_seg"] + soffs[:, None], -1)
+                bl_counts, _ = baseline_counts_from_antennas(
+                    np.ascontiguousarray(out["bl_phase"]), np.ascontiguousarray(out["bl_valid"]),
+                    self.match.ant1, self.match.ant2, np.ascontiguousarray(out["ant_phase"]),
+                    np.ascontiguousarray(out["ant_valid"]), np.ascontiguousarray(out["ant_counts"]))
+                out["counts"] = bl_counts
+                counts[:, c, a:b] = bl_counts
+        return counts, seg, ant
+
+    def _jump_flags(self, t_lo, t0, t1, scan, valid, seg, jump, ant):
+        """Reference samples excluded by --jump-action flag (from a jump to its segment's end)."""
+        exclude = np.zeros(valid.shape, bool)
+        if self.setup.jump_action != "flag":
+            return exclude
+        h = self.hist
+        i0, i1 = t0 - t_lo, t1 - t_lo
+        for bl in range(self.n_bl):
+            for c in range(self.n_corr):
+                if c in ant:
+                    continue
+                fs = h.flag_seg[bl, c]
+                for i in range(i0, i1):
+                    if not valid[bl, c, i]:
+                        continue
+                    if jump[bl, c, i] != 0:
+                        fs = np.array([scan[i], seg[bl, c, i]])
+                    if scan[i] == fs[0] and seg[bl, c, i] == fs[1]:
+                        exclude[bl, c, i] = True
+                h.flag_seg[bl, c] = fs
+        for c, runs in ant.items():
+            for a, b, out in runs:
+                lo, hi = max(a, i0), min(b, i1)
+                if lo >= hi:
+                    continue
+                bad = np.zeros((self.n_ant, hi - lo), bool)
+                for p in range(self.n_ant):
+                    fs = h.ant_flag_seg[c, p]
+                    for i in range(lo, hi):
+                        k = i - a
+                        if not out["ant_valid"][p, k]:
+                            continue
+                        if out["ant_jump"][p, k] != 0:
+                            fs = np.array([scan[i], out["ant_seg"][p, k]])
+                        if scan[i] == fs[0] and out["ant_seg"][p, k] == fs[1]:
+                            bad[p, i - lo] = True
+                    h.ant_flag_seg[c, p] = fs
+                exclude[:, c, lo:hi] = (bad[self.match.ant1] | bad[self.match.ant2]) & valid[:, c, lo:hi]
+        return exclude
+
+    def _collect(self, t_lo, t0, t1, scan, valid, counts, seg, suspect, bridged, jump,
+                 unmodelled, ant, exclude):
+        """Accumulate the confidence numbers of the samples in [t0, t1)."""
+        h = self.hist
+        st = self.stats.per_series
+        i0, i1 = t0 - t_lo, t1 - t_lo
+        for bl in range(self.n_bl):
+            for c in range(self.n_corr):
+                idx = i0 + np.flatnonzero(valid[bl, c, i0:i1])
+                if not idx.size:
+                    continue
+                sc = scan[idx]
+                prev_scan = np.concatenate([[h.last_scan[bl, c]], sc[:-1]])
+                prev_count = np.concatenate([[h.last_count[bl, c]], counts[bl, c, idx[:-1]]])
+                prev_seg = np.concatenate([[h.last_seg[bl, c]], seg[bl, c, idx[:-1]]])
+                prev_sus = np.concatenate([[h.last_suspect[bl, c]], suspect[bl, c, idx[:-1]]])
+                same = sc == prev_scan
+                sus = suspect[bl, c, idx] | unmodelled[bl, c, idx]
+                st["suspect_samples"][bl, c] += int(sus.sum())
+                st["suspected_slips"][bl, c] += int((sus & ~(prev_sus & same)).sum())
+                st["bridged_gaps"][bl, c] += int(bridged[bl, c, idx].sum())
+                st["unmodelled"][bl, c] += int(unmodelled[bl, c, idx].sum())
+                starts = ~same | (seg[bl, c, idx] != prev_seg)
+                st["segments"][bl, c] += int(starts.sum())
+                is_jump = jump[bl, c, idx] != 0
+                st["long_gap_segments"][bl, c] += int((starts & same & ~is_jump).sum())
+                st["jumps"][bl, c] += int(is_jump.sum())
+                for i in idx[is_jump]:
+                    self.stats.jumps.append((bl, c, t_lo + int(i), float(jump[bl, c, i])))
+                st["jump_flagged"][bl, c] += int(exclude[bl, c, idx].sum())
+                st["wrap_events"][bl, c] += int(np.abs(counts[bl, c, idx] - prev_count)[same].sum())
+                h.last_scan[bl, c] = sc[-1]
+                h.last_count[bl, c] = counts[bl, c, idx[-1]]
+                h.last_seg[bl, c] = seg[bl, c, idx[-1]]
+                h.last_suspect[bl, c] = suspect[bl, c, idx[-1]]
+        sa = self.stats.per_antenna
+        for c, runs in ant.items():
+            for a, b, out in runs:
+                lo, hi = max(a, i0), min(b, i1)
+                if lo >= hi:
+                    continue
+                for p in range(self.n_ant):
+                    k = np.flatnonzero(out["ant_valid"][p, lo - a:hi - a]) + lo - a
+                    if not k.size:
+                        continue
+                    sc = scan[k + a]
+                    prev_scan = np.concatenate([[h.ant_last_scan[c, p]], sc[:-1]])
+                    prev_seg = np.concatenate([[h.ant_last_seg[c, p]], out["ant_seg"][p, k[:-1]]])
+                    prev_count = np.concatenate([[h.ant_last_count[c, p]],
+                                                 out["ant_counts"][p, k[:-1]]])
+                    same = sc == prev_scan
+                    sus = out["ant_suspect"][p, k]
+                    prev_sus = np.concatenate([[False], sus[:-1]])
+                    sa["suspect_samples"][c, p] += int(sus.sum())
+                    sa["suspected_slips"][c, p] += int((sus & ~prev_sus).sum())
+                    sa["bridged_gaps"][c, p] += int(out["ant_bridged"][p, k].sum())
+                    starts = ~same | (out["ant_seg"][p, k] != prev_seg)
+                    sa["segments"][c, p] += int(starts.sum())
+                    is_jump = out["ant_jump"][p, k] != 0
+                    sa["long_gap_segments"][c, p] += int((starts & same & ~is_jump).sum())
+                    sa["jumps"][c, p] += int(is_jump.sum())
+                    for kk in k[is_jump]:
+                        self.stats.ant_jumps.append((c, p, t_lo + a + int(kk),
+                                                     float(out["ant_jump"][p, kk])))
+                    sa["wrap_events"][c, p] += int(
+                        np.abs(out["ant_counts"][p, k] - prev_count)[same].sum())
+                    h.ant_last_scan[c, p] = sc[-1]
+                    h.ant_last_count[c, p] = out["ant_counts"][p, k[-1]]
+                    h.ant_last_seg[c, p] = out["ant_seg"][p, k[-1]]
+
+    def _remember(self, t_lo, t0, t1, scan, valid, counts, seg, ant):
+        """Keep the aligned results of the last ``context`` samples up to t1."""
+        h = self.hist
+        ctx = h.context
+        i0, i1 = t0 - t_lo, t1 - t_lo
+        ant_unw = np.zeros((self.n_corr, self.n_ant, i1 - i0))
+        ant_counts = np.zeros((self.n_corr, self.n_ant, i1 - i0), np.int64)
+        ant_seg = np.full((self.n_corr, self.n_ant, i1 - i0), -1, np.int64)
+        ant_valid = np.zeros((self.n_corr, self.n_ant, i1 - i0), bool)
+        for c, runs in ant.items():
+            for a, b, out in runs:
+                lo, hi = max(a, i0), min(b, i1)
+                if lo >= hi:
+                    continue
+                src = slice(lo - a, hi - a)
+                dst = slice(lo - i0, hi - i0)
+                ant_unw[c, :, dst] = out["ant_phase"][:, src] - TWO_PI * out["ant_counts"][:, src]
+                ant_counts[c, :, dst] = out["ant_counts"][:, src]
+                ant_seg[c, :, dst] = out["ant_seg"][:, src]
+                ant_valid[c, :, dst] = out["ant_valid"][:, src]
+        keep_from = max(h.t_start, t1 - ctx)
+        drop = keep_from - h.t_start
+
+        def roll(old, new):
+            return np.concatenate([old[..., drop:], new], axis=-1)[..., -ctx:] if ctx else new[..., :0]
+
+        if h.t_start + h.counts.shape[-1] != t0:     # not contiguous: start afresh
+            h.counts = h.counts[..., :0]
+            h.valid, h.seg = h.valid[..., :0], h.seg[..., :0]
+            h.ant_unw, h.ant_counts = h.ant_unw[..., :0], h.ant_counts[..., :0]
+            h.ant_seg, h.ant_valid = h.ant_seg[..., :0], h.ant_valid[..., :0]
+            h.t_start, drop = t0, 0
+        total = h.counts.shape[-1] + (t1 - t0)
+        drop = max(0, total - ctx)
+        h.counts = np.concatenate([h.counts, counts[..., i0:i1]], axis=-1)[..., drop:]
+        h.valid = np.concatenate([h.valid, valid[..., i0:i1]], axis=-1)[..., drop:]
+        h.seg = np.concatenate([h.seg, seg[..., i0:i1]], axis=-1)[..., drop:]
+        h.ant_unw = np.concatenate([h.ant_unw, ant_unw], axis=-1)[..., drop:]
+        h.ant_counts = np.concatenate([h.ant_counts, ant_counts], axis=-1)[..., drop:]
+        h.ant_seg = np.concatenate([h.ant_seg, ant_seg], axis=-1)[..., drop:]
+        h.ant_valid = np.concatenate([h.ant_valid, ant_valid], axis=-1)[..., drop:]
+        h.t_start = h.t_start + drop
+        del roll, keep_from
+
+    # -- reporting
+    def report(self, times: np.ndarray) -> dict:
+        """Per-baseline (and per-antenna) confidence numbers for the JSON report."""
+        st = self.stats
+        t0 = float(times[0]) if times.size else 0.0
+        baselines = []
+        for bl, name in enumerate(self.match.baseline_names):
+            entry = {"baseline": name}
+            for k in Stats.KEYS:
+                entry[k] = int(st.per_series[k][bl].sum())
+            entry["per_correlation"] = {
+                cn: {k: int(st.per_series[k][bl, c]) for k in Stats.KEYS}
+                for c, cn in enumerate(self.corr_names)}
+            entry["jump_list"] = [
+                {"correlation": self.corr_names[c], "time": float(times[t]),
+                 "time_from_start_s": float(times[t] - t0), "size_deg": math.degrees(size)}
+                for b, c, t, size in st.jumps if b == bl]
+            baselines.append(entry)
+        out = {"setup": self.setup.as_dict(), "baselines": baselines}
+        if self.setup.tracker == "antenna":
+            antennas = []
+            for p, name in enumerate(self.antenna_names):
+                if not any(st.per_antenna["segments"][c, p] for c in range(self.n_corr)):
+                    continue
+                entry = {"antenna": name}
+                for k in Stats.KEYS:
+                    if k in ("unmodelled", "jump_flagged"):
+                        continue
+                    entry[k] = int(st.per_antenna[k][:, p].sum())
+                entry["jump_list"] = [
+                    {"correlation": self.corr_names[c], "time": float(times[t]),
+                     "time_from_start_s": float(times[t] - t0), "size_deg": math.degrees(size)}
+                    for c, q, t, size in st.ant_jumps if q == p]
+                antennas.append(entry)
+            out["antennas"] = antennas
+            out["frame_breaks"] = st.frame_breaks
+        return out
