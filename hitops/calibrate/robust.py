@@ -420,17 +420,16 @@ def _scan_runs(scan: np.ndarray):
 
 
 def _smooth_series(args):
+    """track_wraps_smooth on one regular series (a thread-pool job; the kernel is nogil)."""
     from ..kernels.tracking import track_wraps_smooth
     phase, valid, hw, setup = args
-    kwargs = dict(half_window=max(setup.half_window, 1) if hw is None else 1,
-                  max_gap=setup.max_gap, jump_window=setup.jump_window,
+    kwargs = dict(max_gap=setup.max_gap, jump_window=setup.jump_window,
                   jump_threshold=setup.jump_threshold, min_coherence=MIN_COHERENCE)
     if hw is None:
-        kwargs["half_window"] = setup.half_window
-        return track_wraps_smooth(phase, valid, **kwargs)
-    # per-sample windows; the scalar half_window still sets the gap-rate base
-    kwargs["half_window"] = setup.max_half_window
-    return track_wraps_smooth(phase, valid, half_windows=hw, **kwargs)
+        return track_wraps_smooth(phase, valid, half_window=setup.half_window, **kwargs)
+    # per-sample windows; the scalar half_window sets the base of the gap-bridging rates
+    return track_wraps_smooth(phase, valid, half_window=setup.max_half_window, half_windows=hw,
+                              **kwargs)
 
 
 class ReferenceTracker:
@@ -524,6 +523,13 @@ class ReferenceTracker:
                 ant.setdefault(c, []).append((a, b, out))
         seg = np.where(valid, seg, -1)
         counts, seg, ant = self._align(t_lo, t0, t1, scan, valid, counts, seg, ant)
+        for c, runs in ant.items():
+            for a, b, out in runs:
+                # a baseline's segment is the pair of its antennas' (aligned) segments
+                sp, sq = out["ant_seg"][self.match.ant1], out["ant_seg"][self.match.ant2]
+                counts[:, c, a:b] = out["counts"]
+                seg[:, c, a:b] = np.where(valid[:, c, a:b] & (sp >= 0) & (sq >= 0),
+                                          sp * 1_000_003 + sq, -1)
         exclude = self._jump_flags(t_lo, t0, t1, scan, valid, seg, jump, ant)
         self._collect(t_lo, t0, t1, scan, valid, counts, seg, suspect, bridged, jump,
                       unmodelled, ant, exclude)
@@ -769,18 +775,12 @@ class ReferenceTracker:
                 ant_counts[c, :, dst] = out["ant_counts"][:, src]
                 ant_seg[c, :, dst] = out["ant_seg"][:, src]
                 ant_valid[c, :, dst] = out["ant_valid"][:, src]
-        keep_from = max(h.t_start, t1 - ctx)
-        drop = keep_from - h.t_start
-
-        def roll(old, new):
-            return np.concatenate([old[..., drop:], new], axis=-1)[..., -ctx:] if ctx else new[..., :0]
-
         if h.t_start + h.counts.shape[-1] != t0:     # not contiguous: start afresh
             h.counts = h.counts[..., :0]
             h.valid, h.seg = h.valid[..., :0], h.seg[..., :0]
             h.ant_unw, h.ant_counts = h.ant_unw[..., :0], h.ant_counts[..., :0]
             h.ant_seg, h.ant_valid = h.ant_seg[..., :0], h.ant_valid[..., :0]
-            h.t_start, drop = t0, 0
+            h.t_start = t0
         total = h.counts.shape[-1] + (t1 - t0)
         drop = max(0, total - ctx)
         h.counts = np.concatenate([h.counts, counts[..., i0:i1]], axis=-1)[..., drop:]
@@ -791,7 +791,6 @@ class ReferenceTracker:
         h.ant_seg = np.concatenate([h.ant_seg, ant_seg], axis=-1)[..., drop:]
         h.ant_valid = np.concatenate([h.ant_valid, ant_valid], axis=-1)[..., drop:]
         h.t_start = h.t_start + drop
-        del roll, keep_from
 
     # -- reporting
     def report(self, times: np.ndarray) -> dict:

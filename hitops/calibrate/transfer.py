@@ -93,6 +93,8 @@ def transfer_group(g: Dict) -> Dict:
     tgt_vis, tgt_ok (n_tgt, n_corr); ref_vis, ref_ok (n_ref, n_corr_ref);
     ref_swapped (n_ref,); corr_map (2, n_corr); scan_of_time (n_time,);
     n_scan; methods (list of method codes); ratio; eps; tracker (name);
+    ref_wraps, ref_exclude (n_bl, n_corr, n_time) or None: reference wrap counts
+    and excluded reference samples from :mod:`hitops.calibrate.robust`;
     ref_carry, tgt_carry (Carry); offsets (n_bl, n_corr, n_scan) or None;
     off_vis, off_ok (n_tgt, n_corr) or None.
     """
@@ -110,7 +112,15 @@ def transfer_group(g: Dict) -> Dict:
         tgt_valid = fpt.gather_valid(tgt_rows, g["tgt_vis"], g["tgt_ok"])
         tgt_phase = np.zeros((1, 1, 1))
     scan_of_time = g["scan_of_time"]
-    ref_wraps, ref_carry = track(tracker, ref_phase, ref_valid, scan_of_time, g["ref_carry"])
+    robust = g.get("ref_wraps") is not None
+    if robust:
+        # counts from hitops.calibrate.robust (whole array, with context across chunks);
+        # reference samples after a jump may be excluded (--jump-action flag)
+        ref_wraps, ref_carry = g["ref_wraps"], g["ref_carry"]
+        if g.get("ref_exclude") is not None:
+            ref_valid = ref_valid & ~g["ref_exclude"]
+    else:
+        ref_wraps, ref_carry = track(tracker, ref_phase, ref_valid, scan_of_time, g["ref_carry"])
     tgt_wraps, tgt_carry = np.zeros((1, 1, 1), np.int64), g["tgt_carry"]
     if fpt.CWU in g["methods"]:
         tgt_wraps, tgt_carry = track(tracker, tgt_phase, tgt_valid, scan_of_time, g["tgt_carry"])
@@ -127,7 +137,9 @@ def transfer_group(g: Dict) -> Dict:
            "tgt_carry": tgt_carry}
     # wrap events per series (|steps| of n), for the log and report
     steps = wrap_events(np.ascontiguousarray(ref_wraps))
-    if g["ref_carry"].has_last.any():
+    if robust:   # the robust tracker counts its own wrap events across chunks
+        steps = np.zeros_like(steps)
+    elif g["ref_carry"].has_last.any():
         first = ref_wraps[:, :, 0] - np.where(g["ref_carry"].has_last, g["ref_carry"].count, 0)
         steps = steps + np.abs(np.where(g["ref_carry"].has_last, first, 0))
     out["wrap_events"] = steps
