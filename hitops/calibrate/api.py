@@ -157,6 +157,8 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
               ref_model_column=None, offset_reference_column=None, max_offset_wraps=10,
               offset_ambiguity_deg=2.0, ratio=None, antenna_map=None, output_column=None,
               overwrite=False, average_channels=False, time_tolerance=None, tracker="count",
+              half_window=0, coherence_time=20.0, snr=0.0, max_gap=-1, jump_threshold=-1.0,
+              jump_window=0, jump_action="segment", refant=None, solve_half_window=-1,
               chunk_rows=2_000_000, report=None, scheduler=None) -> Dict:
     """Frequency phase transfer from ``ref_ms`` (reference band) to ``target_ms``.
 
@@ -165,10 +167,12 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
     (PWC; CFPT and CWU analogues), updates FLAG (backed up once into
     FLAG_HITOPS_BACKUP) and writes a JSON report (default
     ``<target_ms>.hitops-calibrate.json``).  Returns the report as a dict.
+
+    ``tracker`` picks the reference wrap tracker: ``count`` (the paper's
+    step > pi rule), ``smooth`` or ``antenna`` (:mod:`hitops.calibrate.robust`,
+    docs/tracking.md); the options after it tune the robust trackers.
     """
     started = time.perf_counter()
-    from ..kernels.wraps import get_tracker
-
     # ---- 1. inputs, all checked before anything is written
     methods = parse_methods(method)
     ref_ms = msio.check_ms(ref_ms, "reference-band Measurement Set")
@@ -183,7 +187,9 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
         raise InputError(f"--max-offset-wraps {max_offset_wraps} must be >= 0")
     if int(chunk_rows) < 1:
         raise InputError(f"--chunk-rows {chunk_rows} must be >= 1")
-    get_tracker(tracker)
+    from .robust import check_options
+    check_options(tracker, half_window, coherence_time, snr, max_gap, jump_threshold,
+                  jump_window, jump_action, solve_half_window)
     if output_column and len(methods) > 1:
         raise InputError(f"--output-column {output_column} names one column but --method "
                          f"lists {len(methods)} methods; run one method at a time to rename")
@@ -254,6 +260,7 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
                         band(target_ms, tgt_meta, tgt_names, tgt_corr), antenna_map,
                         time_tolerance)
     timings["match"] = time.perf_counter() - stage
+    tracking_setup = _tracking_setup(locals())
     n_corr = len(tgt_corr)
     for c, name in enumerate(match.corr_names):
         if match.corr_map[0, c] < 0:
@@ -281,6 +288,42 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
     finally:
         if client is not None:
             client.close()
+
+
+def _tracking_setup(g: Dict):
+    """Resolved robust-tracking parameters (None for --tracker count); checks --refant."""
+    from .robust import ANTENNA_TRACK_HALF_WINDOW as ROBUST_ANTENNA_H
+    from .robust import grid_positions, setup_tracking, sigma_source
+
+    defaults = {"half_window": 0, "coherence_time": 20.0, "snr": 0.0, "max_gap": -1,
+                "jump_threshold": -1.0, "jump_window": 0, "jump_action": "segment",
+                "refant": None, "solve_half_window": -1}
+    if g["tracker"] == "count":
+        changed = [k for k, v in defaults.items() if g[k] != v and not (v is None and not g[k])]
+        if changed:
+            log.warning("--tracker count ignores %s (they tune --tracker smooth/antenna)",
+                        ", ".join("--" + k.replace("_", "-") for k in changed))
+        return None
+    if g["refant"] and g["tracker"] != "antenna":
+        log.warning("--refant is used by --tracker antenna only; ignored")
+    _, dt = grid_positions(g["match"].times, g["match"].scan_of_time)
+    fixed = float(g["snr"]) > 0 or int(g["half_window"]) > 0
+    snr_from = "fixed" if fixed else sigma_source(g["ref_ms"])
+    setup = setup_tracking(g["tracker"], g["half_window"], g["coherence_time"], g["snr"],
+                           g["max_gap"], g["jump_threshold"], g["jump_window"], g["jump_action"],
+                           g["refant"], g["solve_half_window"], dt, g["tgt_names"], snr_from)
+    log.info("tracker %s: dt %.4g s, t_c %.4g s, half-window %s (SNR %s), max gap %d, jumps %s "
+             "(action %s)%s; context %d samples per chunk side", setup.tracker, setup.dt,
+             setup.coherence_time,
+             (f"{ROBUST_ANTENNA_H} on antenna tracks" if setup.tracker == "antenna" else
+              setup.half_window if setup.half_window > 0 else f"per sample <= {setup.max_half_window}"),
+             f"{setup.snr:.3g}" if setup.snr > 0 else f"from {setup.snr_source}", setup.max_gap,
+             f"window {setup.jump_window}, threshold {math.degrees(setup.jump_threshold):.1f} deg"
+             if setup.jump_threshold > 0 else "off", setup.jump_action,
+             (f"; solve half-window {setup.solve_half_window if setup.solve_half_window >= 0 else 'per time'}"
+              if setup.tracker == "antenna" else ""),
+             setup.context)
+    return setup
 
 
 def _run(ctx: Dict, started: float) -> Dict:
@@ -316,6 +359,20 @@ def _run(ctx: Dict, started: float) -> Dict:
              n_chunks, int(g["chunk_rows"]), len(groups), g["scheduler"] or "threads")
 
     ref_cols, tgt_cols = g["ref_cols"], g["tgt_cols"]
+    setup = g["tracking_setup"]
+    from .robust import ReferenceTracker, gather_grid
+    ref_read_cols = list(ref_cols)
+    if setup is not None and setup.snr_source in ("sigma", "weight"):
+        ref_read_cols.append(setup.snr_source.upper())
+        g["ref_ds"] = msio.open_main(ref_ms, list(dict.fromkeys(ref_read_cols)))
+
+    def new_tracker():
+        if setup is None:
+            return None
+        return ReferenceTracker(setup, match, match.corr_names, len(g["tgt_names"]),
+                                list(g["tgt_names"]), workers=1 if client is not None else 0)
+
+    tracker = new_tracker()   # for the chunk extents; each pass tracks afresh
     off_col = g["offset_reference_column"]
     cache = {}
 
@@ -329,13 +386,16 @@ def _run(ctx: Dict, started: float) -> Dict:
             return cache[i]
         stage = time.perf_counter()
         t0, t1 = bounds[i], bounds[i + 1]
+        # robust trackers read `context` extra reference times on either side
+        t_lo, t_hi = tracker.extended(t0, t1) if tracker is not None else (t0, t1)
         tgt_rows = tgt_rows_all.rows_in(t0, t1)
-        ref_rows = ref_keep[ref_rows_all.rows_in(t0, t1)]
+        ref_rows = ref_keep[ref_rows_all.rows_in(t_lo, t_hi)]
         whole_t = tgt_rows.size == tgt_rows_all.n_row
         whole_r = ref_rows.size == match.ref_bl.size
         tgt, ref = msio.compute_columns(
             [(g["tgt_ds"], tgt_cols, None if whole_t else tgt_rows),
-             (g["ref_ds"], ref_cols, None if whole_r else ref_rows)], scheduler=io_scheduler)
+             (g["ref_ds"], ref_read_cols, None if whole_r else ref_rows)],
+            scheduler=io_scheduler)
         tgt_flag_row = g["tgt_meta"]["FLAG_ROW"][tgt_rows]
         ref_flag_row = g["ref_meta"]["FLAG_ROW"][ref_rows]
         tvis, tok = _average(tgt[g["target_column"]], tgt["FLAG"], tgt_flag_row)
@@ -344,6 +404,21 @@ def _run(ctx: Dict, started: float) -> Dict:
             mvis, _ = _average(ref[g["ref_model_column"]], np.zeros_like(ref["FLAG"]),
                                np.zeros_like(ref_flag_row))
             rvis = rvis * np.conj(mvis)
+        ext = None
+        if tracker is not None:
+            sigma = None
+            if setup.snr_source == "sigma":
+                sigma = np.asarray(ref["SIGMA"], dtype=np.float64)
+            elif setup.snr_source == "weight":
+                with np.errstate(divide="ignore"):
+                    sigma = 1.0 / np.sqrt(np.asarray(ref["WEIGHT"], dtype=np.float64))
+            ext_grid = np.full((match.n_bl, t_hi - t_lo), -1, dtype=np.int64)
+            ext_grid[match.ref_bl[ref_rows], match.ref_time[ref_rows] - t_lo] = \
+                np.arange(ref_rows.size)
+            ext = (t_lo, t_hi) + gather_grid(ext_grid, rvis, rok, match.ref_swapped[ref_rows],
+                                             match.corr_map, sigma)
+            inner = (match.ref_time[ref_rows] >= t0) & (match.ref_time[ref_rows] < t1)
+            ref_rows, rvis, rok = ref_rows[inner], rvis[inner], rok[inner]
         ovis = ook = None
         if off_col:
             ovis, ook = _average(tgt[off_col], tgt["FLAG"], tgt_flag_row)
@@ -355,13 +430,15 @@ def _run(ctx: Dict, started: float) -> Dict:
         chunk = dict(t0=t0, t1=t1, tgt_rows=tgt_rows, tgt_data=tgt[g["target_column"]],
                      tgt_flag=tgt["FLAG"], tgt_flag_row=tgt_flag_row, tgt_vis=tvis, tgt_ok=tok,
                      ref_vis=rvis, ref_ok=rok, ref_swapped=match.ref_swapped[ref_rows],
-                     off_vis=ovis, off_ok=ook, tgt_grid=tgt_grid, ref_grid=ref_grid)
+                     off_vis=ovis, off_ok=ook, tgt_grid=tgt_grid, ref_grid=ref_grid, ext=ext)
         if n_chunks == 1 and two_pass:   # keep the data for the second pass
             cache[i] = chunk
         timings["read"] += time.perf_counter() - stage
         return chunk
 
     def run_pass(offsets, write):
+        nonlocal tracker
+        tracker = new_tracker()
         ref_carry = Carry.empty(match.n_bl, n_corr)
         tgt_carry = Carry.empty(match.n_bl, n_corr)
         totals = {"n_samples": 0, "no_reference_row": 0, "target_invalid": 0,
@@ -373,6 +450,11 @@ def _run(ctx: Dict, started: float) -> Dict:
             ch = load(i)
             stage = time.perf_counter()
             scan_local = match.scan_of_time[ch["t0"]:ch["t1"]]
+            ref_wraps = ref_exclude = None
+            if tracker is not None:
+                t_lo, t_hi, ext_vis, ext_valid, ext_sigma = ch["ext"]
+                ref_wraps, ref_exclude = tracker.track(t_lo, ch["t0"], ch["t1"], t_hi,
+                                                       ext_vis, ext_valid, ext_sigma)
             tasks = []
             for bls in groups:
                 gi = group_inputs(bls, ch["tgt_grid"], ch["ref_grid"], ch["tgt_vis"],
@@ -385,7 +467,10 @@ def _run(ctx: Dict, started: float) -> Dict:
                 if picked is None:   # shared chunk arrays: the grid holds chunk row indices
                     local_grid, picked = None, gi["tgt_rows"]
                 gi.update(corr_map=match.corr_map, scan_of_time=scan_local, n_scan=n_scan,
-                          methods=codes, ratio=ratio, eps=eps, tracker=g["tracker"],
+                          methods=codes, ratio=ratio, eps=eps,
+                          tracker="count" if tracker is not None else g["tracker"],
+                          ref_wraps=None if ref_wraps is None else ref_wraps[bls],
+                          ref_exclude=None if ref_exclude is None else ref_exclude[bls],
                           ref_carry=ref_carry.subset(bls), tgt_carry=tgt_carry.subset(bls),
                           offsets=None if offsets is None else offsets[bls])
                 tasks.append((bls, picked, local_grid,
@@ -423,6 +508,9 @@ def _run(ctx: Dict, started: float) -> Dict:
                 stage = time.perf_counter()
                 _write_chunk(g, ch, phasor_rows, calibrated, codes, outputs, io_scheduler)
                 timings["write"] += time.perf_counter() - stage
+        if tracker is not None:
+            wrap_events = tracker.stats.per_series["wrap_events"].copy()
+            totals["jump_flagged"] = int(tracker.stats.per_series["jump_flagged"].sum())
         return totals, wrap_events, sums, counts
 
     state = {"created": [], "backup_created": False}
@@ -488,10 +576,18 @@ def _run(ctx: Dict, started: float) -> Dict:
     for b, name in enumerate(match.baseline_names):
         log.info("wraps %s: %s", name, ", ".join(f"{cn} {int(wrap_events[b, c])}"
                                                  for c, cn in enumerate(match.corr_names)))
+    tracking_report = None
+    if tracker is not None:
+        tracking_report = tracker.report(match.times)
+        _log_tracking(tracking_report, setup)
     report = {
         "ref_ms": ref_ms, "target_ms": target_ms, "methods": methods, "columns": outputs,
         "ratio": ratio, "r": g["r"], "eps": eps, "ratio_source": g["source"],
         "time_tolerance_s": match.tolerance, "tracker": g["tracker"], "chunks": n_chunks,
+        "tracking": tracking_report if tracking_report is not None else {
+            "setup": {"tracker": "count"},
+            "baselines": [{"baseline": name, "wrap_events": int(wrap_events[b].sum())}
+                          for b, name in enumerate(match.baseline_names)]},
         "flags": {"column": "FLAG", "backup_column": FLAG_BACKUP,
                   "flag_updated": bool(state.get("flag_written")),
                   "backup_created": bool(state.get("backup_written"))},
@@ -500,7 +596,8 @@ def _run(ctx: Dict, started: float) -> Dict:
         "samples": {"target": n_samples, "flagged": flagged,
                     "no_reference_row": totals["no_reference_row"],
                     "target_invalid": totals["target_invalid"],
-                    "reference_invalid": totals["reference_invalid"]},
+                    "reference_invalid": totals["reference_invalid"],
+                    "jump_flagged": totals.get("jump_flagged", 0)},
         "wraps": [{"baseline": name, "correlation": cn, "wrap_events": int(wrap_events[b, c])}
                   for b, name in enumerate(match.baseline_names)
                   for c, cn in enumerate(match.corr_names)],
@@ -516,6 +613,38 @@ def _run(ctx: Dict, started: float) -> Dict:
              report_path, elapsed, ", ".join(f"{k} {v:.2f}" for k, v in timings.items()))
     report["report_path"] = str(report_path)
     return report
+
+
+def _log_tracking(rep: Dict, setup) -> None:
+    """Confidence numbers per baseline (and antenna), and what is unresolved."""
+    for e in rep["baselines"]:
+        log.info("tracking %s: %d suspected slips (%d samples), %d bridged gaps, %d segments "
+                 "(%d after long gaps), %d jumps%s", e["baseline"], e["suspected_slips"],
+                 e["suspect_samples"], e["bridged_gaps"], e["segments"], e["long_gap_segments"],
+                 e["jumps"], "".join(f"; jump {j['correlation']} at +{j['time_from_start_s']:.0f} s "
+                                     f"({j['size_deg']:.0f} deg)" for j in e["jump_list"][:5]))
+    for e in rep.get("antennas", []):
+        log.info("tracking antenna %s: %d suspected slips, %d bridged gaps, %d segments (%d after "
+                 "long gaps), %d jumps%s", e["antenna"], e["suspected_slips"], e["bridged_gaps"],
+                 e["segments"], e["long_gap_segments"], e["jumps"],
+                 "".join(f"; jump {j['correlation']} at +{j['time_from_start_s']:.0f} s "
+                         f"({j['size_deg']:.0f} deg)" for j in e["jump_list"][:5]))
+    if setup.tracker == "smooth":
+        unresolved = [e for e in rep["baselines"]
+                      if e["long_gap_segments"] or (e["jumps"] and setup.jump_action == "segment")]
+        if unresolved:
+            log.warning("%d baseline(s) have segments after long gaps or jumps whose wrap offset "
+                        "is a best guess (not resolved): %s; use --tracker antenna (n0 per "
+                        "antenna, closes) or --jump-action flag, or check them against a "
+                        "reference", len(unresolved),
+                        ", ".join(f"{e['baseline']} ({e['long_gap_segments']} gaps, "
+                                  f"{e['jumps']} jumps)" for e in unresolved[:10]))
+    elif setup.tracker == "antenna":
+        n_seg = sum(e["long_gap_segments"] + e["jumps"] for e in rep.get("antennas", []))
+        if n_seg:
+            log.warning("%d antenna segment(s) start after long gaps or jumps: their wrap offset "
+                        "is per antenna (closure phases are unaffected; an antenna-based phase "
+                        "calibration per segment absorbs it)", n_seg)
 
 
 def _merge_carry(carry, bls, part):

@@ -29,8 +29,9 @@ time step); missing times are invalid samples, so gaps are visible.
 
 Per-sample SNR (for the smoothing windows, docs/tracking.md): from SIGMA
 (or WEIGHT = 1/SIGMA^2) when the reference set has informative values,
-rho(t) = sqrt(|<V>|^2 - 2 sigma^2 / n) / sigma with <V> the mean of the n
-valid visibilities within +-snr_window samples; otherwise from the data:
+rho(t) = A / sigma, A estimated over the valid visibilities within
++-snr_window samples from the mean power, A^2 = <|V|^2> - 2 sigma^2, which does not depend on how fast the phase
+moves inside the window; otherwise from the data:
 |<exp(i (phi_{t+1} - phi_t))>| = m^2, m the mean resultant length of one
 noisy unit phasor, inverted through
 :func:`hitops.tracking.theory.mean_resultant_length`.
@@ -92,7 +93,9 @@ class TrackingSetup:
                 "jump_window": self.jump_window,
                 "jump_threshold_deg": math.degrees(self.jump_threshold),
                 "jump_action": self.jump_action, "refants": self.refants.tolist(),
-                "solve_half_window": self.solve_half_window, "snr_window": self.snr_window,
+                "solve_half_window": (self.solve_half_window if self.solve_half_window >= 0
+                                      else "per-time"),
+                "snr_window": self.snr_window,
                 "context_samples": self.context}
 
 
@@ -100,7 +103,8 @@ def check_options(tracker, half_window, coherence_time, snr, max_gap, jump_thres
                   jump_window, jump_action, solve_half_window) -> None:
     """Validate the tracking options (before anything is read or written)."""
     if tracker not in TRACKER_CHOICES:
-        raise InputError(f"--tracker {tracker!r}: choose one of {', '.join(TRACKER_CHOICES)}")
+        raise InputError(f"--tracker: unknown wrap tracker {tracker!r}; choose one of "
+                         f"{', '.join(TRACKER_CHOICES)} (docs/tracking.md)")
     checks = [
         (half_window, "--half-window", lambda v: int(v) == v and v >= 0,
          "an integer >= 0 (0: per-sample windows from the SNR and --coherence-time)"),
@@ -204,17 +208,17 @@ def setup_tracking(tracker, half_window, coherence_time, snr, max_gap, jump_thre
         threshold = math.radians(float(jump_threshold))
     window = int(jump_window) if int(jump_window) > 0 else rec_window
     solve_h = int(solve_half_window)
-    if solve_h < 0:
-        solve_h = h_fixed if h_fixed > 0 else _half_window_for(
-            _two_digits(NOMINAL_JUMP_SNR), coherence_time, dt)
-        solve_h = min(solve_h, cap)
+    if solve_h < 0 and h_fixed > 0:
+        solve_h = min(h_fixed, cap)
+    # solve_h < 0 left: a solve window per time from the antennas' combined SNR
     h_max = h_fixed if h_fixed > 0 else cap
     if tracker == "antenna":
-        h_max = max(h_max, solve_h + ANTENNA_TRACK_HALF_WINDOW)
+        h_max = max(h_max, (solve_h if solve_h >= 0 else cap) + ANTENNA_TRACK_HALF_WINDOW)
     snr_window = 10 if snr_from in ("sigma", "weight") else 30
     # reach of the kernels: smoothing and rate bases (2h+1), bridged gaps, jump windows
     # (statistic and peak search), the SNR window; doubled for the solve window
-    context = 2 * (2 * h_max + 1) + (m_gap + 1) + 2 * window + snr_window + 16
+    reach_window = max(window, 2 * max(solve_h, 0) + 1) if tracker == "antenna" else window
+    context = 2 * (2 * h_max + 1) + (m_gap + 1) + 2 * reach_window + snr_window + 16
     if tracker == "smooth" and threshold == 0:
         log.info("jump detection is off (threshold 0: at SNR %.3g and t_c %.3g s noise and "
                  "turbulence would hide jumps of pi)", jump_snr, coherence_time)
@@ -303,10 +307,12 @@ def per_sample_snr(vis: np.ndarray, valid: np.ndarray, sigma: Optional[np.ndarra
     n = _running(valid.astype(np.float64), window)
     with np.errstate(invalid="ignore", divide="ignore"):
         if sigma is not None:
+            # incoherent: <|V|^2> = A^2 + 2 sigma^2 whatever the phase does inside the
+            # window (a coherent |<V>| would fall where turbulence is fast, at low
+            # elevation, and ask for longer windows exactly where they must be short)
             s2 = _running(np.where(valid, sigma, 0.0) ** 2, window) / n
-            mean = _running(v, window) / n
-            amp2 = np.abs(mean) ** 2 - 2.0 * s2 / n
-            rho = np.sqrt(np.clip(amp2, 0, None) / s2)
+            power = _running(np.abs(v) ** 2, window) / n
+            rho = np.sqrt(np.clip(power - 2.0 * s2, 0, None) / s2)
         else:
             unit = np.where(valid, v / np.where(valid, np.abs(v), 1), 0)
             pair = unit[:, 1:] * np.conj(unit[:, :-1])
@@ -317,6 +323,13 @@ def per_sample_snr(vis: np.ndarray, valid: np.ndarray, sigma: Optional[np.ndarra
             grid_rho, grid_m = _resultant_table()
             rho = np.interp(np.sqrt(np.clip(m2, 0, 1)), grid_m, grid_rho)
     return np.where(valid, rho, np.nan)
+
+
+def _regular(values, pos, length):
+    """Values at union-axis samples placed on a regular grid of ``length`` (NaN elsewhere)."""
+    out = np.full(values.shape[:-1] + (length,), np.nan)
+    out[..., pos] = values
+    return out
 
 
 def half_windows_from_snr(rho: np.ndarray, setup: TrackingSetup) -> np.ndarray:
@@ -516,7 +529,11 @@ class ReferenceTracker:
                     bridged[bl, c, a:b] = res[3][pos]
                     jump[bl, c, a:b] = res[4][pos]
             for c in antenna_corrs:
-                out = self._antenna(reg_vis[:, c], reg_valid[:, c], pos)
+                solve_h = setup.solve_half_window
+                if solve_h < 0:
+                    solve_h = self._solve_windows(reg_vis[:, c], reg_valid[:, c],
+                                                  None if sigma is None else _regular(sigma[:, c, a:b], pos, length))
+                out = self._antenna(reg_vis[:, c], reg_valid[:, c], pos, solve_h)
                 counts[:, c, a:b], seg[:, c, a:b] = out["counts"], out["seg"]
                 suspect[:, c, a:b], bridged[:, c, a:b] = out["suspect"], out["bridged"]
                 unmodelled[:, c, a:b] = out["unmodelled"]
@@ -537,17 +554,39 @@ class ReferenceTracker:
         i0, i1 = t0 - t_lo, t1 - t_lo
         return counts[..., i0:i1], exclude[..., i0:i1]
 
-    def _antenna(self, vis, valid, pos):
+    def _solve_windows(self, vis, valid, sigma):
+        """Per-time solve half-windows from the antennas' combined per-sample SNR.
+
+        An antenna solution combines its baselines: its SNR is about
+        sqrt(sum of rho_pq^2) over its baselines (stations.antenna_snr); each
+        baseline feeds two antennas, so the typical antenna has
+        sqrt(2 sum_b rho_b^2 / n_present).
+        """
+        rho = per_sample_snr(vis, valid, sigma, self.setup.snr_window)
+        power = np.nansum(np.where(valid, rho, 0.0) ** 2, axis=0)
+        present = np.zeros((self.n_ant, valid.shape[1]), bool)
+        present[self.match.ant1] |= valid
+        present[self.match.ant2] |= valid
+        n_present = present.sum(axis=0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rho_ant = np.sqrt(2.0 * power / n_present)
+        return half_windows_from_snr(np.where(n_present > 0, rho_ant, np.nan), self.setup)
+
+    def _antenna(self, vis, valid, pos, solve_half_window):
         """Antenna mode on one regular scan run of one correlation; results at ``pos``."""
-        from ..kernels.tracking import track_wraps_smooth  # noqa: F401  (numba warm)
         from ..tracking.modes import track_antennas
 
         setup = self.setup
+        fixed = np.ndim(solve_half_window) == 0
         res = track_antennas(vis, valid, self.match.ant1, self.match.ant2, self.n_ant,
                              refants=setup.refants, antenna_tracker="smooth",
-                             solve_half_window=setup.solve_half_window,
+                             solve_half_window=solve_half_window,
                              half_window=ANTENNA_TRACK_HALF_WINDOW, max_gap=setup.max_gap,
-                             jump_window=setup.jump_window, jump_threshold=setup.jump_threshold,
+                             # a windowed solve spreads a jump over 2 s + 1 samples: the
+                             # jump statistic must compare windows at least that long
+                             jump_window=(max(setup.jump_window, 2 * int(solve_half_window) + 1)
+                                          if fixed else setup.jump_window),
+                             jump_threshold=setup.jump_threshold,
                              min_coherence=MIN_COHERENCE)
         ant_res = res.extra["antenna"]
         self.stats.frame_breaks += int(res.extra["frame_break"][pos].sum())

@@ -50,7 +50,7 @@ def _time_range(text):
 def diagnose(ms, columns="DATA,CORRECTED_DATA", metric="coherence-factor", interval=60.0,
              intervals="log:1:3600:30", min_fill=0.5, ref_ms=None, ref_column="DATA",
              outdir="hitops-diagnose", plots=None, plot_time_range=None, baselines=None,
-             correlations=None) -> dict:
+             correlations=None, calibrate_report=None) -> dict:
     """Coherence diagnostics of ``columns`` of ``ms``; see docs/diagnose.md.
 
     Returns the summary dict also written to ``outdir/summary.json``.  With
@@ -140,7 +140,16 @@ def diagnose(ms, columns="DATA,CORRECTED_DATA", metric="coherence-factor", inter
         warnings.append("only one column given: no comparison table (give two or more "
                         "--columns, the first being 'before')")
 
+    from . import confidence
+    tracking, twarn = confidence.load(str(ms), calibrate_report)
+    warnings += twarn
+    confidence.annotate(comparisons, tracking)
+    if tracking is not None:
+        log.info("wrap-tracking confidence from %s (tracker %s)", tracking["path"],
+                 tracking["tracker"])
+
     summary = {
+        "tracking": tracking,
         "ms": str(ms), "columns": cols, "metric": metric, "interval_s": float(interval),
         "intervals_s": [float(t) for t in res.intervals],
         "metric_interval_index": res.k_interval,

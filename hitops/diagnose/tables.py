@@ -235,10 +235,19 @@ def _cell(value, bound=None, digits=4) -> str:
     return f"{prefix}{value:.{digits}f}"
 
 
+#: wrap-tracking confidence columns (from hitops calibrate's report; empty without one)
+TRACKING_FIELDS = ["suspected_slips", "bridged_gaps", "segments", "long_gap_segments", "jumps"]
+
+
+def _tracking_cells(entry) -> dict:
+    return {k: ("" if not entry else entry.get(k, "")) for k in TRACKING_FIELDS}
+
+
 def write_csv(path, comparisons: List[dict]) -> None:
     fields = ["comparison", "rank", "baseline", "ant1", "ant2", "metric", "before_column",
               "after_column", "before", "before_bound", "after", "after_bound",
               "improvement_pct", "improvement_bound", "n_intervals_worse", "note"]
+    fields += TRACKING_FIELDS
     with open(path, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=fields)
         writer.writeheader()
@@ -257,7 +266,7 @@ def write_csv(path, comparisons: List[dict]) -> None:
                                         else f"{r['improvement_pct']:.4f}"),
                     "improvement_bound": r["improvement_bound"] or "",
                     "n_intervals_worse": len(r["worse_at_s"]),
-                    "note": r["note"]})
+                    "note": r["note"], **_tracking_cells(r.get("tracking"))})
 
 
 def write_antenna_csv(path, comparisons: List[dict]) -> None:
@@ -265,11 +274,12 @@ def write_antenna_csv(path, comparisons: List[dict]) -> None:
               "median_improvement_pct", "mean_before", "mean_after", "worst_baseline",
               "worst_improvement_pct", "robust_z", "outlier"]
     with open(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=fields)
+        writer = csv.DictWriter(fh, fieldnames=fields + TRACKING_FIELDS)
         writer.writeheader()
         for comp in comparisons:
             for a in comp["antennas"]:
                 row = {k: a[k] for k in fields[1:]}
+                row.update(_tracking_cells(a.get("tracking")))
                 row["comparison"] = f"{comp['after']} vs {comp['before']}"
                 writer.writerow(row)
 
@@ -287,6 +297,11 @@ def render_text(summary: dict) -> str:
              f"over correlations); sampling interval {summary['sampling_interval_s']:g} s; "
              f"segments kept when >= {100 * summary['min_fill']:.0f}% filled",
              ""]
+    if summary.get("tracking") is not None:
+        lines.append(f"wrap tracking ({summary['tracking']['tracker']}, from "
+                     f"{summary['tracking']['path']}): 'tracking' = suspected slips / bridged "
+                     "gaps / segments / jumps of the reference-band wrap count")
+        lines.append("")
     if summary["warnings"]:
         lines.append("WARNINGS")
         lines += [f"  - {w}" for w in summary["warnings"]]
@@ -296,8 +311,9 @@ def render_text(summary: dict) -> str:
         width = max(12, len(before) + 2, len(after) + 2)
         lines.append(f"== {after} against {before}: baselines ranked from worst to best "
                      "improvement")
+        track = summary.get("tracking") is not None
         lines.append(f"{'rank':>4}  {'baseline':<10} {before:>{width}} {after:>{width}} "
-                     f"{'improvement':>12}  note")
+                     f"{'improvement':>12}  " + (f"{'tracking':>12}  " if track else "") + "note")
         for r in comp["ranking"]:
             pct = r["improvement_pct"]
             pct_s = "n/a" if pct is None else (
@@ -306,7 +322,9 @@ def render_text(summary: dict) -> str:
             lines.append(f"{r['rank']:>4}  {r['baseline']:<10} "
                          f"{_cell(r['before'], r['before_bound'], digits):>{width}} "
                          f"{_cell(r['after'], r['after_bound'], digits):>{width}} "
-                         f"{pct_s:>12}  {r['note']}")
+                         f"{pct_s:>12}  "
+                         + (f"{_track_cell(r.get('tracking')):>12}  " if track else "")
+                         + r["note"])
         if comp["n_defined"]:
             extra = ""
             if comp["n_lower_bounds"] or comp["n_upper_bounds"]:
@@ -335,14 +353,21 @@ def render_text(summary: dict) -> str:
             lines.append(f"       {after} has C(T) >= {before} at every interval on every "
                          "baseline with data")
         lines.append("per antenna (worst first):")
-        lines.append(f"  {'antenna':<8} {'n_bl':>4} {'median':>9} {'mean':>9}  worst baseline")
+        lines.append(f"  {'antenna':<8} {'n_bl':>4} {'median':>9} {'mean':>9}  "
+                     + (f"{'tracking':>12}  " if track else "") + "worst baseline")
         for a in comp["antennas"]:
             mark = "  <-- outlier" if a["outlier"] else ""
             lines.append(f"  {a['antenna']:<8} {a['n_baselines']:>4} "
-                         f"{a['median_improvement_pct']:>+8.1f}% {a['mean_improvement_pct']:>+8.1f}%"
-                         f"  {a['worst_baseline']} ({a['worst_improvement_pct']:+.1f}%){mark}")
+                         f"{a['median_improvement_pct']:>+8.1f}% {a['mean_improvement_pct']:>+8.1f}%  "
+                         + (f"{_track_cell(a.get('tracking')):>12}  " if track else "")
+                         + f"{a['worst_baseline']} ({a['worst_improvement_pct']:+.1f}%){mark}")
         lines.append("")
     return "\n".join(lines) + "\n"
+
+
+def _track_cell(entry) -> str:
+    from .confidence import cell
+    return cell(entry)
 
 
 def write_json(path, summary: dict) -> None:

@@ -3,14 +3,48 @@
 The (u, v, w) of a station at time t is M(t) @ X, where X is its ITRF
 position and M(t) the 3x3 matrix casacore's measures apply to an ITRF
 baseline (``measures().to_uvw`` in the J2000 frame of the phase centre:
-precession, nutation, Earth rotation with IERS UT1 and polar motion from
-casadata).  Calling casacore once per time is slow (~0.3 ms per call, ~13 s for a
-12 h track at 1 s), so M(t) is taken from casacore every minute and fitted:
-M(t) = A(t) Rz(theta(t)) where theta is the Earth rotation angle (IERS
-Conventions 2010, eq. 5.15) and A(t) holds only the slow terms (precession,
-nutation, UT1-UTC, polar motion), which a low-order Chebyshev series fits
-to well below a millimetre on Earth-sized baselines (checked against
-casacore row by row in tests/test_simulate_geometry.py).
+polar motion and UT1 from the IERS tables in casacore's data, Earth
+rotation, nutation, precession, aberration).  casacore's conversion is a
+rotation, linear in the baseline (uvw(X1) - uvw(X2) = uvw(X1 - X2) to
+1e-8 m), so one matrix per time serves every station and baseline.
+
+Calling casacore once per time is slow (~0.6 ms per epoch with the cache
+refill below, ~26 s for a 12 h track at 1 s), so M(t) is taken from
+casacore every minute and fitted: M(t) = A(t) Rz(theta(t)) where theta is
+the Earth rotation angle (IERS Conventions 2010, eq. 5.15, UTC for UT1) and
+A(t) holds only the slow terms (precession, nutation, UT1-UTC, polar
+motion, aberration), fitted by a Chebyshev series.
+
+Three properties of casacore 3.x set how the samples are taken (measured
+in docs/simulate.md, "Geometry"; tests/test_simulate_geometry.py):
+
+* ``MeasTable::dUT1`` and ``MeasTable::polarMotion`` keep the last IERS
+  value in a static cache and return it unchanged for any epoch within
+  0.04 d (58 min) of the epoch that filled it: no interpolation, and no
+  aipsrc switch (the ``measures.*.d_interval`` variables govern other
+  caches and change nothing here).  One call's answer thus depends on the
+  calls before it, by up to ~5 mm on 10^4 km baselines in April 2023, when
+  UT1-UTC drifted by 0.15-0.36 ms per day.  Every sample is therefore
+  preceded by a call one day later, which makes both caches refill at the
+  sample's own epoch: the result equals a fresh process's (to < 1e-6 m)
+  whatever the call order.
+* casacore interpolates UT1-UTC and polar motion linearly between the
+  daily IERS entries, so A(t) has a kink at every 0h UTC: fits never span
+  one.
+* casacore's Earth rotation moves in steps of 1.254 us of time (two float64
+  ulps of an MJD-day epoch; measured by stepping the epoch through
+  consecutive float64 values), so a single evaluation sits up to ~1 us
+  along the track from the smooth curve (0.4 us rms: 0.2 mm rms, up to
+  ~0.8 mm on 10^4 km).  The fit averages this out (its own error is
+  ~0.05 mm rms on 12 500 km), and theta(t) here is computed from whole days
+  and seconds of day separately, keeping full float64 time precision.
+
+Frame position: casacore applies its diurnal aberration of the frame's
+observer (``MeasMath::deapplyTOPOtoHADEC`` with ``MeasTable::diurnalAber``)
+as a rotation of the whole baseline, so to_uvw moves by ~1.5e-6 of the
+baseline length (11-22 m on 9 300 km) when the frame position moves from
+one station to another (or to the geocentre).  hitops uses one array
+reference position for all rows, the scene's first station.
 
 Sign convention: UVW of a row = uvw(ANTENNA1) - uvw(ANTENNA2), i.e.
 ``to_uvw`` of the baseline X1 - X2, as casatools.simulator writes it
@@ -28,6 +62,8 @@ import numpy as np
 DAY = 86400.0
 #: Earth rotation angle rate, turns per UT1 day (IERS Conventions 2010, eq. 5.15)
 ERA_RATE = 1.00273781191135448
+#: ERA_RATE - 1 written out: ERA_RATE - 1.0 in float64 is off by ~5e-12 rad after 23 years
+ERA_RATE_EXCESS = 0.00273781191135448
 ERA_J2000 = 0.7790572732640
 MJD_J2000 = 51544.5
 
@@ -35,12 +71,22 @@ MJD_J2000 = 51544.5
 WGS84_A = 6378137.0
 WGS84_F = 1.0 / 298.257223563
 
+#: casacore refills its dUT1 / polar-motion caches only for epochs more than
+#: 0.04 d from the cached one; a call this far away forces the refill
+_CACHE_FLUSH_OFFSET = DAY
+
 
 def earth_rotation_angle(time_mjd_s: np.ndarray) -> np.ndarray:
-    """Earth rotation angle (rad) with UTC standing in for UT1 (the difference goes into A(t))."""
-    days = np.asarray(time_mjd_s) / DAY - MJD_J2000
-    # split the product to keep precision: fractional turns only
-    turns = ERA_J2000 + np.mod(days, 1.0) + (ERA_RATE - 1.0) * days + np.floor(days)
+    """Earth rotation angle (rad) with UTC standing in for UT1 (the difference goes into A(t)).
+
+    The time is split into whole days and seconds of day before dividing:
+    t / 86400 as one float64 would round to 0.63 us (0.3 mm on 10^4 km).
+    """
+    since_j2000 = np.asarray(time_mjd_s, dtype=np.float64) - MJD_J2000 * DAY   # exact
+    whole_days = np.floor(since_j2000 / DAY)
+    day_fraction = (since_j2000 - whole_days * DAY) / DAY                      # exact numerator
+    turns = (ERA_J2000 + np.mod(ERA_RATE_EXCESS * whole_days, 1.0)
+             + ERA_RATE_EXCESS * day_fraction + day_fraction)
     return 2.0 * np.pi * np.mod(turns, 1.0)
 
 
@@ -60,9 +106,11 @@ def casacore_uvw_matrix(times: np.ndarray, ra: float, dec: float,
                         position: np.ndarray) -> np.ndarray:
     """M(t) (n, 3, 3) from casacore: uvw = M @ itrf_baseline, J2000 frame of (ra, dec).
 
-    ``position`` is casacore's frame position: to_uvw applies the observer's
-    aberration, which moves UVW by ~20 m on 10^4 km baselines between
-    stations, so the simulator uses one array reference (the first station).
+    ``position`` is casacore's frame position (see the module docstring:
+    the result depends on it through casacore's diurnal aberration).  Each
+    epoch is preceded by a call one day later so that casacore's static
+    UT1-UTC and polar-motion caches are refilled at that epoch: the result
+    does not depend on earlier calls in the process.
     """
     from casacore import quanta as qa
     from casacore.measures import measures
@@ -73,7 +121,9 @@ def casacore_uvw_matrix(times: np.ndarray, ra: float, dec: float,
     unit = dm.baseline("ITRF", qa.quantity([1.0, 0.0, 0.0], "m"),
                        qa.quantity([0.0, 1.0, 0.0], "m"), qa.quantity([0.0, 0.0, 1.0], "m"))
     out = np.empty((len(times), 3, 3))
-    for i, t in enumerate(times):
+    for i, t in enumerate(np.asarray(times, dtype=np.float64)):
+        dm.do_frame(dm.epoch("UTC", qa.quantity(float(t) + _CACHE_FLUSH_OFFSET, "s")))
+        dm.to_uvw(unit)
         dm.do_frame(dm.epoch("UTC", qa.quantity(float(t), "s")))
         xyz = np.asarray(dm.to_uvw(unit)["xyz"].get_value("m"), dtype=np.float64)
         # xyz holds the uvw of unit vectors x, y, z in turn: columns of M
@@ -81,35 +131,60 @@ def casacore_uvw_matrix(times: np.ndarray, ra: float, dec: float,
     return out
 
 
+def fit_segments(t_lo: float, t_hi: float, segment: float) -> list:
+    """[(lo, hi)] covering [t_lo, t_hi], split at UTC midnights and at most ``segment`` long.
+
+    casacore interpolates the daily IERS UT1-UTC and polar motion linearly,
+    so the slow part A(t) has a kink at 0h UTC that no smooth fit should span.
+    """
+    midnights = np.arange(np.floor(t_lo / DAY) + 1.0, np.ceil(t_hi / DAY)) * DAY
+    edges = np.concatenate([[t_lo], midnights[(midnights > t_lo) & (midnights < t_hi)], [t_hi]])
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        n_piece = max(int(np.ceil((hi - lo) / segment)), 1)
+        cuts = np.linspace(lo, hi, n_piece + 1)
+        out.extend(zip(cuts[:-1], cuts[1:]))
+    return out
+
+
 def uvw_matrices(times: np.ndarray, ra: float, dec: float, position: np.ndarray,
-                 sample_step: float = 60.0, segment: float = 43200.0, degree: int = 6) -> np.ndarray:
+                 sample_step: float = 60.0, segment: float = 43200.0,
+                 degree: int = 10) -> np.ndarray:
     """M(t) for every time (n, 3, 3).
 
-    casacore is sampled every ``sample_step`` seconds; its slow part A(t)
-    is fitted by least squares with a Chebyshev series of ``degree`` on
-    segments of at most ``segment`` seconds.  A fit rather than an
-    interpolation: single casacore evaluations scatter by ~0.5 mm (a few mm
-    at worst) on 10^4 km baselines around their smooth trend, and the fit
-    averages that scatter out.
+    On each segment of :func:`fit_segments`, casacore is sampled every
+    ``sample_step`` seconds (all samples inside the segment, at least
+    10 per fitted coefficient) and its slow part A(t) = M(t) Rz(theta(t))^T
+    is fitted by least squares with a Chebyshev series of ``degree``
+    (fewer on segments shorter than 7 h: the term least like a polynomial,
+    casacore's diurnal aberration with its one-day period, is then closer
+    to linear).
+    A fit rather than an interpolation: single casacore evaluations jitter
+    by ~0.4 us in time (module docstring), which the fit averages out.
     """
     times = np.asarray(times, dtype=np.float64)
     out = np.zeros((times.size, 3, 3))
     if times.size == 0:
         return out
-    t_lo, t_hi = times.min(), times.max()
-    n_seg = max(int(np.ceil((t_hi - t_lo) / segment)), 1)
-    edges = np.linspace(t_lo, t_hi, n_seg + 1)
-    for k in range(n_seg):
-        lo, hi = edges[k], edges[k + 1]
-        n_samples = max(int(np.ceil((hi - lo) / sample_step)) + 1, 3 * (degree + 1))
-        samples = np.linspace(lo - sample_step, hi + sample_step, n_samples)
+    segments = fit_segments(times.min(), times.max(), segment)
+    for k, (lo, hi) in enumerate(segments):
+        last = k == len(segments) - 1
+        sel = (times >= lo) & ((times <= hi) if last else (times < hi))
+        if not sel.any():
+            continue
+        if hi - lo < 1.0:
+            # a single epoch (a one-integration track): nothing to fit
+            out[sel] = casacore_uvw_matrix(times[sel], ra, dec, position)
+            continue
+        n_coef = min(degree, 3 + int(np.ceil((hi - lo) / 3600.0))) + 1
+        n_samples = max(int(np.ceil((hi - lo) / sample_step)) + 1, 10 * n_coef)
+        samples = np.linspace(lo, hi, n_samples)
         m_samples = casacore_uvw_matrix(samples, ra, dec, position)
         # strip the Earth rotation: A = M Rz(theta)^-1 varies slowly
         slow = m_samples @ np.swapaxes(_rz(earth_rotation_angle(samples)), -1, -2)
-        centre, half = 0.5 * (samples[0] + samples[-1]), 0.5 * (samples[-1] - samples[0])
+        centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
         coef = np.polynomial.chebyshev.chebfit((samples - centre) / half,
-                                               slow.reshape(n_samples, 9), degree)
-        sel = (times >= lo) & (times <= hi) if k < n_seg - 1 else (times >= lo)
+                                               slow.reshape(n_samples, 9), n_coef - 1)
         a_t = np.polynomial.chebyshev.chebval((times[sel] - centre) / half, coef).T
         out[sel] = a_t.reshape(-1, 3, 3) @ _rz(earth_rotation_angle(times[sel]))
     return out

@@ -124,13 +124,18 @@ def track_series(ref_phase: np.ndarray, valid: np.ndarray, mode: str = "smooth",
     return TrackResult(counts, segment, suspect, bridged, jump)
 
 
-def running_sum(ref_vis: np.ndarray, valid: np.ndarray, half_window: int) -> np.ndarray:
-    """Sum of the valid visibilities within +-``half_window`` samples (complex128, per baseline)."""
+def running_sum(ref_vis: np.ndarray, valid: np.ndarray, half_window) -> np.ndarray:
+    """Sum of the valid visibilities within +-``half_window`` samples (complex128, per baseline).
+
+    ``half_window``: an int, or an int array (n_time,) giving each time its own
+    half-window (e.g. short where turbulence is fast, at low elevation).
+    """
     vis = np.where(valid & np.isfinite(ref_vis), ref_vis, 0).astype(np.complex128)
     n_time = vis.shape[1]
     csum = np.concatenate([np.zeros((vis.shape[0], 1), np.complex128), np.cumsum(vis, axis=1)], axis=1)
-    hi = np.minimum(np.arange(n_time) + half_window + 1, n_time)
-    lo = np.maximum(np.arange(n_time) - half_window, 0)
+    half = np.maximum(np.broadcast_to(np.asarray(half_window, dtype=np.int64), (n_time,)), 0)
+    hi = np.minimum(np.arange(n_time) + half + 1, n_time)
+    lo = np.maximum(np.arange(n_time) - half, 0)
     return csum[:, hi] - csum[:, lo]
 
 
@@ -141,7 +146,8 @@ def track_antennas(ref_vis: np.ndarray, valid: np.ndarray, ant1, ant2, n_ant: in
 
     ``ref_vis`` complex64 or complex128 visibilities at the reference band.
     ``solve_half_window`` > 0 solves the antenna phases from visibilities
-    summed over +-that many samples (shorter than the coherence time): the
+    summed over +-that many samples (shorter than the coherence time; an int
+    array (n_time,) gives each time its own half-window): the
     solve then has the SNR of the window, while each baseline sample is still
     snapped individually to the antenna model.
     The result's arrays are per baseline; ``extra`` holds the per-antenna
@@ -160,7 +166,8 @@ def track_antennas(ref_vis: np.ndarray, valid: np.ndarray, ant1, ant2, n_ant: in
     if n_ant <= max(ant1.max(initial=-1), ant2.max(initial=-1)):
         raise InputError(f"n_ant={n_ant} is smaller than the largest antenna index in ant1/ant2")
     refants = np.asarray(list(refants), dtype=np.int64)
-    solve_vis = running_sum(ref_vis, valid, solve_half_window) if solve_half_window > 0 else ref_vis
+    windowed = np.any(np.asarray(solve_half_window) > 0)
+    solve_vis = running_sum(ref_vis, valid, solve_half_window) if windowed else ref_vis
     ant_phase, ant_valid, ref_used, frame_break = solve_antenna_phases(solve_vis, valid, ant1, ant2,
                                                                        n_ant, refants)
     # a frame break makes every antenna phase jump arbitrarily: track the pieces separately
