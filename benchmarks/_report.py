@@ -26,24 +26,54 @@ def machine_line() -> str:
             f"Python {platform.python_version()}")
 
 
+# A minimal launcher process between the benchmark and the measured command.  Linux
+# records the pre-exec address space's high-water RSS in the exec'd process's maxrss
+# (a vfork/fork child execs from the parent's memory image), so measuring a child of
+# a benchmark process that has itself used gigabytes (e.g. building a 10^7-row pair)
+# would report the benchmark's peak, not the command's.  The launcher is a small
+# ``python -S`` process, so the measured command's ru_maxrss is its own (the
+# launcher's ~10 MB image is the floor).  It also times the command without its own
+# start-up and reads the output while waiting (no pipe-buffer deadlock).
+_LAUNCHER = r"""
+import json, os, sys, time
+out, cmd = sys.argv[1], sys.argv[2:]
+t0 = time.perf_counter()
+pid = os.posix_spawnp(cmd[0], cmd, os.environ)
+_, status, usage = os.wait4(pid, 0)
+wall = time.perf_counter() - t0
+with open(out, "w") as f:
+    json.dump({"wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime,
+               "maxrss_kb": usage.ru_maxrss}, f)
+code = os.waitstatus_to_exitcode(status)
+sys.exit(code if code >= 0 else 128 - code)
+"""
+
+
 def run_process(cmd, env=None, cwd=None) -> dict:
     """Run a command as its own process; return wall, CPU time and peak RSS.
 
-    Peak RSS comes from the kernel's accounting of the child (ru_maxrss of
-    RUSAGE_CHILDREN after wait4), in MB.
+    Peak RSS comes from the kernel's accounting of the command's process
+    (ru_maxrss from wait4 in a small launcher process, see ``_LAUNCHER``), in MB.
     """
+    import json
+    import tempfile
+
     full_env = dict(os.environ, **(env or {}))
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, env=full_env, cwd=cwd, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
-    _, status, usage = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - t0
-    output = proc.stdout.read()
-    proc.stdout.close()
-    if os.waitstatus_to_exitcode(status) != 0:
-        raise RuntimeError(f"{' '.join(map(str, cmd))} failed:\n{output}")
-    return {"wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime,
-            "peak_rss_mb": usage.ru_maxrss / 1024.0, "output": output}
+    fd, stats_path = tempfile.mkstemp(prefix="run-process-", suffix=".json")
+    os.close(fd)
+    try:
+        proc = subprocess.Popen([sys.executable, "-S", "-c", _LAUNCHER, stats_path,
+                                 *map(str, cmd)], env=full_env, cwd=cwd,
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        output, _ = proc.communicate()
+        if proc.returncode != 0:
+            raise RuntimeError(f"{' '.join(map(str, cmd))} failed:\n{output}")
+        with open(stats_path) as f:
+            stats = json.load(f)
+    finally:
+        os.unlink(stats_path)
+    return {"wall_s": stats["wall_s"], "cpu_s": stats["cpu_s"],
+            "peak_rss_mb": stats["maxrss_kb"] / 1024.0, "output": output}
 
 
 def replace_section(key: str, markdown: str, doc: Path = PERF_DOC) -> None:

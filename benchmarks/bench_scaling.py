@@ -120,8 +120,10 @@ def calibrate_point(workdir: Path, hitops: str, n_ant: int, n_time: int, repeats
     pair_dir = workdir / f"pair-{n_ant}-{n_time}"
     shutil.rmtree(pair_dir, ignore_errors=True)
     t0 = time.perf_counter()
+    names = [f"A{i:02d}" for i in range(n_ant)]   # make_pair names at most 8 by default
     truth = make_pair(pair_dir, n_ant=n_ant, n_time=n_time, corr_types=CORRS, step_rad=0.05,
-                      drift_rad=0.01, sigma_ref=0.05, sigma_target=0.1, seed=7)
+                      drift_rad=0.01, sigma_ref=0.05, sigma_target=0.1, seed=7,
+                      ref_names=names)
     build_s = time.perf_counter() - t0
     del truth
     ref, tgt = pair_dir / "ref.ms", pair_dir / "target.ms"

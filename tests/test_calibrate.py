@@ -288,9 +288,14 @@ def test_distributed_local_cluster_gives_identical_output(tmp_path):
 
     truth = make_pair(tmp_path, n_time=300, seed=14, n_scans=2)
     calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu")
-    threads = {c: col(truth.target_ms, c) for c in ("PWC_DATA", "CFPT_DATA", "CWU_DATA", "FLAG")}
+    calibrate(truth.ref_ms, truth.target_ms, tracker="antenna", output_column="PWC_ANT")
+    threads = {c: col(truth.target_ms, c)
+               for c in ("PWC_DATA", "CFPT_DATA", "CWU_DATA", "FLAG", "PWC_ANT")}
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                       dashboard_address=None) as cluster:
+        # the robust trackers run in the client, the transfer tasks on the cluster
+        calibrate(truth.ref_ms, truth.target_ms, tracker="antenna", output_column="PWC_ANT",
+                  overwrite=True, scheduler=cluster.scheduler_address, chunk_rows=400)
         report = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu",
                            overwrite=True, scheduler=cluster.scheduler_address, chunk_rows=400)
         # the work really went to the cluster: kernel tasks, dask-ms reads and writes

@@ -273,6 +273,12 @@ def test_jumps_are_reported_with_times_and_flagged_on_request(tmp_path, tracker)
     assert rep["samples"]["jump_flagged"] >= 2 * 240
     assert np.all(flag[with_pv & (t_idx >= 352)])
     assert not flag[~with_pv].any() and not flag[t_idx < 340].any()
+    # the same in ~60-time chunks (the jump falls inside one, its flags span several)
+    _, rep_chunked = run(truth, tracker=tracker, jump_threshold=90.0, jump_window=5,
+                         coherence_time=60.0, jump_action="flag", chunk_rows=200)
+    assert rep_chunked["chunks"] >= 8
+    assert np.array_equal(col(truth.target_ms, "FLAG")[:, 0, 0], flag)
+    assert rep_chunked["samples"]["jump_flagged"] == rep["samples"]["jump_flagged"]
 
 
 def test_count_tracker_is_the_default_and_warns_about_robust_options(tmp_path, caplog):
@@ -328,3 +334,82 @@ def test_extreme_cases_one_sample_fully_flagged_and_cross_hands(tmp_path):
         sel = (truth.ant1 == 1) & (truth.ant2 == 2)
         e = count_error(truth, out)
         assert np.unique(e[sel, 0]).size == 1 and np.unique(e[sel, 3]).size == 1
+
+
+def test_station_elevations_from_the_ms_geometry(tmp_path):
+    """sin(el) from ANTENNA positions and FIELD direction matches the simulator's truth."""
+    from hitops.calibrate.robust import station_sin_elevation
+    from hitops.simulate.api import simulate
+
+    out = simulate("paper", tmp_path, prefix="el", save_truth=True, duration=600,
+                   integration=10, stations="AP,PV,KP", no_noise=True)
+    truth = np.load(out["truth"])
+    sin_el = station_sin_elevation(str(out["230"]), truth["time"])
+    # precession (~0.3 deg since J2000) is ignored: agreement to ~0.01 in sin(el)
+    assert np.max(np.abs(sin_el - np.sin(truth["elevation"]))) < 0.01
+    fake = make_pair(tmp_path, n_time=10, corr_types=("RR",))       # positions off the Earth
+    assert station_sin_elevation(str(fake.target_ms), np.array([5.1e9])) is None
+
+
+def test_fixed_window_max_gap_and_elevation_scaling_options(tmp_path):
+    truth = make_pair(tmp_path, n_ant=3, n_time=300, step_rad=0.1, corr_types=("RR",), seed=5)
+    flag = col(truth.ref_ms, "FLAG")
+    t_idx = np.rint(truth.time - truth.time.min()).astype(int)
+    first_bl = (truth.ant1 == 0) & (truth.ant2 == 1)
+    flag[first_bl & (t_idx >= 100) & (t_idx < 108)] = True
+    put(truth.ref_ms, "FLAG", flag)
+    _, rep = run(truth, tracker="smooth", half_window=3, max_gap=5)
+    setup = rep["tracking"]["setup"]
+    assert setup["half_window"] == 3 and setup["max_gap"] == 5
+    assert setup["elevation_scaling"] is False          # synthetic positions: no geometry
+    ap_sm = {e["baseline"]: e for e in rep["tracking"]["baselines"]}["AP-SM"]
+    assert ap_sm["bridged_gaps"] == 0 and ap_sm["long_gap_segments"] == 1
+    # real geometry (hitops simulate): t_c is scaled by sin(el)^(3/5) unless switched off
+    from hitops.simulate.api import simulate
+    sim = simulate("paper", tmp_path / "sim", prefix="s", duration=300, stations="AP,PV,KP",
+                   correlations="RR")
+    rep = calibrate(sim["86"], sim["230"], tracker="smooth")
+    assert rep["tracking"]["setup"]["elevation_scaling"] is True
+    rep = calibrate(sim["86"], sim["230"], tracker="smooth", no_elevation_scaling=True,
+                    overwrite=True)
+    assert rep["tracking"]["setup"]["elevation_scaling"] is False
+    assert rep["tracking"]["setup"]["snr_source"] == "sigma"     # the simulator writes SIGMA
+
+
+def test_offset_step_per_segment_resolves_a_long_gap(tmp_path, caplog):
+    """A 300-sample gap: the smooth tracker's best guess across it is wrong (seed 21,
+    by one wrap); with a reference column the n0 step runs per segment and fixes it."""
+    from hitops.calibrate.synthetic import add_column
+
+    truth = make_pair(tmp_path, n_ant=3, n_time=900, step_rad=0.15, corr_types=("RR",), seed=21)
+    flag = col(truth.ref_ms, "FLAG")
+    t_idx = np.rint(truth.time - truth.time.min()).astype(int)
+    first_bl = (truth.ant1 == 0) & (truth.ant2 == 1)
+    flag[first_bl & (t_idx >= 300) & (t_idx < 600)] = True
+    put(truth.ref_ms, "FLAG", flag)
+    out, rep = run(truth, tracker="smooth")
+    valid = col(truth.target_ms, "FLAG")[:, 0, 0] == 0
+    e = count_error(truth, out)[:, 0]
+    assert np.unique(e[first_bl & valid]).size == 2                 # the guess is wrong
+    assert rep["tracking"]["segment_offsets"] == "best guess"
+    # a perfect reference calibration of the target (what FF+SC would give)
+    add_column(truth.target_ms, "CORRECTED_DATA", np.exp(1j * truth.source_phase)[:, None, :])
+    with caplog.at_level("INFO", logger="hitops"):
+        out, rep = run(truth, tracker="smooth", offset_reference_column="CORRECTED_DATA")
+    assert "resolved by the offset step per segment" in caplog.text
+    step = rep["offset_step"]
+    assert step["per"] == "segment" and step["applied_to"] == ["pwc"]
+    segs = [s for s in step["series"] if s["baseline"] == "AP-SM"]
+    assert len(segs) == 2 and {s["segment"] for s in segs} == {0, 1}
+    assert segs[0]["k"] != segs[1]["k"]
+    assert rep["tracking"]["segment_offsets"].startswith("offset step per segment")
+    resid = wrap(np.angle(out[:, 0, 0]) - truth.source_phase[:, 0])
+    assert np.max(np.abs(resid[valid])) < 1e-4                       # every n0 and the gap fixed
+    # chunked: the same segments and output (k of the second segment may differ: a gap
+    # longer than the chunk context continues the count instead of predicting across it)
+    out_chunked, rep_chunked = run(truth, tracker="smooth",
+                                   offset_reference_column="CORRECTED_DATA", chunk_rows=300)
+    assert rep_chunked["chunks"] > 3
+    keys = [(s["baseline"], s["scan"], s["segment"]) for s in rep_chunked["offset_step"]["series"]]
+    assert keys == [(s["baseline"], s["scan"], s["segment"]) for s in step["series"]]
+    assert np.max(np.abs(np.angle(out_chunked[:, 0, 0] * np.conj(out[:, 0, 0]))[valid])) < 1e-5

@@ -95,3 +95,14 @@ def test_no_report_and_bad_reports(pair, tmp_path):
     old.write_text(json.dumps({"target_ms": "x"}))
     with pytest.raises(InputError, match="no wrap-tracking section"):
         diagnose(other.target_ms, columns="DATA", outdir=None, calibrate_report=str(old))
+
+
+def test_count_tracker_report_gives_empty_tracking_cells(pair, tmp_path):
+    calibrate(pair.ref_ms, pair.target_ms, tracker="count", overwrite=True,
+              output_column="PWC_COUNT")
+    summary = diagnose(pair.target_ms, columns="DATA,PWC_COUNT", interval=20.0,
+                       intervals="5,10,20", outdir=tmp_path / "d")
+    assert summary["tracking"]["tracker"] == "count"
+    rows = _rows(tmp_path / "d" / "coherence-table.csv")
+    assert rows and all(r["segments"] == "" for r in rows)
+    assert all(r["segments"] == "" for r in _rows(tmp_path / "d" / "antenna-table.csv"))

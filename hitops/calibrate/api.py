@@ -159,7 +159,7 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
               overwrite=False, average_channels=False, time_tolerance=None, tracker="count",
               half_window=0, coherence_time=20.0, snr=0.0, max_gap=-1, jump_threshold=-1.0,
               jump_window=0, jump_action="segment", refant=None, solve_half_window=-1,
-              chunk_rows=2_000_000, report=None, scheduler=None) -> Dict:
+              no_elevation_scaling=False, chunk_rows=2_000_000, report=None, scheduler=None) -> Dict:
     """Frequency phase transfer from ``ref_ms`` (reference band) to ``target_ms``.
 
     Writes one column per method into ``target_ms`` (PWC_DATA, CFPT_DATA,
@@ -293,11 +293,11 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
 def _tracking_setup(g: Dict):
     """Resolved robust-tracking parameters (None for --tracker count); checks --refant."""
     from .robust import ANTENNA_TRACK_HALF_WINDOW as ROBUST_ANTENNA_H
-    from .robust import grid_positions, setup_tracking, sigma_source
+    from .robust import grid_positions, setup_tracking, sigma_source, station_sin_elevation
 
     defaults = {"half_window": 0, "coherence_time": 20.0, "snr": 0.0, "max_gap": -1,
                 "jump_threshold": -1.0, "jump_window": 0, "jump_action": "segment",
-                "refant": None, "solve_half_window": -1}
+                "refant": None, "solve_half_window": -1, "no_elevation_scaling": False}
     if g["tracker"] == "count":
         changed = [k for k, v in defaults.items() if g[k] != v and not (v is None and not g[k])]
         if changed:
@@ -309,12 +309,21 @@ def _tracking_setup(g: Dict):
     _, dt = grid_positions(g["match"].times, g["match"].scan_of_time)
     fixed = float(g["snr"]) > 0 or int(g["half_window"]) > 0
     snr_from = "fixed" if fixed else sigma_source(g["ref_ms"])
+    sin_el = None
+    if not g["no_elevation_scaling"]:
+        sin_el = station_sin_elevation(g["target_ms"], g["match"].times)
+        if sin_el is None:
+            log.info("no station geometry in %s (ANTENNA positions off the Earth's surface): "
+                     "--coherence-time is used without elevation scaling", g["target_ms"])
     setup = setup_tracking(g["tracker"], g["half_window"], g["coherence_time"], g["snr"],
                            g["max_gap"], g["jump_threshold"], g["jump_window"], g["jump_action"],
-                           g["refant"], g["solve_half_window"], dt, g["tgt_names"], snr_from)
-    log.info("tracker %s: dt %.4g s, t_c %.4g s, half-window %s (SNR %s), max gap %d, jumps %s "
+                           g["refant"], g["solve_half_window"], dt, g["tgt_names"], snr_from,
+                           elevation_scaling=sin_el is not None)
+    setup.sin_elevation = sin_el
+    log.info("tracker %s: dt %.4g s, t_c %.4g s%s, half-window %s (SNR %s), max gap %d, jumps %s "
              "(action %s)%s; context %d samples per chunk side", setup.tracker, setup.dt,
              setup.coherence_time,
+             " (zenith, x sin(el)^(3/5) per station)" if setup.elevation_scaling else "",
              (f"{ROBUST_ANTENNA_H} on antenna tracks" if setup.tracker == "antenna" else
               setup.half_window if setup.half_window > 0 else f"per sample <= {setup.max_half_window}"),
              f"{setup.snr:.3g}" if setup.snr > 0 else f"from {setup.snr_source}", setup.max_gap,
@@ -360,7 +369,7 @@ def _run(ctx: Dict, started: float) -> Dict:
 
     ref_cols, tgt_cols = g["ref_cols"], g["tgt_cols"]
     setup = g["tracking_setup"]
-    from .robust import ReferenceTracker, gather_grid
+    from .robust import SEGMENT_KEY, ReferenceTracker, apply_segment_offsets, gather_grid
     ref_read_cols = list(ref_cols)
     if setup is not None and setup.snr_source in ("sigma", "weight"):
         ref_read_cols.append(setup.snr_source.upper())
@@ -370,7 +379,8 @@ def _run(ctx: Dict, started: float) -> Dict:
         if setup is None:
             return None
         return ReferenceTracker(setup, match, match.corr_names, len(g["tgt_names"]),
-                                list(g["tgt_names"]), workers=1 if client is not None else 0)
+                                list(g["tgt_names"]), workers=1 if client is not None else 0,
+                                sin_elevation=getattr(setup, "sin_elevation", None))
 
     tracker = new_tracker()   # for the chunk extents; each pass tracks afresh
     off_col = g["offset_reference_column"]
@@ -436,9 +446,10 @@ def _run(ctx: Dict, started: float) -> Dict:
         timings["read"] += time.perf_counter() - stage
         return chunk
 
-    def run_pass(offsets, write):
+    def run_pass(offsets, write, segment_k=None):
         nonlocal tracker
         tracker = new_tracker()
+        seg_sums = {}
         ref_carry = Carry.empty(match.n_bl, n_corr)
         tgt_carry = Carry.empty(match.n_bl, n_corr)
         totals = {"n_samples": 0, "no_reference_row": 0, "target_invalid": 0,
@@ -450,11 +461,12 @@ def _run(ctx: Dict, started: float) -> Dict:
             ch = load(i)
             stage = time.perf_counter()
             scan_local = match.scan_of_time[ch["t0"]:ch["t1"]]
-            ref_wraps = ref_exclude = None
+            ref_wraps = ref_exclude = seg_keys = None
             if tracker is not None:
                 t_lo, t_hi, ext_vis, ext_valid, ext_sigma = ch["ext"]
-                ref_wraps, ref_exclude = tracker.track(t_lo, ch["t0"], ch["t1"], t_hi,
-                                                       ext_vis, ext_valid, ext_sigma)
+                ref_wraps, ref_exclude, seg_keys = tracker.track(
+                    t_lo, ch["t0"], ch["t1"], t_hi, ext_vis, ext_valid, ext_sigma)
+                ref_wraps = apply_segment_offsets(ref_wraps, seg_keys, segment_k)
             tasks = []
             for bls in groups:
                 gi = group_inputs(bls, ch["tgt_grid"], ch["ref_grid"], ch["tgt_vis"],
@@ -471,6 +483,8 @@ def _run(ctx: Dict, started: float) -> Dict:
                           tracker="count" if tracker is not None else g["tracker"],
                           ref_wraps=None if ref_wraps is None else ref_wraps[bls],
                           ref_exclude=None if ref_exclude is None else ref_exclude[bls],
+                          segment_keys=(seg_keys[bls] if seg_keys is not None and offsets is None
+                                        and off_col else None),
                           ref_carry=ref_carry.subset(bls), tgt_carry=tgt_carry.subset(bls),
                           offsets=None if offsets is None else offsets[bls])
                 tasks.append((bls, picked, local_grid,
@@ -499,6 +513,11 @@ def _run(ctx: Dict, started: float) -> Dict:
                 if "offset_sums" in res:
                     sums[bls] += res["offset_sums"]
                     counts[bls] += res["offset_counts"]
+                if "segment_sums" in res:
+                    for (lb, c, key), z, n in zip(*res["segment_sums"]):
+                        entry = seg_sums.setdefault((int(bls[lb]), int(c), int(key)), [0j, 0])
+                        entry[0] += z
+                        entry[1] += int(n)
                 _merge_carry(ref_carry, bls, res["ref_carry"])
                 _merge_carry(tgt_carry, bls, res["tgt_carry"])
             ref_carry.last_scan = int(scan_local[-1])
@@ -511,6 +530,8 @@ def _run(ctx: Dict, started: float) -> Dict:
         if tracker is not None:
             wrap_events = tracker.stats.per_series["wrap_events"].copy()
             totals["jump_flagged"] = int(tracker.stats.per_series["jump_flagged"].sum())
+        if tracker is not None and offsets is None and off_col:
+            return totals, wrap_events, seg_sums, None
         return totals, wrap_events, sums, counts
 
     state = {"created": [], "backup_created": False}
@@ -531,7 +552,31 @@ def _run(ctx: Dict, started: float) -> Dict:
         else:
             _, _, sums, counts = run_pass(None, write=False)
             offsets = np.zeros((match.n_bl, n_corr, n_scan))
-            for b in range(match.n_bl):
+            if setup is not None:
+                # robust trackers: the n0 step per segment (every scan starts one; long gaps
+                # and jumps start more); k is added to the segment's wrap count
+                segment_k = {}
+                for (b, c, key), (z, n) in sorted(sums.items()):
+                    choice = choose_offset(complex(z), int(n), eps, int(g["max_offset_wraps"]),
+                                           float(g["offset_ambiguity_deg"]))
+                    entry = {"baseline": match.baseline_names[b],
+                             "correlation": match.corr_names[c],
+                             "scan": int(match.scans[key // SEGMENT_KEY]),
+                             "segment": int(key % SEGMENT_KEY)}
+                    if choice is None:
+                        entry.update(k=0, samples=0, note="no sample to compare; offset 0")
+                    else:
+                        segment_k[(b, c, key)] = choice.k
+                        entry.update(choice.as_dict())
+                        if choice.ambiguous:
+                            log.warning("offset step %s %s scan %d segment %d ambiguous: k = %d "
+                                        "(residual %.2f deg) vs k = %d (%.2f deg)",
+                                        entry["baseline"], entry["correlation"], entry["scan"],
+                                        entry["segment"], choice.k, choice.residual_deg,
+                                        choice.runner_up_k, choice.runner_up_residual_deg)
+                    offset_report.append(entry)
+                g["_segment_k"] = segment_k
+            for b in range(match.n_bl if setup is None else 0):
                 for c in range(n_corr):
                     for s in range(n_scan):
                         choice = choose_offset(complex(sums[b, c, s]), int(counts[b, c, s]), eps,
@@ -558,10 +603,12 @@ def _run(ctx: Dict, started: float) -> Dict:
             log.info("offset step: n0 chosen for %d series (|k| <= %d); %d ambiguous; "
                      "k values: %s", len(chosen), int(g["max_offset_wraps"]),
                      sum(bool(e.get("ambiguous")) for e in chosen),
-                     ", ".join(f"{e['baseline']} {e['correlation']} s{e['scan']}: {e['k']}"
+                     ", ".join(f"{e['baseline']} {e['correlation']} s{e['scan']}"
+                               + (f"/{e['segment']}" if "segment" in e else "") + f": {e['k']}"
                                for e in chosen[:12]) + (" ..." if len(chosen) > 12 else ""))
     try:
-        totals, wrap_events, _, _ = run_pass(offsets, write=True)
+        # robust trackers: offsets stays zero, the per-segment k goes into the counts
+        totals, wrap_events, _, _ = run_pass(offsets, write=True, segment_k=g.get("_segment_k"))
     except BaseException:
         _rollback(g)
         raise
@@ -579,7 +626,11 @@ def _run(ctx: Dict, started: float) -> Dict:
     tracking_report = None
     if tracker is not None:
         tracking_report = tracker.report(match.times)
-        _log_tracking(tracking_report, setup)
+        resolved = g.get("_segment_k") is not None
+        tracking_report["segment_offsets"] = (
+            "offset step per segment (--offset-reference-column)" if resolved else
+            "per antenna (antenna mode)" if setup.tracker == "antenna" else "best guess")
+        _log_tracking(tracking_report, setup, resolved)
     report = {
         "ref_ms": ref_ms, "target_ms": target_ms, "methods": methods, "columns": outputs,
         "ratio": ratio, "r": g["r"], "eps": eps, "ratio_source": g["source"],
@@ -603,6 +654,7 @@ def _run(ctx: Dict, started: float) -> Dict:
                   for c, cn in enumerate(match.corr_names)],
         "offset_step": {"column": off_col, "max_offset_wraps": int(g["max_offset_wraps"]),
                         "applied_to": [m for m in methods if m in ("pwc", "cwu")] if offsets is not None else [],
+                        "per": "segment" if g.get("_segment_k") is not None else "scan",
                         "series": offset_report},
         "time_s": elapsed,
         "timings_s": {k: round(v, 4) for k, v in timings.items()},
@@ -615,7 +667,7 @@ def _run(ctx: Dict, started: float) -> Dict:
     return report
 
 
-def _log_tracking(rep: Dict, setup) -> None:
+def _log_tracking(rep: Dict, setup, resolved: bool = False) -> None:
     """Confidence numbers per baseline (and antenna), and what is unresolved."""
     for e in rep["baselines"]:
         log.info("tracking %s: %d suspected slips (%d samples), %d bridged gaps, %d segments "
@@ -629,7 +681,12 @@ def _log_tracking(rep: Dict, setup) -> None:
                  e["segments"], e["long_gap_segments"], e["jumps"],
                  "".join(f"; jump {j['correlation']} at +{j['time_from_start_s']:.0f} s "
                          f"({j['size_deg']:.0f} deg)" for j in e["jump_list"][:5]))
-    if setup.tracker == "smooth":
+    if setup.tracker == "smooth" and resolved:
+        n_seg = sum(e["long_gap_segments"] + e["jumps"] for e in rep["baselines"])
+        if n_seg:
+            log.info("%d segment(s) after long gaps or jumps: their wrap offsets were resolved "
+                     "by the offset step per segment (see offset_step in the report)", n_seg)
+    elif setup.tracker == "smooth":
         unresolved = [e for e in rep["baselines"]
                       if e["long_gap_segments"] or (e["jumps"] and setup.jump_action == "segment")]
         if unresolved:

@@ -13,7 +13,7 @@ carrying one sample across time chunks.  The robust trackers look further:
   closure phases carry no 2 pi eps k.  Cross-hand correlations (RL, LR, XY,
   YX) have no antenna model here and use ``smooth``.
 
-Both run here, in the driver, on the whole array of one time chunk *with
+Both run here, in the driver (local threads; the kernels release the GIL), on the whole array of one time chunk *with
 context*: the reference rows of ``context`` extra time samples on either
 side are read too, the tracker runs on the extended chunk, and its counts
 are aligned to the counts already written for the overlapping context
@@ -30,8 +30,9 @@ time step); missing times are invalid samples, so gaps are visible.
 Per-sample SNR (for the smoothing windows, docs/tracking.md): from SIGMA
 (or WEIGHT = 1/SIGMA^2) when the reference set has informative values,
 rho(t) = A / sigma, A estimated over the valid visibilities within
-+-snr_window samples from the mean power, A^2 = <|V|^2> - 2 sigma^2, which does not depend on how fast the phase
-moves inside the window; otherwise from the data:
++-snr_window samples from the mean power, A^2 = <|V|^2> - 2 sigma^2, which
+does not depend on how fast the phase moves inside the window; otherwise
+from the data:
 |<exp(i (phi_{t+1} - phi_t))>| = m^2, m the mean resultant length of one
 noisy unit phasor, inverted through
 :func:`hitops.tracking.theory.mean_resultant_length`.
@@ -60,6 +61,8 @@ TWO_PI = 2.0 * math.pi
 MIN_COHERENCE = 0.2
 #: antenna tracks are smoothed over +-2 samples after a windowed solve (docs/tracking.md)
 ANTENNA_TRACK_HALF_WINDOW = 2
+#: segment keys are scan index * SEGMENT_KEY + segment id
+SEGMENT_KEY = np.int64(1) << 32
 #: nominal per-sample SNR for the jump threshold when --snr is not given (conservative:
 #: a lower SNR gives a higher threshold, hence fewer false jumps)
 NOMINAL_JUMP_SNR = 2.0
@@ -84,10 +87,13 @@ class TrackingSetup:
     solve_half_window: int         # antenna mode
     snr_window: int
     context: int
+    elevation_scaling: bool = False
+
 
     def as_dict(self) -> dict:
         return {"tracker": self.tracker, "dt_s": self.dt, "coherence_time_s": self.coherence_time,
                 "snr": self.snr, "snr_source": self.snr_source,
+                "elevation_scaling": self.elevation_scaling,
                 "half_window": self.half_window if self.half_window > 0 else "per-sample",
                 "max_half_window": self.max_half_window, "max_gap": self.max_gap,
                 "jump_window": self.jump_window,
@@ -188,7 +194,7 @@ def _two_digits(x: float) -> float:
 
 def setup_tracking(tracker, half_window, coherence_time, snr, max_gap, jump_threshold,
                    jump_window, jump_action, refant, solve_half_window, dt, antenna_names,
-                   snr_from: str) -> TrackingSetup:
+                   snr_from: str, elevation_scaling: bool = False) -> TrackingSetup:
     """Resolve the defaults of docs/tracking.md ("Recommended defaults for calibrate")."""
     from ..tracking import theory
 
@@ -227,7 +233,33 @@ def setup_tracking(tracker, half_window, coherence_time, snr, max_gap, jump_thre
                          max_half_window=cap, max_gap=m_gap, jump_window=window,
                          jump_threshold=float(threshold), jump_action=jump_action,
                          refants=parse_refants(refant, antenna_names), solve_half_window=solve_h,
-                         snr_window=snr_window, context=int(context))
+                         snr_window=snr_window, context=int(context),
+                         elevation_scaling=bool(elevation_scaling))
+
+
+def station_sin_elevation(ms: str, times: np.ndarray) -> Optional[np.ndarray]:
+    """sin(elevation) of the phase centre at each station of ``ms``, (n_ant, n_time); None
+    when the geometry is missing (zero positions).
+
+    The J2000 direction is rotated into ITRF by the Earth rotation angle only
+    (precession and nutation, ~0.3 deg since 2000, are ignored): good enough
+    for the sin(el)^(3/5) scaling of the coherence time.
+    """
+    from ..io import read as msio
+    from ..simulate.geometry import earth_rotation_angle, geodetic_up
+
+    positions = np.asarray(msio.read_subtable(ms, "ANTENNA", ["POSITION"])["POSITION"], float)
+    phase_dir = np.asarray(msio.read_subtable(ms, "FIELD", ["PHASE_DIR"])["PHASE_DIR"], float)
+    radius = np.linalg.norm(positions, axis=1) if positions.size else np.zeros(0)
+    # stations on the Earth's surface (6.35-6.39 Mm from the centre), else no usable geometry
+    if radius.size == 0 or phase_dir.size == 0 or np.any((radius < 6.33e6) | (radius > 6.40e6)):
+        return None
+    ra, dec = phase_dir.reshape(-1, 2)[0]
+    era = earth_rotation_angle(times)
+    hour = era - ra        # Greenwich hour angle; ITRF source direction below
+    src = np.stack([np.cos(dec) * np.cos(hour), -np.cos(dec) * np.sin(hour),
+                    np.full(times.shape, np.sin(dec))], axis=0)
+    return geodetic_up(positions) @ src
 
 
 def grid_positions(times: np.ndarray, scan_of_time: np.ndarray):
@@ -332,20 +364,31 @@ def _regular(values, pos, length):
     return out
 
 
-def half_windows_from_snr(rho: np.ndarray, setup: TrackingSetup) -> np.ndarray:
-    """Per-sample half-windows from per-sample SNR (cached per 2-digit SNR)."""
+def _round2(x: np.ndarray) -> np.ndarray:
+    digits = np.floor(np.log10(x)) - 1
+    return np.round(x / 10.0 ** digits) * 10.0 ** digits
+
+
+def half_windows_from_snr(rho: np.ndarray, setup: TrackingSetup, coherence_time=None) -> np.ndarray:
+    """Per-sample half-windows from per-sample SNR and (local) coherence time.
+
+    :func:`hitops.tracking.theory.recommended_half_window`, evaluated once per
+    distinct pair after rounding both to 2 significant digits (cached).
+    ``coherence_time`` broadcasts against ``rho``; default the setup's.
+    """
+    t_c = np.broadcast_to(setup.coherence_time if coherence_time is None else coherence_time,
+                          rho.shape)
     out = np.ones(rho.shape, np.int64)
-    ok = np.isfinite(rho) & (rho > 0)
-    if not ok.any():
-        return out
-    digits = np.floor(np.log10(rho[ok])) - 1
-    keys = np.round(rho[ok] / 10.0 ** digits) * 10.0 ** digits
-    unique, inverse = np.unique(keys, return_inverse=True)
-    values = np.array([_half_window_for(float(u), setup.coherence_time, setup.dt) for u in unique],
-                      np.int64)
-    out[ok] = values[inverse.ravel()]
-    # SNR below the table: the widest window allowed
-    out[np.isfinite(rho) & (rho <= 0)] = setup.max_half_window
+    ok = np.isfinite(rho) & (rho > 0) & np.isfinite(t_c) & (t_c > 0)
+    if ok.any():
+        keys = np.stack([_round2(rho[ok]), _round2(np.maximum(t_c[ok], setup.dt))], axis=1)
+        unique, inverse = np.unique(keys, axis=0, return_inverse=True)
+        values = np.array([_half_window_for(float(r), float(t), setup.dt) for r, t in unique],
+                          np.int64)
+        out[ok] = values[inverse.ravel()]
+    # no signal left (SNR estimate 0): the widest window the local t_c allows
+    low = np.isfinite(rho) & (rho <= 0) & np.isfinite(t_c)
+    out[low] = np.clip(((t_c[low] / setup.dt - 1) // 2).astype(np.int64), 1, setup.max_half_window)
     return out
 
 
@@ -449,7 +492,7 @@ class ReferenceTracker:
     """Runs the robust tracker chunk by chunk (see the module doc)."""
 
     def __init__(self, setup: TrackingSetup, match, corr_names: List[str], n_ant: int,
-                 antenna_names: List[str], workers: int = 0):
+                 antenna_names: List[str], workers: int = 0, sin_elevation=None):
         self.setup = setup
         self.match = match
         self.n_bl = match.n_bl
@@ -459,6 +502,12 @@ class ReferenceTracker:
         self.antenna_names = antenna_names
         self.parallel = [len(c) == 2 and c[0] == c[1] for c in corr_names]
         self.pos, _ = grid_positions(match.times, match.scan_of_time)
+        # local coherence time per station and time: t_c sin(el)^(3/5) (the phase
+        # variance of a thin screen grows with airmass), when the geometry is known
+        self.station_tc = None
+        if setup.elevation_scaling and sin_elevation is not None:
+            from ..tracking.theory import local_coherence_time
+            self.station_tc = local_coherence_time(setup.coherence_time, sin_elevation)
         self.hist = History.empty(setup.context, self.n_bl, self.n_corr, n_ant)
         self.stats = Stats(self.n_bl, self.n_corr, n_ant)
         self.workers = workers or (os.cpu_count() or 1)
@@ -487,7 +536,6 @@ class ReferenceTracker:
         jump = np.zeros((self.n_bl, self.n_corr, n_ext))
         unmodelled = np.zeros_like(suspect)
         ant = {}
-        phase = np.where(valid, np.angle(vis), np.nan)
         for a, b in _scan_runs(scan):
             pos = self.pos[t_lo + a:t_lo + b] - self.pos[t_lo + a]
             length = int(pos[-1]) + 1
@@ -507,11 +555,17 @@ class ReferenceTracker:
                         reg_sigma = np.full((self.n_bl, self.n_corr, length), np.nan)
                         reg_sigma[..., pos] = sigma[..., a:b]
                     hw = np.ones((self.n_bl, self.n_corr, length), np.int64)
+                    tc_bl = None
+                    if self.station_tc is not None:
+                        # baseline: the worse station's local t_c (docs/tracking.md)
+                        tc = self.station_tc[:, t_lo + a:t_lo + b]
+                        tc_bl = _regular(np.minimum(tc[self.match.ant1], tc[self.match.ant2]),
+                                         pos, length)
                     for c in smooth_corrs:
                         rho = per_sample_snr(reg_vis[:, c], reg_valid[:, c],
                                              None if reg_sigma is None else reg_sigma[:, c],
                                              setup.snr_window)
-                        hw[:, c] = half_windows_from_snr(rho, setup)
+                        hw[:, c] = half_windows_from_snr(rho, setup, tc_bl)
                 jobs = [(np.ascontiguousarray(reg_phase[bl, c]),
                          np.ascontiguousarray(reg_valid[bl, c]),
                          None if hw is None else np.ascontiguousarray(hw[bl, c]), setup)
@@ -531,8 +585,13 @@ class ReferenceTracker:
             for c in antenna_corrs:
                 solve_h = setup.solve_half_window
                 if solve_h < 0:
-                    solve_h = self._solve_windows(reg_vis[:, c], reg_valid[:, c],
-                                                  None if sigma is None else _regular(sigma[:, c, a:b], pos, length))
+                    tc_t = None
+                    if self.station_tc is not None:
+                        # the antennas present: the lowest one's local t_c sets the window
+                        tc_t = _regular(self.station_tc[:, t_lo + a:t_lo + b].min(axis=0), pos, length)
+                    solve_h = self._solve_windows(
+                        reg_vis[:, c], reg_valid[:, c],
+                        None if sigma is None else _regular(sigma[:, c, a:b], pos, length), tc_t)
                 out = self._antenna(reg_vis[:, c], reg_valid[:, c], pos, solve_h)
                 counts[:, c, a:b], seg[:, c, a:b] = out["counts"], out["seg"]
                 suspect[:, c, a:b], bridged[:, c, a:b] = out["suspect"], out["bridged"]
@@ -552,9 +611,11 @@ class ReferenceTracker:
                       unmodelled, ant, exclude)
         self._remember(t_lo, t0, t1, scan, valid, counts, seg, ant)
         i0, i1 = t0 - t_lo, t1 - t_lo
-        return counts[..., i0:i1], exclude[..., i0:i1]
+        # segment keys (scan index << 32 | aligned segment id): the per-segment offset step
+        keys = np.where(seg >= 0, scan.astype(np.int64)[None, None, :] * SEGMENT_KEY + seg, -1)
+        return counts[..., i0:i1], exclude[..., i0:i1], keys[..., i0:i1]
 
-    def _solve_windows(self, vis, valid, sigma):
+    def _solve_windows(self, vis, valid, sigma, coherence_time=None):
         """Per-time solve half-windows from the antennas' combined per-sample SNR.
 
         An antenna solution combines its baselines: its SNR is about
@@ -570,7 +631,8 @@ class ReferenceTracker:
         n_present = present.sum(axis=0)
         with np.errstate(invalid="ignore", divide="ignore"):
             rho_ant = np.sqrt(2.0 * power / n_present)
-        return half_windows_from_snr(np.where(n_present > 0, rho_ant, np.nan), self.setup)
+        return half_windows_from_snr(np.where(n_present > 0, rho_ant, np.nan), self.setup,
+                                     coherence_time)
 
     def _antenna(self, vis, valid, pos, solve_half_window):
         """Antenna mode on one regular scan run of one correlation; results at ``pos``."""
@@ -691,19 +753,27 @@ class ReferenceTracker:
             return exclude
         h = self.hist
         i0, i1 = t0 - t_lo, t1 - t_lo
+        def flag_series(ok, jumps, sc, sg, state):
+            """Samples of [jump, end of its segment), continuing ``state`` = (scan, segment)."""
+            out = np.zeros(ok.size, bool)
+            starts = np.flatnonzero(ok & (jumps != 0))
+            if state[0] < 0 and not starts.size:
+                return out, state
+            if state[0] >= 0:
+                out |= ok & (sc == state[0]) & (sg == state[1])
+            for j in starts:
+                state = np.array([sc[j], sg[j]])
+                out[j:] |= ok[j:] & (sc[j:] == state[0]) & (sg[j:] == state[1])
+            return out, state
+
+        sc = scan[i0:i1]
         for bl in range(self.n_bl):
             for c in range(self.n_corr):
                 if c in ant:
                     continue
-                fs = h.flag_seg[bl, c]
-                for i in range(i0, i1):
-                    if not valid[bl, c, i]:
-                        continue
-                    if jump[bl, c, i] != 0:
-                        fs = np.array([scan[i], seg[bl, c, i]])
-                    if scan[i] == fs[0] and seg[bl, c, i] == fs[1]:
-                        exclude[bl, c, i] = True
-                h.flag_seg[bl, c] = fs
+                exclude[bl, c, i0:i1], h.flag_seg[bl, c] = flag_series(
+                    valid[bl, c, i0:i1], jump[bl, c, i0:i1], sc, seg[bl, c, i0:i1],
+                    h.flag_seg[bl, c])
         for c, runs in ant.items():
             for a, b, out in runs:
                 lo, hi = max(a, i0), min(b, i1)
@@ -711,16 +781,10 @@ class ReferenceTracker:
                     continue
                 bad = np.zeros((self.n_ant, hi - lo), bool)
                 for p in range(self.n_ant):
-                    fs = h.ant_flag_seg[c, p]
-                    for i in range(lo, hi):
-                        k = i - a
-                        if not out["ant_valid"][p, k]:
-                            continue
-                        if out["ant_jump"][p, k] != 0:
-                            fs = np.array([scan[i], out["ant_seg"][p, k]])
-                        if scan[i] == fs[0] and out["ant_seg"][p, k] == fs[1]:
-                            bad[p, i - lo] = True
-                    h.ant_flag_seg[c, p] = fs
+                    k = slice(lo - a, hi - a)
+                    bad[p], h.ant_flag_seg[c, p] = flag_series(
+                        out["ant_valid"][p, k], out["ant_jump"][p, k], scan[lo:hi],
+                        out["ant_seg"][p, k], h.ant_flag_seg[c, p])
                 exclude[:, c, lo:hi] = (bad[self.match.ant1] | bad[self.match.ant2]) & valid[:, c, lo:hi]
         return exclude
 
@@ -868,3 +932,41 @@ class ReferenceTracker:
             out["antennas"] = antennas
             out["frame_breaks"] = st.frame_breaks
         return out
+
+
+def segment_offset_sums(keys, tgt_phase, phasor, calibrated, off_phase, off_valid):
+    """Sums of exp(i (Phi_ref - Phi_out)) per (baseline, correlation, segment key).
+
+    The per-segment form of the paper's n0 step (``fpt.offset_sums`` works per
+    scan): keys (n_bl, n_corr, n_time) from :meth:`ReferenceTracker.track`,
+    phasor/calibrated (n_bl, n_time, n_corr), the phases (n_bl, n_corr, n_time).
+    Returns (index (m, 3) int64 rows of (baseline, correlation, key), sums
+    complex128 (m,), counts int64 (m,)).
+    """
+    keys_t = keys.transpose(0, 2, 1)
+    ok = calibrated & off_valid.transpose(0, 2, 1) & (keys_t >= 0)
+    b, t, c = np.nonzero(ok)
+    if b.size == 0:
+        return np.zeros((0, 3), np.int64), np.zeros(0, np.complex128), np.zeros(0, np.int64)
+    out_phase = tgt_phase[b, c, t] + np.angle(phasor[b, t, c])
+    z = np.exp(1j * (off_phase[b, c, t] - out_phase))
+    index, inverse = np.unique(np.stack([b, c, keys_t[b, t, c]], axis=1), axis=0,
+                               return_inverse=True)
+    inverse = inverse.ravel()
+    sums = np.bincount(inverse, z.real) + 1j * np.bincount(inverse, z.imag)
+    return index.astype(np.int64), sums, np.bincount(inverse).astype(np.int64)
+
+
+def apply_segment_offsets(counts, keys, offsets: Dict[tuple, int]):
+    """Counts with k added in every (baseline, correlation, segment) of ``offsets``.
+
+    Adding k to the wrap count of a segment adds 2 pi eps k to its PWC output
+    (and R 2 pi k = 2 pi eps k mod 2 pi to CWU): the per-segment n0 step.
+    """
+    if not offsets:
+        return counts
+    out = counts.copy()
+    for (b, c, key), k in offsets.items():
+        if k:
+            out[b, c] += np.where(keys[b, c] == key, k, 0)
+    return out

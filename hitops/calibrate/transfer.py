@@ -163,6 +163,12 @@ def transfer_group(g: Dict) -> Dict:
         out["offset_sums"], out["offset_counts"] = fpt.offset_sums(
             tgt_phase, phasors[fpt.CWU], calibrated, off_phase, off_valid, scan_of_time,
             g["n_scan"])
+    if g.get("segment_keys") is not None and "offset_sums" in out:
+        # robust trackers: the n0 step per segment (segments after long gaps and jumps)
+        from .robust import segment_offset_sums
+        method = fpt.PWC if fpt.PWC in phasors else fpt.CWU
+        out["segment_sums"] = segment_offset_sums(g["segment_keys"], tgt_phase, phasors[method],
+                                                  calibrated, off_phase, off_valid)
     return out
 
 

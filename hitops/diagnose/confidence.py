@@ -75,6 +75,8 @@ def antenna_totals(info: dict, antenna: str, baselines: List[str]) -> Dict[str, 
     """Per-antenna numbers: the antenna mode's own, else the sums over its baselines."""
     if antenna in info["antennas"]:
         return dict(info["antennas"][antenna])
+    if not any(k in e for e in info["baselines"].values() for k in FIELDS):
+        return {}     # --tracker count reports wrap events only
     out = {k: 0 for k in FIELDS}
     for name in baselines:
         for k in FIELDS:
@@ -97,7 +99,7 @@ def annotate(comparisons: List[dict], info: Optional[dict]) -> None:
 
 def cell(entry: Optional[dict]) -> str:
     """Compact text cell: slips?/bridged/segments/jumps."""
-    if not entry:
+    if not entry or not any(k in entry for k in FIELDS):
         return "-"
     return "/".join(str(entry.get(k, 0)) for k in ("suspected_slips", "bridged_gaps",
                                                      "segments", "jumps"))
