@@ -14,7 +14,8 @@ import pytest
 from casacore import tables as pt
 
 from hitops.calibrate import calibrate
-from hitops.calibrate.synthetic import add_column, expected_pwc_phase, make_pair, wrap
+from hitops.calibrate.synthetic import (DEFAULT_NAMES, add_column, expected_pwc_phase,
+                                        make_pair, wrap)
 from hitops.errors import StationError
 
 
@@ -241,6 +242,30 @@ def test_scans_restart_wrap_counting(tmp_path):
     single_scan = make_pair(tmp_path / "one", n_time=600, n_scans=1, seed=9, drift_rad=0.08)
     assert np.max(np.abs(wrap(expected_pwc_phase(single_scan) - expected_pwc_phase(truth)))) > 0.5
     assert report["rows"]["matched"] == truth.time.size
+
+
+def test_reported_wrap_events_are_the_wraps_inside_scans(tmp_path):
+    # the count restarts in every scan; those resets are not wraps and must not be reported
+    truth = make_pair(tmp_path, n_time=600, n_scans=3, seed=9, drift_rad=0.08)
+    ref_wrapped = wrap(truth.ref_phase_true)
+    expected = {}
+    pairs = sorted(set(zip(truth.ant1.tolist(), truth.ant2.tolist())))
+    for p, q in pairs:
+        sel = np.flatnonzero((truth.ant1 == p) & (truth.ant2 == q))
+        sel = sel[np.argsort(truth.time[sel])]
+        same_scan = np.diff(truth.scan[sel]) == 0
+        steps = np.abs(np.diff(ref_wrapped[sel], axis=0)) > np.pi
+        expected[(p, q)] = steps[same_scan].sum(axis=0)
+    for chunk_rows in (2_000_000, 97):
+        report = calibrate(truth.ref_ms, truth.target_ms, overwrite=True, chunk_rows=chunk_rows)
+        names = list(DEFAULT_NAMES)
+        got = {}
+        for entry in report["wraps"]:
+            a, b = entry["baseline"].split("-")
+            got.setdefault((names.index(a), names.index(b)), []).append(entry["wrap_events"])
+        assert sum(expected[k].sum() for k in expected) > 20  # the test needs wraps to count
+        for key, counts in got.items():
+            assert counts == expected[key].tolist(), (chunk_rows, key)
 
 
 def test_time_chunks_carry_the_wrap_count(tmp_path):

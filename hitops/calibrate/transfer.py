@@ -136,10 +136,11 @@ def transfer_group(g: Dict) -> Dict:
     out = {"phasors": phasors, "calibrated": calibrated, "ref_carry": ref_carry,
            "tgt_carry": tgt_carry}
     # wrap events per series (|steps| of n), for the log and report
-    steps = wrap_events(np.ascontiguousarray(ref_wraps))
+    steps = wrap_events(np.ascontiguousarray(ref_wraps), scan_of_time)
     if robust:   # the robust tracker counts its own wrap events across chunks
         steps = np.zeros_like(steps)
-    elif g["ref_carry"].has_last.any():
+    elif n_time and scan_of_time[0] == g["ref_carry"].last_scan and g["ref_carry"].has_last.any():
+        # the first sample continues the previous chunk's scan: its step counts too
         first = ref_wraps[:, :, 0] - np.where(g["ref_carry"].has_last, g["ref_carry"].count, 0)
         steps = steps + np.abs(np.where(g["ref_carry"].has_last, first, 0))
     out["wrap_events"] = steps

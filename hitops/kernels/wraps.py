@@ -50,13 +50,18 @@ def count_wraps(ref_phase, valid):
 
 
 @numba.njit(cache=True, nogil=True)
-def wrap_events(wraps):
-    """Number of wraps counted in each series of ``wraps`` (..., n_time): sum of |steps|."""
+def wrap_events(wraps, scan_of_time):
+    """Number of wraps counted in each series of ``wraps`` (..., n_time): sum of |steps|.
+
+    Steps between two scans are not wraps: the count restarts at 0 in every
+    scan, and that reset must not be reported as wrap events.
+    """
     flat = wraps.reshape(-1, wraps.shape[-1])
     events = np.zeros(flat.shape[0], dtype=np.int64)
     for s in range(flat.shape[0]):
         for t in range(1, flat.shape[1]):
-            events[s] += abs(flat[s, t] - flat[s, t - 1])
+            if scan_of_time[t] == scan_of_time[t - 1]:
+                events[s] += abs(flat[s, t] - flat[s, t - 1])
     return events.reshape(wraps.shape[:-1])
 
 
