@@ -51,6 +51,7 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from ..errors import InputError, StationError
+from .transfer import scan_segments
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -466,15 +467,6 @@ class Stats:
 
 # ----------------------------------------------------------------------------- tracking
 
-def _scan_runs(scan: np.ndarray):
-    if scan.size == 0:
-        return []
-    cuts = np.flatnonzero(np.diff(scan)) + 1
-    starts = np.concatenate([[0], cuts])
-    stops = np.concatenate([cuts, [scan.size]])
-    return list(zip(starts.tolist(), stops.tolist()))
-
-
 def _smooth_series(args):
     """track_wraps_smooth on one regular series (a thread-pool job; the kernel is nogil)."""
     from ..kernels.tracking import track_wraps_smooth
@@ -536,7 +528,7 @@ class ReferenceTracker:
         jump = np.zeros((self.n_bl, self.n_corr, n_ext))
         unmodelled = np.zeros_like(suspect)
         ant = {}
-        for a, b in _scan_runs(scan):
+        for a, b, _ in scan_segments(scan):
             pos = self.pos[t_lo + a:t_lo + b] - self.pos[t_lo + a]
             length = int(pos[-1]) + 1
             reg_vis = np.zeros((self.n_bl, self.n_corr, length), np.complex128)

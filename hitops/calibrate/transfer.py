@@ -152,24 +152,19 @@ def transfer_group(g: Dict) -> Dict:
     tgt_cell = has_tgt[:, None, :]
     out["target_invalid"] = int((tgt_cell & ~tgt_valid).sum())
     out["reference_invalid"] = int((tgt_cell & has_ref[:, None, :] & ~ref_valid & tgt_valid).sum())
-    if g.get("off_vis") is not None and fpt.PWC in phasors:
+    offset_method = fpt.PWC if fpt.PWC in phasors else (fpt.CWU if fpt.CWU in phasors else None)
+    if g.get("off_vis") is not None and offset_method is not None:
         off_phase, off_valid = fpt.gather_phase(tgt_rows, g["off_vis"], g["off_ok"],
                                                 np.zeros(g["off_vis"].shape[0], bool), identity)
         out["offset_sums"], out["offset_counts"] = fpt.offset_sums(
-            tgt_phase, phasors[fpt.PWC], calibrated, off_phase, off_valid, scan_of_time,
-            g["n_scan"])
-    elif g.get("off_vis") is not None and fpt.CWU in phasors:
-        off_phase, off_valid = fpt.gather_phase(tgt_rows, g["off_vis"], g["off_ok"],
-                                                np.zeros(g["off_vis"].shape[0], bool), identity)
-        out["offset_sums"], out["offset_counts"] = fpt.offset_sums(
-            tgt_phase, phasors[fpt.CWU], calibrated, off_phase, off_valid, scan_of_time,
+            tgt_phase, phasors[offset_method], calibrated, off_phase, off_valid, scan_of_time,
             g["n_scan"])
     if g.get("segment_keys") is not None and "offset_sums" in out:
         # robust trackers: the n0 step per segment (segments after long gaps and jumps)
         from .robust import segment_offset_sums
-        method = fpt.PWC if fpt.PWC in phasors else fpt.CWU
-        out["segment_sums"] = segment_offset_sums(g["segment_keys"], tgt_phase, phasors[method],
-                                                  calibrated, off_phase, off_valid)
+        out["segment_sums"] = segment_offset_sums(g["segment_keys"], tgt_phase,
+                                                  phasors[offset_method], calibrated,
+                                                  off_phase, off_valid)
     return out
 
 

@@ -32,6 +32,14 @@ def wrap_phase(x):
     return (x + math.pi) % TWO_PI - math.pi
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def usable(v):
+    """A visibility takes part in FPT only when finite and non-zero (zero = no data)."""
+    re = v.real
+    im = v.imag
+    return math.isfinite(re) and math.isfinite(im) and not (re == 0.0 and im == 0.0)
+
+
 @numba.njit(cache=True, nogil=True)
 def gather_phase(rows, vis, ok, swapped, corr_map):
     """Phase series of each (baseline, correlation) in time order.
@@ -61,11 +69,9 @@ def gather_phase(rows, vis, ok, swapped, corr_map):
                 if ci < 0 or not ok[row, ci]:
                     continue
                 v = vis[row, ci]
-                re = v.real
-                im = v.imag
-                if not (math.isfinite(re) and math.isfinite(im)) or (re == 0.0 and im == 0.0):
+                if not usable(v):
                     continue
-                ph = math.atan2(im, re)
+                ph = math.atan2(v.imag, v.real)
                 phase[b, c, t] = -ph if swap else ph
                 valid[b, c, t] = True
     return phase, valid
@@ -87,12 +93,7 @@ def gather_valid(rows, vis, ok):
             if row < 0:
                 continue
             for c in range(n_corr):
-                if not ok[row, c]:
-                    continue
-                v = vis[row, c]
-                re = v.real
-                im = v.imag
-                if math.isfinite(re) and math.isfinite(im) and not (re == 0.0 and im == 0.0):
+                if ok[row, c] and usable(vis[row, c]):
                     valid[b, c, t] = True
     return valid
 

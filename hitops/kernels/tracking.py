@@ -83,18 +83,9 @@ def _prefix_phasors(phase):
 
 
 @numba.njit(cache=True, nogil=True)
-def _detect_jumps(index, pre_re, pre_im, seg_first, jump_window, jump_threshold, min_coherence):
-    """Measured jump (rad) at each valid sample that starts after a jump, else 0.
-
-    ``seg_first[k]`` marks valid samples that start a gap-segment; windows
-    never cross those boundaries.
-    """
-    m = index.size
-    stat = np.zeros(m)
-    jumps = np.zeros(m)
-    if jump_threshold <= 0.0 or jump_window < 1 or m < 2 * jump_window:
-        return jumps
-    # bounds of the gap-segment of every valid sample
+def segment_bounds(seg_first):
+    """First index and one-past-last index of the segment holding each sample."""
+    m = seg_first.size
     seg_lo = np.empty(m, np.int64)
     seg_hi = np.empty(m, np.int64)
     lo = 0
@@ -107,6 +98,23 @@ def _detect_jumps(index, pre_re, pre_im, seg_first, jump_window, jump_threshold,
         seg_hi[k] = hi
         if seg_first[k]:
             hi = k
+    return seg_lo, seg_hi
+
+
+@numba.njit(cache=True, nogil=True)
+def _detect_jumps(index, pre_re, pre_im, seg_first, jump_window, jump_threshold, min_coherence):
+    """Measured jump (rad) at each valid sample that starts after a jump, else 0.
+
+    ``seg_first[k]`` marks valid samples that start a gap-segment; windows
+    never cross those boundaries.
+    """
+    m = index.size
+    stat = np.zeros(m)
+    jumps = np.zeros(m)
+    if jump_threshold <= 0.0 or jump_window < 1 or m < 2 * jump_window:
+        return jumps
+    # bounds of the gap-segment of every valid sample
+    seg_lo, seg_hi = segment_bounds(seg_first)
     w = jump_window
     for k in range(m):
         if k - w < seg_lo[k] or k + w > seg_hi[k]:
@@ -233,18 +241,7 @@ def track_wraps_smooth(ref_phase, valid, half_window=5, max_gap=30, jump_window=
         if seg_first[k]:
             current += 1
         seg_id[k] = current
-    seg_lo = np.empty(m, np.int64)
-    seg_hi = np.empty(m, np.int64)
-    lo = 0
-    for k in range(m):
-        if seg_first[k]:
-            lo = k
-        seg_lo[k] = lo
-    hi = m
-    for k in range(m - 1, -1, -1):
-        seg_hi[k] = hi
-        if seg_first[k]:
-            hi = k
+    seg_lo, seg_hi = segment_bounds(seg_first)
 
     # 3. smoothed phasor over +-h samples (by time index) within the segment;
     # with ``half_windows`` each sample has its own h (e.g. from the local
