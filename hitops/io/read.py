@@ -11,6 +11,7 @@ dask-ms adds only overhead there.
 
 from __future__ import annotations
 
+import weakref
 from pathlib import Path
 from typing import Dict, Iterable, List, Optional, Sequence
 
@@ -72,6 +73,11 @@ def selection_columns(ms: str) -> List[str]:
     return ["DATA_DESC_ID", "FIELD_ID"] if (n_dd > 1 or n_field > 1) else []
 
 
+#: where each dataset made by open_main came from (table, row chunk), so a row subset can
+#: be read as its own dask-ms dataset (see compute_columns)
+_SOURCES: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
 def open_main(ms: str, columns: Sequence[str], chunk_rows: int = 1 << 21):
     """Lazy dask-ms dataset of the main table: one group, storage order, ROWID coordinate.
 
@@ -88,17 +94,24 @@ def open_main(ms: str, columns: Sequence[str], chunk_rows: int = 1 << 21):
     """
     columns = list(columns)
     try:
-        return _storage_order_dataset(ms, columns, int(chunk_rows))
+        ds = _storage_order_dataset(ms, columns, int(chunk_rows))
     except (ImportError, AttributeError, TypeError):   # dask-ms internals moved
         from daskms import xds_from_ms
 
         (ds,) = xds_from_ms(ms, columns=columns, index_cols=[], group_cols=[],
                             chunks={"row": int(chunk_rows)})
         return ds
+    _SOURCES[ds] = (ms, int(chunk_rows))
+    return ds
 
 
-def _storage_order_dataset(ms: str, columns: List[str], chunk_rows: int):
-    """dask-ms Dataset of ``columns`` in storage order without the ordering TaQL query."""
+def _storage_order_dataset(ms: str, columns: List[str], chunk_rows: int,
+                           rows: Optional[np.ndarray] = None):
+    """dask-ms Dataset of ``columns`` in storage order without the ordering TaQL query.
+
+    ``rows``: ascending row numbers to read (default every row).  They become the
+    dataset's ROWID and dask-ms reads exactly their runs of consecutive rows.
+    """
     import dask.array as da
     from dask.array.core import normalize_chunks
     from daskms.ordering import row_run_factory
@@ -107,12 +120,16 @@ def _storage_order_dataset(ms: str, columns: List[str], chunk_rows: int):
     class _StorageOrderFactory(DatasetFactory):
         def datasets(self):
             table_proxy = self._table_proxy_factory()
-            n_row = table_proxy.nrows().result()
-            chunks = normalize_chunks(self.chunks[0]["row"], shape=(n_row,))
-            # the rows dask-ms's query would return for no index_cols and no where clause
-            rows = da.arange(n_row, chunks=chunks, dtype=np.int64)
-            row_runs = rows.map_blocks(row_run_factory, sort_dir="read", dtype=object)
-            return self._single_dataset(table_proxy, (rows, row_runs))
+            if rows is None:
+                n_row = table_proxy.nrows().result()
+                chunks = normalize_chunks(self.chunks[0]["row"], shape=(n_row,))
+                # the rows dask-ms's query returns for no index_cols and no where clause
+                order = da.arange(n_row, chunks=chunks, dtype=np.int64)
+            else:
+                order = da.from_array(np.asarray(rows, dtype=np.int64),
+                                      chunks=self.chunks[0]["row"])
+            row_runs = order.map_blocks(row_run_factory, sort_dir="read", dtype=object)
+            return self._single_dataset(table_proxy, (order, row_runs))
 
     # the keyword arguments xds_from_ms passes for a Measurement Set main table
     return _StorageOrderFactory(ms, columns, [], [], chunks={"row": chunk_rows},
@@ -152,7 +169,14 @@ def compute_columns(requests, scheduler=None) -> List[Dict[str, np.ndarray]]:
 
     graphs = []
     for ds, columns, rows in requests:
-        graphs.append({c: _take_rows(ds[c].data, rows) for c in columns})
+        source = _SOURCES.get(ds)
+        if rows is not None and source is not None and len(rows):
+            # a dataset of just these rows: dask-ms reads their runs and nothing else
+            # (slicing the whole-table dataset would read every row chunk a run touches)
+            sub = _storage_order_dataset(source[0], list(columns), source[1], rows=rows)
+            graphs.append({c: sub[c].data for c in columns})
+        else:
+            graphs.append({c: _take_rows(ds[c].data, rows) for c in columns})
     # a callable scheduler avoids dask probing for a distributed client on every call
     return list(dask.compute(*graphs, scheduler=scheduler or dask.threaded.get))
 
