@@ -26,7 +26,12 @@ Growth exponents: least-squares slope of log(wall) against log(rows) (or
 log(stations)) over all points, and the slope between the two largest points
 (the asymptotic one, once fixed start-up costs no longer dominate).
 
-Run: ``python -m benchmarks.bench_scaling [--workdir DIR] [--repeats N] [--max-rows N]``.
+Memory ceiling (``--memory-only``, its own section ``scaling-memory``): peak
+RSS of ``hitops calibrate --method pwc`` at 10^5, 10^6, 4x10^6 and 10^7 rows per
+band with ``--chunk-rows 250000`` and with the default chunk, one run each.
+
+Run: ``python -m benchmarks.bench_scaling [--workdir DIR] [--repeats N] [--max-rows N]``
+or ``python -m benchmarks.bench_scaling --memory-only [--max-rows N]``.
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ CORRS = ("RR", "RL", "LR", "LL")
 ROWS = (10_000, 100_000, 1_000_000, 10_000_000)
 STATIONS = (4, 8, 16, 30)
 CHUNK_ROWS = 250_000
+MEMORY_ROWS = (100_000, 1_000_000, 4_000_000, 10_000_000)
 VLA = (34.079, -107.618, 2100.0)
 
 
@@ -143,6 +149,72 @@ def calibrate_point(workdir: Path, hitops: str, n_ant: int, n_time: int, repeats
     return out
 
 
+def memory_point(workdir: Path, hitops: str, rows: int):
+    """Peak RSS of calibrate with --chunk-rows CHUNK_ROWS and with the default chunk."""
+    import json
+
+    from hitops.calibrate.synthetic import make_pair
+
+    pair_dir = workdir / f"mem-{rows}"
+    shutil.rmtree(pair_dir, ignore_errors=True)
+    make_pair(pair_dir, n_ant=8, n_time=max(2, rows // 28), corr_types=CORRS, step_rad=0.05,
+              drift_rad=0.01, sigma_ref=0.05, sigma_target=0.1, seed=7,
+              ref_names=[f"A{i:02d}" for i in range(8)])
+    ref, tgt = pair_dir / "ref.ms", pair_dir / "target.ms"
+    out = []
+    for chunk in (CHUNK_ROWS, None):
+        report_path = pair_dir / "report.json"
+        cmd = [hitops, "calibrate", str(ref), str(tgt), "--method", "pwc", "--overwrite",
+               "--report", str(report_path)] + (["--chunk-rows", str(chunk)] if chunk else [])
+        r = run_process(cmd)
+        rep = json.loads(report_path.read_text())
+        out.append({"rows": _nrows(tgt), "chunk_rows": chunk, "wall_s": r["wall_s"],
+                    "cpu_s": r["cpu_s"], "peak_rss_mb": r["peak_rss_mb"],
+                    "chunks": rep["chunks"], "timings": rep["timings_s"]})
+        print("memory", out[-1], flush=True)
+    shutil.rmtree(pair_dir, ignore_errors=True)
+    return out
+
+
+def render_memory(points, load) -> str:
+    """The ``scaling-memory`` section from memory_point results."""
+    lines, by_chunk = [], {}
+    for p in sorted(points, key=lambda p: (p["rows"], p["chunk_rows"] is None)):
+        chunk = f"{p['chunk_rows']:,}" if p["chunk_rows"] else "default (2,000,000)"
+        lines.append(f"| {p['rows']:,} | {chunk} | {p['chunks']} | {p['wall_s']:.2f} | "
+                     f"{p['peak_rss_mb']:.0f} |")
+        by_chunk.setdefault(p["chunk_rows"], []).append(p)
+    fixed = sorted(by_chunk.get(CHUNK_ROWS, []), key=lambda p: p["rows"])
+    slope = (1024 * 1024 * (fixed[-1]["peak_rss_mb"] - fixed[-2]["peak_rss_mb"])
+             / (fixed[-1]["rows"] - fixed[-2]["rows"]) / 2) if len(fixed) > 1 else float("nan")
+    e_rss = exponents([p["rows"] for p in fixed], [p["peak_rss_mb"] for p in fixed])
+    return f"""## Memory ceiling of hitops calibrate (issue 7)
+
+Machine: {machine_line()}; 1-minute load average {load[0]:.1f} at the start,
+{load[-1]:.1f} at the end.  One whole process per cell (peak RSS from the kernel's
+accounting), 8 stations, 4 correlations, hitops.calibrate.synthetic pairs (stored
+baseline by baseline, i.e. not in time order); `python -m benchmarks.bench_scaling
+--memory-only`.
+
+| rows per band | --chunk-rows | chunks | wall (s) | peak RSS (MB) |
+|---|---|---|---|---|
+{chr(10).join(lines)}
+
+With --chunk-rows {CHUNK_ROWS:,} the peak grows by {slope:.0f} bytes per row per band
+between the two largest tracks (peak RSS ~ rows^{e_rss[0]:.2f} over all points,
+{e_rss[1]:.2f} between the two largest).  calibrate reads and matches the per-row
+metadata chunk by chunk (hitops/calibrate/chunks.py): what stays for the whole track is
+per time (the union time axis, each time's scan and row count: ~100 bytes per time,
+~3.5 bytes per row at 28 baselines) and, only for tables not stored in time order like these, the TIME
+column of each band and an int32 row order by chunk (12 bytes per row per band) to find
+each chunk's rows.  A time-ordered table (as correlators and CASA write them) keeps no
+per-row array (docs/calibrate.md, Memory).  The rest of the peak is the chunk itself (the default chunk holds up
+to 2 x 2,000,000 rows of both bands) and the ~200 MB of imported libraries.  Several
+chunks cost time: each chunk's metadata are read twice (the checks before any write,
+then with the data) and a baseline-major table is read in many short runs.
+"""
+
+
 def simulate_point(workdir: Path, hitops: str, scene: Path, duration: float, stations,
                    repeats: int, thread_counts=()):
     outdir = workdir / "sim"
@@ -166,7 +238,29 @@ def main(argv=None) -> None:
     parser.add_argument("--max-rows", type=int, default=ROWS[-1])
     parser.add_argument("--from-json", default=None,
                         help="re-render the section from a saved scaling-results.json")
+    parser.add_argument("--memory-only", action="store_true",
+                        help="only the memory ceiling (section scaling-memory)")
+    parser.add_argument("--memory-from-json", default=None,
+                        help="re-render the memory section from a saved memory-results.json")
     args = parser.parse_args(argv if argv is not None else [])
+    if args.memory_from_json or args.memory_only:
+        import json
+
+        if args.memory_from_json:
+            saved = json.loads(Path(args.memory_from_json).read_text())
+        else:
+            workdir = Path(args.workdir or tempfile.mkdtemp(prefix="bench-memory-"))
+            workdir.mkdir(parents=True, exist_ok=True)
+            hitops = str(Path(sys.executable).with_name("hitops"))
+            load = [os.getloadavg()[0]]
+            points = [e for rows in MEMORY_ROWS if rows <= args.max_rows
+                      for e in memory_point(workdir, hitops, rows)]
+            saved = {"points": points, "load": load + [os.getloadavg()[0]]}
+            (workdir / "memory-results.json").write_text(json.dumps(saved, indent=1))
+        markdown = render_memory(saved["points"], saved["load"])
+        print(markdown)
+        replace_section("scaling-memory", markdown)
+        return
     if args.from_json:
         import json
 
@@ -295,16 +389,9 @@ the calibrate section) dominates below 10^6 rows, which is why the ratio to the 
 floor falls as the data grow (at 10^7 rows calibrate is within {big_ratio:.1f}x the issue's
 floor).
 
-Memory ceiling: chunking bounds the visibility data in memory, but **not** the whole
-process: with --chunk-rows {CHUNK_ROWS:,} the peak still grows by about
-{per_row:.0f} bytes per row per band between the two largest points.  That is the per-row
-metadata of the whole track, which calibrate holds at once to match the bands and cut
-time chunks (TIME, ANTENNA1/2, SCAN_NUMBER, INTERVAL and FLAG_ROW of both bands, about
-29 bytes per row per band; the band-matching indices, about 17; calibrate's per-band
-time-sorted row order, 16; the rest are transient copies while the metadata are read
-and matched).  A bounded ceiling would need the metadata themselves read and matched
-chunk by chunk (time-ordered tables make that possible); until then the rule is about
-{per_row / 1e3:.2f} GB per 10^6 rows per band plus the chunk.
+Memory ceiling: with --chunk-rows {CHUNK_ROWS:,} the peak grows by about
+{per_row:.0f} bytes per row per band between the two largest points of this run; the
+memory-only run (next section, `--memory-only`) measures the ceiling at more points.
 
 ### hitops calibrate against stations (1 h of 1 s, 4 correlations)
 

@@ -282,6 +282,60 @@ def test_time_chunks_carry_the_wrap_count(tmp_path):
     assert report["rows"]["target"] == truth.time.size
 
 
+def _store_in_time_order(ms):
+    """Rewrite a Measurement Set with its rows sorted by TIME (as correlators write them)."""
+    import shutil
+
+    tmp = str(ms) + ".sorted"
+    with pt.table(str(ms), ack=False) as t:
+        with t.sort("TIME, ANTENNA1, ANTENNA2") as view:
+            view.copy(tmp, deep=True).close()
+    shutil.rmtree(ms)
+    shutil.move(tmp, ms)
+
+
+@pytest.mark.parametrize("order", ["baseline", "shuffled", "time"])
+def test_chunked_run_reads_at_most_chunk_rows_at_once(tmp_path, order):
+    """Memory is bounded by --chunk-rows: no read (metadata or data) of either band holds
+    more rows than one chunk, on baseline-major, shuffled and time-ordered tables, and the
+    output is the one-chunk output.  The reads are the real dask-ms reads, counted."""
+    from hitops.io.read import record_reads
+
+    truth = make_pair(tmp_path, n_time=300, n_scans=2, seed=21, phase_offset_rad=1.0,
+                      shuffle_ref=order == "shuffled", shuffle_target=order == "shuffled")
+    if order == "time":
+        for ms in (truth.ref_ms, truth.target_ms):
+            _store_in_time_order(ms)
+    add_column(truth.target_ms, "CORRECTED_DATA", np.exp(1j * truth.source_phase))
+    kw = dict(method="pwc,cfpt", offset_reference_column="CORRECTED_DATA")
+    with record_reads() as whole_reads:
+        whole_report = calibrate(truth.ref_ms, truth.target_ms, **kw)
+    whole = {c: col(truth.target_ms, c) for c in ("PWC_DATA", "CFPT_DATA", "FLAG")}
+    chunk_rows = 120
+    with record_reads() as reads:
+        report = calibrate(truth.ref_ms, truth.target_ms, overwrite=True, chunk_rows=chunk_rows,
+                           **kw)
+    for c, value in whole.items():
+        assert np.array_equal(col(truth.target_ms, c), value), c
+    n_row = truth.time.size
+    assert n_row > 10 * chunk_rows   # the track is far longer than one chunk
+    # one-chunk run: whole-table reads; chunked run: none above 2 x chunk_rows (a chunk
+    # holds <= 2 x chunk_rows rows of both bands together, and time blocks <= chunk_rows)
+    assert max(n for _, _, n in whole_reads) == n_row
+    assert {ms for ms, _, _ in reads} == {str(truth.ref_ms), str(truth.target_ms)}
+    assert max(n for _, _, n in reads) <= 2 * chunk_rows
+    # ... and every row of both bands was read (index pass + chunks)
+    for ms in (str(truth.ref_ms), str(truth.target_ms)):
+        assert sum(n for m, cols, n in reads if m == ms and "ANTENNA1" in cols) >= n_row
+    assert report["chunks"] > 10 and whole_report["chunks"] == 1
+    for key in ("rows", "samples", "wraps"):
+        assert report[key] == whole_report[key], key
+    # the same n0 per series (the residuals are sums in another order: equal to rounding)
+    pick = [[(e["baseline"], e["correlation"], e["scan"], e["k"], e.get("samples"))
+             for e in r["offset_step"]["series"]] for r in (report, whole_report)]
+    assert pick[0] == pick[1]
+
+
 def test_ref_model_column_removes_source_structure(tmp_path):
     truth = make_pair(tmp_path, n_time=200, seed=12)
     # give the reference band a known source phase and a model column holding it

@@ -3,8 +3,10 @@
 Stages (each in its own module):
 1. check the inputs (paths, columns, spectral windows, fields, channels, R)
    before anything is written, so bad input leaves both sets untouched;
-2. read per-row metadata with dask-ms and match the bands
-   (:mod:`hitops.io.match`);
+2. read the per-row metadata with dask-ms in blocks of at most ``chunk_rows``
+   rows, keeping per-time and per-baseline summaries only, and check every
+   time chunk's match before anything is written
+   (:mod:`hitops.calibrate.chunks`: memory bounded by ``chunk_rows``);
 3. cut the union time axis into chunks of at most ``chunk_rows`` target
    rows; for each chunk read the data columns, run
    :func:`hitops.calibrate.transfer.transfer_group` on baseline groups as
@@ -35,13 +37,14 @@ import numpy as np
 
 from ..errors import InputError, MeasurementSetError, OutputExistsError
 from ..io import read as msio
-from ..io.match import BandRows, match_bands, parse_antenna_map
+from ..io.match import parse_antenna_map
+from .chunks import INDEX_COLUMNS, BandIndex, ChunkMatch, index_bands
 
 log = logging.getLogger("hitops.calibrate")
 
 DEFAULT_COLUMNS = {"pwc": "PWC_DATA", "cfpt": "CFPT_DATA", "cwu": "CWU_DATA"}
 FLAG_BACKUP = "FLAG_HITOPS_BACKUP"
-META_COLUMNS = ["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER", "INTERVAL", "FLAG_ROW"]
+META_COLUMNS = INDEX_COLUMNS
 #: read only when the DATA_DESCRIPTION / FIELD subtables have several rows
 SELECTION_COLUMNS = ["DATA_DESC_ID", "FIELD_ID"]
 
@@ -83,8 +86,12 @@ def _selection_columns(ms: str) -> List[str]:
     return SELECTION_COLUMNS if (n_dd > 1 or n_field > 1) else []
 
 
-def _band_setup(ms: str, role: str, meta: Dict[str, np.ndarray], average_channels: bool):
-    """Check one band's spectral windows, fields and channels; return (freq, corr types, names)."""
+def _band_setup(ms: str, role: str, meta: Dict[str, np.ndarray], average_channels: bool,
+                names: List[str]):
+    """Check one band's spectral windows, fields and channels; return (freq, corr types, names).
+
+    ``meta``: the distinct DATA_DESC_ID / FIELD_ID values (absent: one of each).
+    """
     dd = np.unique(meta["DATA_DESC_ID"]) if "DATA_DESC_ID" in meta else np.array([0])
     if dd.size != 1:
         raise MeasurementSetError(
@@ -108,7 +115,6 @@ def _band_setup(ms: str, role: str, meta: Dict[str, np.ndarray], average_channel
             "pass --average-channels to average the unflagged channels on the fly")
     freq = float(np.mean(np.asarray(spw_t["CHAN_FREQ"][spw], dtype=np.float64)))
     corr = [int(c) for c in msio.read_subtable(ms, "POLARIZATION", ["CORR_TYPE"])["CORR_TYPE"][pol]]
-    names = [str(n) for n in msio.read_subtable(ms, "ANTENNA", ["NAME"])["NAME"]]
     return freq, corr, names
 
 
@@ -128,9 +134,10 @@ def _average(data: np.ndarray, flag: np.ndarray, flag_row: np.ndarray):
     return vis, n_good > 0
 
 
-def _chunk_bounds(tgt_time: np.ndarray, ref_time: np.ndarray, n_time: int, chunk_rows: int):
-    """Time-index boundaries so that each chunk holds at most ~chunk_rows target rows."""
-    per_time = np.bincount(tgt_time, minlength=n_time) + np.bincount(ref_time, minlength=n_time)
+def _chunk_bounds(per_time: np.ndarray, chunk_rows: int):
+    """Time-index boundaries so that each chunk holds at most ~2 * chunk_rows rows of both
+    bands (``per_time``: rows of both bands at each union time; a time is never split)."""
+    n_time = per_time.size
     cum = np.cumsum(per_time)
     bounds = [0]
     while bounds[-1] < n_time:
@@ -138,19 +145,6 @@ def _chunk_bounds(tgt_time: np.ndarray, ref_time: np.ndarray, n_time: int, chunk
         stop = int(np.searchsorted(cum, start_count + 2 * chunk_rows, side="right"))
         bounds.append(min(max(stop, bounds[-1] + 1), n_time))
     return bounds
-
-
-class _Rows:
-    """Rows of one band sorted by time index, for slicing chunks."""
-
-    def __init__(self, time_idx: np.ndarray):
-        self.order = np.argsort(time_idx, kind="stable")
-        self.sorted_time = time_idx[self.order]
-        self.n_row = time_idx.size
-
-    def rows_in(self, t0: int, t1: int) -> np.ndarray:
-        a, b = np.searchsorted(self.sorted_time, [t0, t1])
-        return np.sort(self.order[a:b])
 
 
 def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column="DATA",
@@ -216,24 +210,34 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
                                     "--overwrite to replace it or --output-column to write "
                                     "another column")
 
-    ref_meta_cols = META_COLUMNS + _selection_columns(ref_ms)
-    tgt_meta_cols = META_COLUMNS + _selection_columns(target_ms)
+    ref_meta_cols = INDEX_COLUMNS + _selection_columns(ref_ms)
+    tgt_meta_cols = INDEX_COLUMNS + _selection_columns(target_ms)
     timings = {"checks": time.perf_counter() - started}
     stage = time.perf_counter()
-    ref_ds = msio.open_main(ref_ms, list(dict.fromkeys(ref_meta_cols + ref_cols)))
-    tgt_ds = msio.open_main(target_ms, list(dict.fromkeys(tgt_meta_cols + tgt_cols)))
+    # dask row chunks of chunk_rows rows: the metadata blocks of the first pass are
+    # slices of these datasets (no dataset per block)
+    io_rows = min(int(chunk_rows), 1 << 21)
+    ref_ds = msio.open_main(ref_ms, list(dict.fromkeys(ref_meta_cols + ref_cols)), io_rows)
+    tgt_ds = msio.open_main(target_ms, list(dict.fromkeys(tgt_meta_cols + tgt_cols)), io_rows)
     timings["open"] = time.perf_counter() - stage
-    stage = time.perf_counter()
-    ref_meta, tgt_meta = msio.compute_columns([(ref_ds, ref_meta_cols, None),
-                                               (tgt_ds, tgt_meta_cols, None)])
-    timings["metadata"] = time.perf_counter() - stage
-    if ref_meta["TIME"].size == 0 or tgt_meta["TIME"].size == 0:
-        empty = ref_ms if ref_meta["TIME"].size == 0 else target_ms
+    ref_names = [str(n) for n in msio.read_subtable(ref_ms, "ANTENNA", ["NAME"])["NAME"]]
+    tgt_names = [str(n) for n in msio.read_subtable(target_ms, "ANTENNA", ["NAME"])["NAME"]]
+    ref_index = BandIndex(ms=ref_ms, ds=ref_ds, n_row=int(ref_ds["TIME"].shape[0]),
+                          n_ant=len(ref_names))
+    tgt_index = BandIndex(ms=target_ms, ds=tgt_ds, n_row=int(tgt_ds["TIME"].shape[0]),
+                          n_ant=len(tgt_names))
+    if ref_index.n_row == 0 or tgt_index.n_row == 0:
+        empty = ref_ms if ref_index.n_row == 0 else target_ms
         raise MeasurementSetError(f"{empty} has no rows; nothing to calibrate")
-    ref_freq, ref_corr, ref_names = _band_setup(ref_ms, "reference-band Measurement Set",
-                                                ref_meta, average_channels)
-    tgt_freq, tgt_corr, tgt_names = _band_setup(target_ms, "target-band Measurement Set",
-                                                tgt_meta, average_channels)
+    stage = time.perf_counter()
+    # per-row metadata in blocks of at most chunk_rows rows; only summaries stay (and TIME
+    # for tables not in time order), see hitops/calibrate/chunks.py
+    index_bands([ref_index, tgt_index], [ref_meta_cols, tgt_meta_cols], int(chunk_rows))
+    timings["metadata"] = time.perf_counter() - stage
+    ref_freq, ref_corr, _ = _band_setup(ref_ms, "reference-band Measurement Set",
+                                        ref_index.selection, average_channels, ref_names)
+    tgt_freq, tgt_corr, _ = _band_setup(target_ms, "target-band Measurement Set",
+                                        tgt_index.selection, average_channels, tgt_names)
     if ratio is None:
         if not (ref_freq > 0 and tgt_freq > 0):
             raise MeasurementSetError(f"cannot take R from the spectral windows ({ref_freq} Hz, "
@@ -250,16 +254,15 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
         log.warning("R = %.6g < 1: the target band is below the reference band; FPT scales "
                     "the reference phases down (PWC still applies, eps = R)", ratio)
 
-    def band(ms, meta, names, corr):
-        return BandRows(ms=ms, time=meta["TIME"], ant1=meta["ANTENNA1"], ant2=meta["ANTENNA2"],
-                        scan=meta["SCAN_NUMBER"], interval=meta["INTERVAL"],
-                        antenna_names=names, corr_types=corr)
-
     stage = time.perf_counter()
-    match = match_bands(band(ref_ms, ref_meta, ref_names, ref_corr),
-                        band(target_ms, tgt_meta, tgt_names, tgt_corr), antenna_map,
-                        time_tolerance)
+    match = ChunkMatch(ref_index, tgt_index, ref_names, tgt_names, ref_corr, tgt_corr,
+                       antenna_map, time_tolerance)
+    bounds = _chunk_bounds(match.time_counts(), int(chunk_rows))
+    match.set_chunks(bounds)
+    # every chunk's cells are checked (duplicates, matches, scans) before anything is written
+    first_chunk = match.check(bounds)
     timings["match"] = time.perf_counter() - stage
+    n_target_rows = tgt_index.n_row
     tracking_setup = _tracking_setup(locals())
     n_corr = len(tgt_corr)
     for c, name in enumerate(match.corr_names):
@@ -268,11 +271,11 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
                         name, target_ms, ref_ms)
     log.info("matched %d of %d target rows to %s (time tolerance %.3g s, %d baselines, "
              "%d times, %d scans); %d reference rows unused",
-             match.n_matched, tgt_meta["TIME"].size, ref_ms, match.tolerance, match.n_bl,
+             match.n_matched, n_target_rows, ref_ms, match.tolerance, match.n_bl,
              match.n_time, match.scans.size, match.n_ref_unused)
-    if match.n_matched < tgt_meta["TIME"].size:
+    if match.n_matched < n_target_rows:
         log.warning("%d target rows have no reference row (time/station) and are flagged",
-                    tgt_meta["TIME"].size - match.n_matched)
+                    n_target_rows - match.n_matched)
 
     # ---- 2. chunks and the dask machinery
     client = None
@@ -341,6 +344,7 @@ def _run(ctx: Dict, started: float) -> Dict:
 
     from ..kernels import fpt
     from .offsets import choose_offset
+    from .chunks import ROW_COLUMNS, ChunkRows
     from .transfer import Carry, group_inputs, plan_groups, transfer_group
 
     g = ctx
@@ -355,12 +359,8 @@ def _run(ctx: Dict, started: float) -> Dict:
     compute_kw = {"scheduler": client.get if client is not None else dask.threaded.get}
     io_scheduler = compute_kw["scheduler"]
     codes = [fpt.METHOD_CODES[m] for m in methods]
-    bounds = _chunk_bounds(match.tgt_time, match.ref_time[match.ref_bl >= 0], match.n_time,
-                           int(g["chunk_rows"]))
+    bounds = g["bounds"]
     n_chunks = len(bounds) - 1
-    tgt_rows_all = _Rows(match.tgt_time)
-    ref_keep = np.flatnonzero(match.ref_bl >= 0)
-    ref_rows_all = _Rows(match.ref_time[ref_keep])
     n_workers = (len(client.scheduler_info()["workers"]) if client is not None
                  else (os.cpu_count() or 1))
     groups = plan_groups(match.n_bl, 2 * n_workers)
@@ -398,16 +398,35 @@ def _run(ctx: Dict, started: float) -> Dict:
         t0, t1 = bounds[i], bounds[i + 1]
         # robust trackers read `context` extra reference times on either side
         t_lo, t_hi = tracker.extended(t0, t1) if tracker is not None else (t0, t1)
-        tgt_rows = tgt_rows_all.rows_in(t0, t1)
-        ref_rows = ref_keep[ref_rows_all.rows_in(t_lo, t_hi)]
-        whole_t = tgt_rows.size == tgt_rows_all.n_row
-        whole_r = ref_rows.size == match.ref_bl.size
+        # the chunk's rows and their grid cells; the metadata is read with the data (or
+        # reused from the checks when the whole track is one chunk)
+        first = g["first_chunk"] if (n_chunks == 1 and (t_lo, t_hi) == (t0, t1)) else None
+        t_rows = first[0].rows if first else match.row_numbers("tgt", t0, t1)
+        r_rows = first[1].rows if first else match.row_numbers("ref", t_lo, t_hi)
+        t_read = list(tgt_cols) + ([] if first or match.tgt.whole else ROW_COLUMNS)
+        r_read = list(ref_read_cols) + ([] if first or match.ref.whole else ROW_COLUMNS)
+        whole_t = t_rows.size == match.tgt.n_row
+        whole_r = r_rows.size == match.ref.n_row
         tgt, ref = msio.compute_columns(
-            [(g["tgt_ds"], tgt_cols, None if whole_t else tgt_rows),
-             (g["ref_ds"], ref_read_cols, None if whole_r else ref_rows)],
+            [(g["tgt_ds"], list(dict.fromkeys(t_read)), None if whole_t else t_rows),
+             (g["ref_ds"], list(dict.fromkeys(r_read)), None if whole_r else r_rows)],
             scheduler=io_scheduler)
-        tgt_flag_row = g["tgt_meta"]["FLAG_ROW"][tgt_rows]
-        ref_flag_row = g["ref_meta"]["FLAG_ROW"][ref_rows]
+        if first:
+            t_idx, r_idx = first
+        else:
+            t_idx = match.index_rows("tgt", t_rows, tgt if not match.tgt.whole else
+                                     match.read_meta("tgt", t_rows, ROW_COLUMNS))
+            r_idx = match.index_rows("ref", r_rows, ref if not match.ref.whole else
+                                     match.read_meta("ref", r_rows, ROW_COLUMNS))
+        # reference rows whose station pair has no target baseline take no part
+        keep = r_idx.bl >= 0
+        if not keep.all():
+            ref = {c: v[keep] for c, v in ref.items()}
+            r_idx = ChunkRows(rows=r_idx.rows[keep], bl=r_idx.bl[keep], time=r_idx.time[keep],
+                              swapped=r_idx.swapped[keep], flag_row=r_idx.flag_row[keep],
+                              scan=None)
+        tgt_rows, ref_rows = t_idx.rows, r_idx.rows
+        tgt_flag_row, ref_flag_row = t_idx.flag_row, r_idx.flag_row
         tvis, tok = _average(tgt[g["target_column"]], tgt["FLAG"], tgt_flag_row)
         rvis, rok = _average(ref[g["ref_column"]], ref["FLAG"], ref_flag_row)
         if g["ref_model_column"]:
@@ -423,23 +442,25 @@ def _run(ctx: Dict, started: float) -> Dict:
                 with np.errstate(divide="ignore"):
                     sigma = 1.0 / np.sqrt(np.asarray(ref["WEIGHT"], dtype=np.float64))
             ext_grid = np.full((match.n_bl, t_hi - t_lo), -1, dtype=np.int64)
-            ext_grid[match.ref_bl[ref_rows], match.ref_time[ref_rows] - t_lo] = \
-                np.arange(ref_rows.size)
-            ext = (t_lo, t_hi) + gather_grid(ext_grid, rvis, rok, match.ref_swapped[ref_rows],
+            ext_grid[r_idx.bl, r_idx.time - t_lo] = np.arange(ref_rows.size)
+            ext = (t_lo, t_hi) + gather_grid(ext_grid, rvis, rok, r_idx.swapped,
                                              match.corr_map, sigma)
-            inner = (match.ref_time[ref_rows] >= t0) & (match.ref_time[ref_rows] < t1)
+            del ext_grid
+            inner = (r_idx.time >= t0) & (r_idx.time < t1)
             ref_rows, rvis, rok = ref_rows[inner], rvis[inner], rok[inner]
+            r_idx = ChunkRows(rows=ref_rows, bl=r_idx.bl[inner], time=r_idx.time[inner],
+                              swapped=r_idx.swapped[inner], flag_row=None, scan=None)
         ovis = ook = None
         if off_col:
             ovis, ook = _average(tgt[off_col], tgt["FLAG"], tgt_flag_row)
         n_t = t1 - t0
         tgt_grid = np.full((match.n_bl, n_t), -1, dtype=np.int64)
-        tgt_grid[match.tgt_bl[tgt_rows], match.tgt_time[tgt_rows] - t0] = np.arange(tgt_rows.size)
+        tgt_grid[t_idx.bl, t_idx.time - t0] = np.arange(tgt_rows.size)
         ref_grid = np.full((match.n_bl, n_t), -1, dtype=np.int64)
-        ref_grid[match.ref_bl[ref_rows], match.ref_time[ref_rows] - t0] = np.arange(ref_rows.size)
+        ref_grid[r_idx.bl, r_idx.time - t0] = np.arange(ref_rows.size)
         chunk = dict(t0=t0, t1=t1, tgt_rows=tgt_rows, tgt_data=tgt[g["target_column"]],
                      tgt_flag=tgt["FLAG"], tgt_flag_row=tgt_flag_row, tgt_vis=tvis, tgt_ok=tok,
-                     ref_vis=rvis, ref_ok=rok, ref_swapped=match.ref_swapped[ref_rows],
+                     ref_vis=rvis, ref_ok=rok, ref_swapped=r_idx.swapped,
                      off_vis=ovis, off_ok=ook, tgt_grid=tgt_grid, ref_grid=ref_grid, ext=ext)
         if n_chunks == 1 and two_pass:   # keep the data for the second pass
             cache[i] = chunk
@@ -642,7 +663,7 @@ def _run(ctx: Dict, started: float) -> Dict:
         "flags": {"column": "FLAG", "backup_column": FLAG_BACKUP,
                   "flag_updated": bool(state.get("flag_written")),
                   "backup_created": bool(state.get("backup_written"))},
-        "rows": {"target": int(g["tgt_meta"]["TIME"].size), "matched": match.n_matched,
+        "rows": {"target": int(g["n_target_rows"]), "matched": match.n_matched,
                  "reference_unused": match.n_ref_unused},
         "samples": {"target": n_samples, "flagged": flagged,
                     "no_reference_row": totals["no_reference_row"],

@@ -11,6 +11,7 @@ dask-ms adds only overhead there.
 
 from __future__ import annotations
 
+import contextlib
 import weakref
 from pathlib import Path
 from typing import Dict, Iterable, List, Optional, Sequence
@@ -158,19 +159,55 @@ def _take_rows(array, rows: Optional[np.ndarray]):
     return parts[0] if len(parts) == 1 else da.concatenate(parts, axis=0)
 
 
+#: active recorders of main-table reads (see record_reads)
+_RECORDERS: List[list] = []
+
+
+@contextlib.contextmanager
+def record_reads():
+    """Record every main-table read made through :func:`compute_columns`.
+
+    Yields a list that receives one ``(ms, columns, n_rows)`` tuple per dataset
+    read, so tests can check how many rows a run holds at once (the reads are
+    real; nothing is replaced).
+    """
+    log = []
+    _RECORDERS.append(log)
+    try:
+        yield log
+    finally:
+        _RECORDERS.remove(log)
+
+
+def _record(ds, columns, rows) -> None:
+    source = _SOURCES.get(ds)
+    n_all = int(ds[list(columns)[0]].shape[0])
+    n_rows = (len(range(*rows.indices(n_all))) if isinstance(rows, slice)
+              else len(rows) if rows is not None else n_all)
+    entry = (source[0] if source else None, tuple(columns), n_rows)
+    for log in _RECORDERS:
+        log.append(entry)
+
+
 def compute_columns(requests, scheduler=None) -> List[Dict[str, np.ndarray]]:
     """Compute several datasets' columns in one dask call (tables are read concurrently).
 
     ``requests``: sequence of (dataset, columns, rows) with ``rows`` ascending
-    row positions of the dataset or None for all.  Returns one dict per request.
+    row positions of the dataset, a ``slice`` of them, or None for all.  Returns
+    one dict per request.  A slice aligned with the dataset's row chunks (see
+    ``open_main(chunk_rows=)``) reads exactly those rows and builds no dataset.
     """
     import dask
     import dask.threaded
 
     graphs = []
     for ds, columns, rows in requests:
+        if _RECORDERS:
+            _record(ds, columns, rows)
         source = _SOURCES.get(ds)
-        if rows is not None and source is not None and len(rows):
+        if isinstance(rows, slice):
+            graphs.append({c: ds[c].data[rows] for c in columns})
+        elif rows is not None and source is not None and len(rows):
             # a dataset of just these rows: dask-ms reads their runs and nothing else
             # (slicing the whole-table dataset would read every row chunk a run touches)
             sub = _storage_order_dataset(source[0], list(columns), source[1], rows=rows)

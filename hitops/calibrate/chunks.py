@@ -1,0 +1,389 @@
+"""Matching the two bands chunk by chunk, so memory is bounded by ``--chunk-rows``.
+
+Matching every row at once would hold each row's metadata and index
+(~120 bytes per row and band, measured); here nothing per row stays in memory for
+tables stored in time order (the rows of a time chunk follow each other and
+are found from each time's row count), and only the TIME column (8 bytes per
+row and band) for tables that are not (baseline-major or shuffled).  The rest
+is per block of rows or per time chunk:
+
+1. :func:`index_bands` reads the per-row metadata in blocks of at most
+   ``block_rows`` rows and keeps small summaries (distinct times, antenna
+   pairs, scans, smallest INTERVAL, data descriptions and fields);
+2. :class:`ChunkMatch` builds the union time axis, the target baselines and
+   the reference-pair tables from those summaries (sizes n_time, n_bl,
+   n_ant^2, none per row);
+3. :meth:`ChunkMatch.check` reads each time chunk's TIME/ANTENNA1/ANTENNA2/
+   SCAN_NUMBER, checks for duplicate cells, counts matched rows and fills the
+   scan of each time, all before anything is written;
+4. :meth:`ChunkMatch.row_numbers` and :meth:`ChunkMatch.index_rows` give a
+   chunk's row numbers, baseline and time indices when it is processed.
+
+The matching rules are those of :mod:`hitops.io.match` (same tolerance, same
+station and correlation maps), so the result equals the whole-track match.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional
+
+import numba
+import numpy as np
+
+from ..errors import MeasurementSetError
+from ..io import read as msio
+from ..io.layout import unique_times
+from ..io.match import BandRows, correlation_map, distinct_ints, distinct_values, pair_antennas
+from ..io.ms_create import CORR_NAMES
+
+#: per-row columns read in the first (index) pass
+INDEX_COLUMNS = ["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER", "INTERVAL", "FLAG_ROW"]
+#: per-row columns a chunk needs
+ROW_COLUMNS = ["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER", "FLAG_ROW"]
+
+
+@numba.njit(cache=True, nogil=True)
+def _bucket_rows(time, edges):
+    """Rows grouped by time bucket [edges[k], edges[k+1]), ascending within each.
+
+    Returns (order, start): bucket k's rows are order[start[k]:start[k+1]].
+    One counting pass and one filling pass, int32 row numbers (4 bytes per row).
+    """
+    n_bucket = edges.size - 1
+    bucket = np.searchsorted(edges, time, side="right") - 1
+    start = np.zeros(n_bucket + 1, dtype=np.int64)
+    for i in range(time.size):
+        start[bucket[i] + 1] += 1
+    for k in range(n_bucket):
+        start[k + 1] += start[k]
+    fill = start[:-1].copy()
+    order = np.empty(time.size, dtype=np.int32)
+    for i in range(time.size):
+        order[fill[bucket[i]]] = i
+        fill[bucket[i]] += 1
+    return order, start
+
+
+@dataclass
+class BandIndex:
+    """Summary of one band's per-row metadata; only ``time`` is per row."""
+
+    ms: str
+    ds: object
+    n_row: int
+    n_ant: int
+    time: np.ndarray = None               # (n_row,) TIME, storage order; None when sorted
+    time_sorted: bool = True
+    last_time: float = -np.inf
+    time_unsorted_from: int = 0           # first row whose block was kept in ``time``
+    bucket_edges: np.ndarray = None       # unsorted tables: TIME edges of the chunks
+    bucket_order: np.ndarray = None       # ... their rows (int32), see _bucket_rows
+    bucket_start: np.ndarray = None
+    unique_time: np.ndarray = None        # sorted distinct TIME values
+    time_rows: np.ndarray = None          # rows at each distinct TIME value
+    row_start: np.ndarray = None          # sorted tables: first row of each distinct TIME
+    pair_present: np.ndarray = None       # (n_ant * n_ant,) ANTENNA1 * n_ant + ANTENNA2 used
+    scans: np.ndarray = None
+    min_interval: float = np.inf
+    selection: Dict[str, np.ndarray] = field(default_factory=dict)   # distinct DD / FIELD ids
+    whole: Optional[Dict[str, np.ndarray]] = None   # every row's metadata, when one block
+
+    def rows_in(self, lo: float, hi: float) -> np.ndarray:
+        """Ascending row numbers with lo <= TIME < hi."""
+        if self.time_sorted:
+            # rows in time order: those at each distinct time follow each other
+            u0, u1 = np.searchsorted(self.unique_time, [lo, hi])
+            return np.arange(self.row_start[u0], self.row_start[u1], dtype=np.int64)
+        # not in time order: the chunks' rows were bucketed once (see bucket); take the
+        # buckets overlapping [lo, hi) and keep the rows inside it
+        k0 = max(int(np.searchsorted(self.bucket_edges, lo, side="right")) - 1, 0)
+        k1 = int(np.searchsorted(self.bucket_edges, hi, side="left"))
+        cand = self.bucket_order[self.bucket_start[k0]:self.bucket_start[min(k1, self.bucket_start.size - 1)]]
+        t = self.time[cand]
+        return np.sort(cand[(t >= lo) & (t < hi)]).astype(np.int64)
+
+    def bucket(self, edges: np.ndarray) -> None:
+        """Group the rows of a table not in time order by chunk, once (O(n_row))."""
+        if not self.time_sorted:
+            self.bucket_edges = np.asarray(edges, dtype=np.float64)
+            self.bucket_order, self.bucket_start = _bucket_rows(self.time, self.bucket_edges)
+
+
+def index_bands(bands: List[BandIndex], columns: List[List[str]], block_rows: int,
+                scheduler=None, read_log: Optional[list] = None) -> None:
+    """Fill each :class:`BandIndex` from blocks of at most ``block_rows`` rows.
+
+    Blocks of both bands are read in one dask call (the tables concurrently).
+    A band that fits in one block keeps that block's metadata in ``whole``
+    (it is bounded by ``block_rows`` and saves reading it again).
+    """
+    for band in bands:
+        band.time = None   # kept only for tables not in time order (see _summarise_block)
+        band.pair_present = np.zeros(band.n_ant * band.n_ant, dtype=bool)
+    parts = {id(b): {"unique": np.zeros(0), "counts": np.zeros(0, np.int64), "scans": [],
+                     "sel": {}} for b in bands}
+    n_blocks = max(-(-b.n_row // block_rows) for b in bands)
+    # several blocks: a dataset whose dask row chunks are the blocks, read by slices
+    block_ds = {id(band): (band.ds if band.ds.chunks["row"][0] == block_rows else
+                           msio.open_main(band.ms, cols, chunk_rows=block_rows))
+                for band, cols in zip(bands, columns) if band.n_row > block_rows}
+    for k in range(n_blocks):
+        requests, which = [], []
+        for band, cols in zip(bands, columns):
+            a, b = k * block_rows, min(band.n_row, (k + 1) * block_rows)
+            if a >= b:
+                continue
+            if id(band) in block_ds:
+                requests.append((block_ds[id(band)], cols, slice(a, b)))
+            else:
+                requests.append((band.ds, cols, None))
+            which.append((band, a, b))
+        for (band, a, b), meta in zip(which, msio.compute_columns(requests, scheduler)):
+            _summarise_block(band, a, b, meta, parts[id(band)])
+            if a == 0 and b == band.n_row:
+                band.whole = {c: meta[c] for c in ROW_COLUMNS}
+    for band in bands:
+        p = parts[id(band)]
+        band.unique_time, band.time_rows = p["unique"], p["counts"]
+        band.scans = np.unique(np.concatenate(p["scans"]))
+        band.row_start = np.concatenate([[0], np.cumsum(band.time_rows)])
+        if band.time is not None and band.time_unsorted_from > 0:
+            # TIME of the blocks read before the table was seen not to be in time order
+            for a in range(0, band.time_unsorted_from, block_rows):
+                part = slice(a, min(band.time_unsorted_from, a + block_rows))
+                band.time[part] = msio.compute_columns([(block_ds[id(band)], ["TIME"], part)],
+                                                       scheduler)[0]["TIME"]
+        band.selection = {c: np.unique(np.concatenate(v)) for c, v in p["sel"].items()}
+
+
+def _summarise_block(band: BandIndex, a: int, b: int, meta: Dict[str, np.ndarray], p) -> None:
+    t = np.asarray(meta["TIME"], dtype=np.float64)
+    one_block = a == 0 and b == band.n_row
+    if t.size and band.time_sorted and (np.any(t[1:] < t[:-1]) or t[0] < band.last_time):
+        # not in time order: the rows of a time chunk are found from the TIME column
+        # (8 bytes per row), kept from this block on (the blocks before are re-read)
+        band.time_sorted = False
+        if not one_block:
+            band.time = np.empty(band.n_row, dtype=np.float64)
+            band.time_unsorted_from = a
+    if one_block:
+        band.time = t   # held anyway (in ``whole``)
+    elif band.time is not None:
+        band.time[a:b] = t
+    if t.size:
+        band.last_time = float(t[-1])
+    values, inverse = distinct_values(t)   # one pass when the block is in time order
+    p["unique"], p["counts"] = _merge_time_counts(
+        p["unique"], p["counts"], values, np.bincount(inverse, minlength=values.size))
+    key = meta["ANTENNA1"].astype(np.int64) * band.n_ant + meta["ANTENNA2"]
+    if key.size and (key.min() < 0 or key.max() >= band.pair_present.size):
+        raise MeasurementSetError(f"{band.ms}: ANTENNA1/ANTENNA2 hold indices outside the "
+                                  f"ANTENNA table ({band.n_ant} rows); the set is damaged")
+    band.pair_present |= np.bincount(key, minlength=band.pair_present.size) > 0
+    p["scans"].append(distinct_ints(meta["SCAN_NUMBER"]))
+    iv = np.asarray(meta["INTERVAL"], dtype=np.float64)
+    iv = iv[np.isfinite(iv) & (iv > 0)]
+    if iv.size:
+        band.min_interval = min(band.min_interval, float(iv.min()))
+    for c in ("DATA_DESC_ID", "FIELD_ID"):
+        if c in meta:
+            p["sel"].setdefault(c, []).append(np.unique(meta[c]))
+
+
+def _merge_time_counts(known, known_counts, values, counts):
+    """Distinct times and rows per time, merged block by block.
+
+    The merged list stays n_time long: a baseline-major table has nearly every
+    time in every block, so keeping each block's own list would cost ~n_row.
+    """
+    at = np.searchsorted(known, values)
+    if known.size and at[-1] < known.size and np.array_equal(known[at], values):
+        # every time of the block was seen before (baseline-major tables after the
+        # first baseline): add the counts in place of a new sort
+        return known, known_counts + np.bincount(at, weights=counts,
+                                                 minlength=known.size).astype(np.int64)
+    merged, inverse = np.unique(np.concatenate([known, values]), return_inverse=True)
+    return merged, np.bincount(inverse, weights=np.concatenate([known_counts, counts]),
+                               minlength=merged.size).astype(np.int64)
+
+
+@dataclass
+class ChunkRows:
+    """One band's rows of a time chunk on the (baseline, time) grid."""
+
+    rows: np.ndarray        # ascending row numbers
+    bl: np.ndarray          # baseline index (-1: reference pair without target baseline)
+    time: np.ndarray        # union time index
+    swapped: np.ndarray     # reference only: antenna order reversed
+    flag_row: np.ndarray
+    scan: np.ndarray
+
+
+class ChunkMatch:
+    """The two bands' common grid (times, baselines) without per-row arrays.
+
+    Gives the calibration stages the common grid: (times, ant1, ant2, baseline_names, corr_map, corr_names, scans,
+    scan_of_time, tolerance, n_matched, n_ref_unused).
+    """
+
+    def __init__(self, ref: BandIndex, tgt: BandIndex, ref_names, tgt_names, ref_corr,
+                 tgt_corr, antenna_map, tolerance=None):
+        self.ref, self.tgt = ref, tgt
+        n_ant_t, n_ant_r = len(tgt_names), len(ref_names)
+        pairs = np.flatnonzero(tgt.pair_present)
+        bl_a1, bl_a2 = pairs // n_ant_t, pairs % n_ant_t
+        # pair_antennas checks the map and that each used target station has a partner
+        ref_to_tgt = pair_antennas(
+            BandRows(ms=ref.ms, time=None, ant1=None, ant2=None, scan=None, interval=None,
+                     antenna_names=list(ref_names), corr_types=list(ref_corr)),
+            BandRows(ms=tgt.ms, time=None, ant1=bl_a1, ant2=bl_a2, scan=None, interval=None,
+                     antenna_names=list(tgt_names), corr_types=list(tgt_corr)),
+            antenna_map)
+        self.corr_map = correlation_map(ref_corr, tgt_corr)
+        self.corr_names = [CORR_NAMES.get(int(c), str(c)) for c in tgt_corr]
+        if not np.any(self.corr_map[0] >= 0):
+            raise MeasurementSetError(
+                f"no correlation of {tgt.ms} ({', '.join(self.corr_names)}) exists in {ref.ms} "
+                f"({', '.join(CORR_NAMES.get(int(c), str(c)) for c in ref_corr)}); "
+                "both bands need the same polarisation products")
+        if tolerance is None:
+            smallest = min(ref.min_interval, tgt.min_interval)
+            tolerance = 0.5 * smallest if np.isfinite(smallest) else 1e-3
+        self.tolerance = float(tolerance)
+        # baseline of each target pair, and of each reference pair (either order)
+        self.tgt_pair_bl = np.full(n_ant_t * n_ant_t, -1, dtype=np.int32)
+        self.tgt_pair_bl[pairs] = np.arange(pairs.size)
+        ra1, ra2 = np.divmod(np.arange(n_ant_r * n_ant_r), n_ant_r)
+        m1, m2 = ref_to_tgt[ra1], ref_to_tgt[ra2]
+        ok = (m1 >= 0) & (m2 >= 0)
+        direct = np.where(ok, self.tgt_pair_bl[np.where(ok, m1 * n_ant_t + m2, 0)], -1)
+        reverse = np.where(ok, self.tgt_pair_bl[np.where(ok, m2 * n_ant_t + m1, 0)], -1)
+        self.ref_pair_bl = np.where(direct >= 0, direct, reverse).astype(np.int32)
+        self.ref_pair_swapped = (direct < 0) & (reverse >= 0)
+        self.ant1, self.ant2 = bl_a1, bl_a2
+        self.baseline_names = [f"{tgt_names[a]}-{tgt_names[b]}" for a, b in zip(bl_a1, bl_a2)]
+        # union time axis from the distinct times of both bands
+        self.times, group = unique_times(np.concatenate([tgt.unique_time, ref.unique_time]),
+                                         self.tolerance)
+        self.tgt_group = group[:tgt.unique_time.size]
+        self.ref_group = group[tgt.unique_time.size:]
+        self.scans = np.union1d(tgt.scans, ref.scans)
+        self.scan_of_time = np.zeros(self.times.size, dtype=np.int64)
+        self.n_matched = 0
+        self.n_ref_unused = 0
+
+    @property
+    def n_bl(self) -> int:
+        return self.ant1.size
+
+    @property
+    def n_time(self) -> int:
+        return self.times.size
+
+    def _time_range(self, band: BandIndex, group: np.ndarray, t0: int, t1: int):
+        """TIME values [lo, hi) of the band's rows whose union time index is in [t0, t1)."""
+        u0, u1 = np.searchsorted(group, [t0, t1])
+        lo = band.unique_time[u0] if u0 < group.size else np.inf
+        hi = band.unique_time[u1] if u1 < group.size else np.inf
+        return lo, hi
+
+    def row_numbers(self, which: str, t0: int, t1: int) -> np.ndarray:
+        band, group = (self.tgt, self.tgt_group) if which == "tgt" else (self.ref, self.ref_group)
+        if t0 <= 0 and t1 >= self.n_time:
+            return np.arange(band.n_row, dtype=np.int64)
+        return band.rows_in(*self._time_range(band, group, t0, t1))
+
+    def set_chunks(self, bounds: List[int]) -> None:
+        """Chunk boundaries (union time indices); buckets the rows of unsorted tables."""
+        for band, group in ((self.tgt, self.tgt_group), (self.ref, self.ref_group)):
+            if not band.time_sorted and len(bounds) > 2:
+                los = [self._time_range(band, group, t0, t0 + 1)[0] for t0 in bounds[:-1]]
+                band.bucket(np.array(los + [np.inf]))
+
+    def time_counts(self) -> np.ndarray:
+        """Rows of both bands per union time (for cutting chunks)."""
+        return (np.bincount(self.tgt_group, weights=self.tgt.time_rows, minlength=self.n_time)
+                + np.bincount(self.ref_group, weights=self.ref.time_rows,
+                              minlength=self.n_time)).astype(np.int64)
+
+    def read_meta(self, which, rows, columns, scheduler=None):
+        band = self.tgt if which == "tgt" else self.ref
+        if band.whole is not None:
+            if rows.size == band.n_row:
+                return {c: band.whole[c] for c in columns}
+            return {c: band.whole[c][rows] for c in columns}
+        return msio.compute_columns([(band.ds, columns, rows)], scheduler)[0]
+
+    def index_rows(self, which, rows, meta) -> ChunkRows:
+        band, group = (self.tgt, self.tgt_group) if which == "tgt" else (self.ref, self.ref_group)
+        values, inverse = distinct_values(meta["TIME"])   # few distinct times per chunk
+        time = group[np.searchsorted(band.unique_time, values)].astype(np.int32)[inverse]
+        key = meta["ANTENNA1"].astype(np.int64) * band.n_ant + meta["ANTENNA2"]
+        if which == "tgt":
+            bl, swapped = self.tgt_pair_bl[key], None
+        else:
+            bl, swapped = self.ref_pair_bl[key], self.ref_pair_swapped[key]
+        return ChunkRows(rows=rows, bl=bl, time=time, swapped=swapped,
+                         flag_row=meta.get("FLAG_ROW"), scan=meta.get("SCAN_NUMBER"))
+
+    def check(self, bounds: List[int], scheduler=None, keep_single: bool = True):
+        """Check every chunk's cells, count matches, fill scan_of_time (before any write).
+
+        Returns the chunk's (tgt, ref) :class:`ChunkRows` when there is one chunk
+        and ``keep_single`` (so it is not computed twice), else None.
+        """
+        kept = None
+        cols = ["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER"]
+        for t0, t1 in zip(bounds[:-1], bounds[1:]):
+            t_rows = self.row_numbers("tgt", t0, t1)
+            r_rows = self.row_numbers("ref", t0, t1)
+            if self.tgt.whole is not None and self.ref.whole is not None:
+                t_meta = self.read_meta("tgt", t_rows, ROW_COLUMNS)
+                r_meta = self.read_meta("ref", r_rows, ROW_COLUMNS)
+            else:
+                t_meta, r_meta = msio.compute_columns(
+                    [(self.tgt.ds, cols, t_rows), (self.ref.ds, cols, r_rows)], scheduler)
+            tgt = self.index_rows("tgt", t_rows, t_meta)
+            ref = self.index_rows("ref", r_rows, r_meta)
+            self._check_chunk(tgt, ref, t0, t1)
+            if len(bounds) == 2 and keep_single and "FLAG_ROW" in t_meta:
+                kept = (tgt, ref)
+        if self.n_matched == 0:
+            raise MeasurementSetError(
+                f"no row of {self.tgt.ms} has a counterpart in {self.ref.ms} at the same time "
+                f"(tolerance {self.tolerance:g} s) and station pair: target times "
+                f"{self.tgt.unique_time[0]:.1f}..{self.tgt.unique_time[-1]:.1f}, reference "
+                f"times {self.ref.unique_time[0]:.1f}..{self.ref.unique_time[-1]:.1f} "
+                "(MJD seconds); check that the two sets cover the same observation")
+        return kept
+
+    def _check_chunk(self, tgt: ChunkRows, ref: ChunkRows, t0: int, t1: int) -> None:
+        n_t = t1 - t0
+        n_cells = self.n_bl * n_t
+        t_cells = tgt.bl.astype(np.int64) * n_t + (tgt.time - t0)
+        has_tgt = np.zeros(n_cells, dtype=bool)
+        has_tgt[t_cells] = True
+        if np.count_nonzero(has_tgt) != t_cells.size:
+            self._raise_duplicate(t_cells, n_t, t0, self.tgt.ms)
+        used = ref.bl >= 0
+        r_cells = ref.bl[used].astype(np.int64) * n_t + (ref.time[used] - t0)
+        has_ref = np.zeros(n_cells, dtype=bool)
+        has_ref[r_cells] = True
+        if np.count_nonzero(has_ref) != r_cells.size:
+            self._raise_duplicate(r_cells, n_t, t0, self.ref.ms)
+        self.n_matched += int(np.count_nonzero(has_ref[t_cells]))
+        self.n_ref_unused += int(ref.rows.size - np.count_nonzero(has_tgt[r_cells]))
+        # target's SCAN_NUMBER where the target has a row at that time, else the reference's
+        self.scan_of_time[ref.time] = np.searchsorted(self.scans, ref.scan)
+        self.scan_of_time[tgt.time] = np.searchsorted(self.scans, tgt.scan)
+
+    def _raise_duplicate(self, cells, n_t, t0, ms):
+        counts = np.bincount(cells, minlength=self.n_bl * n_t)
+        dup = np.flatnonzero(counts > 1)
+        b, t = divmod(int(dup[0]), n_t)
+        raise MeasurementSetError(
+            f"{ms}: {int((counts[dup] - 1).sum())} rows share a (baseline, time) cell with "
+            f"another row, e.g. {self.baseline_names[b]} at TIME {self.times[t0 + t]:.3f}; the "
+            "data mix several fields, spectral windows or sub-arrays, or the time tolerance is "
+            "too large: split them (e.g. CASA split by field/spw) and run on each part")
