@@ -87,6 +87,17 @@ def replace_section(key: str, markdown: str, doc: Path = PERF_DOC) -> None:
     doc.write_text(text)
 
 
+def save_figure(fig, path: Path) -> Path:
+    """Lay out, write (creating the folder) and close a matplotlib figure."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def median(values):
     values = sorted(values)
     n = len(values)

@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 
 from ._floors import LABELS as FLOOR_LABELS, measure_floors
-from ._report import PLOT_DIR, machine_line, median, replace_section, run_process
+from ._report import PLOT_DIR, machine_line, median, replace_section, run_process, save_figure
 
 N_TIME = 43_200
 N_ANT = 8
@@ -90,10 +90,7 @@ def figure(path: Path) -> Path:
     ax.set_title("R = 230/86: CFPT jumps by -117.2 deg at every 86 GHz wrap (dashed); PWC does not",
                  fontsize=9)
     ax.legend(markerscale=6, loc="lower left", fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path)
     shutil.rmtree(workdir, ignore_errors=True)
     return path
 

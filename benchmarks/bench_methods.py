@@ -49,7 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from ._floors import measure_floors
-from ._report import PLOT_DIR, machine_line, median, replace_section, run_process
+from ._report import PLOT_DIR, machine_line, median, replace_section, run_process, save_figure
 
 REFANTS = "PV,PB,AP,SM,GL,KP,KC,KY"
 SEGMENT_S = 60.0
@@ -351,10 +351,7 @@ def plot(results, path: Path) -> Path:
     axes[0].set_yscale("log")
     axes[1].legend(fontsize=7, loc="center left")
     fig.suptitle("Paper scene (8 stations, 12 h, 1 s): error against run time", fontsize=10)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path)
     return path
 
 

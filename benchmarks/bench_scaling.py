@@ -47,7 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from ._floors import measure_floors
-from ._report import PLOT_DIR, machine_line, median, replace_section, run_process
+from ._report import PLOT_DIR, machine_line, median, replace_section, run_process, save_figure
 
 CORRS = ("RR", "RL", "LR", "LL")
 ROWS = (10_000, 100_000, 1_000_000, 10_000_000)
@@ -469,10 +469,7 @@ def plot(cal_rows, cal_st, sim_rows, sim_st, path: Path) -> Path:
     ax.set_xlabel("stations")
     ax.set_ylabel("wall time (s)")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path)
     return path
 
 

@@ -25,7 +25,7 @@ import numpy as np
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _report import PLOT_DIR, ROOT, machine_line, replace_section, run_process  # noqa: E402
+from _report import PLOT_DIR, ROOT, machine_line, replace_section, run_process, save_figure  # noqa: E402
 
 from hitops.simulate import troposphere as tp  # noqa: E402
 from hitops.simulate.scene import load_scene_mapping  # noqa: E402
@@ -83,10 +83,7 @@ def plot_tradeoff(rows, path: Path):
     ax.set_ylabel("max |D(dt)/(dt/t_c)^{5/3} - 1| over dt = 1 .. n/4 (%)")
     ax.set_title("Kolmogorov phase generators (labels: n samples)")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def all_rows_scene(work: Path) -> Path:
