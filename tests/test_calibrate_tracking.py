@@ -39,6 +39,20 @@ def put(ms, name, values):
         t.putcol(name, values)
 
 
+def flag_first_baseline(truth, *time_ranges):
+    """Flag reference samples of baseline 0-1 in [start, stop) seconds from the first time.
+
+    Returns (t_idx, first_bl): each target row's time index and whether it is on 0-1.
+    """
+    flag = col(truth.ref_ms, "FLAG")
+    t_idx = np.rint(truth.time - truth.time.min()).astype(int)
+    first_bl = (truth.ant1 == 0) & (truth.ant2 == 1)
+    for start, stop in time_ranges:
+        flag[first_bl & (t_idx >= start) & (t_idx < stop)] = True
+    put(truth.ref_ms, "FLAG", flag)
+    return t_idx, first_bl
+
+
 def count_error(truth, out):
     """e = n_tracked - n_true per target row and correlation (see the module doc)."""
     ref_vis = col(truth.ref_ms, "DATA")[:, 0, :]      # same row order as the target here
@@ -111,12 +125,8 @@ def test_per_sample_windows_from_sigma(tmp_path):
 @pytest.mark.parametrize("tracker", ["smooth", "antenna"])
 def test_chunked_and_unchunked_outputs_agree(tmp_path, tracker):
     truth = noisy_pair(tmp_path, n_time=900, n_scans=2)
-    flag = col(truth.ref_ms, "FLAG")
-    t_idx = np.rint(truth.time - truth.time.min()).astype(int)
-    first_bl = (truth.ant1 == 0) & (truth.ant2 == 1)
-    flag[first_bl & (t_idx >= 100) & (t_idx < 110)] = True     # bridged gap
-    flag[first_bl & (t_idx >= 200) & (t_idx < 300)] = True     # long gap: new segment
-    put(truth.ref_ms, "FLAG", flag)
+    # a bridged gap, then a long gap that starts a new segment
+    flag_first_baseline(truth, (100, 110), (200, 300))
     whole, rep_whole = run(truth, tracker=tracker)
     chunked, rep_chunked = run(truth, tracker=tracker, chunk_rows=500)
     assert rep_chunked["chunks"] > 5 and rep_whole["chunks"] == 1
@@ -132,12 +142,8 @@ def test_chunked_and_unchunked_outputs_agree(tmp_path, tracker):
 
 def test_gaps_are_bridged_or_start_reported_segments(tmp_path, caplog):
     truth = make_pair(tmp_path, n_ant=3, n_time=600, step_rad=0.1, corr_types=("RR",), seed=5)
-    flag = col(truth.ref_ms, "FLAG")
-    t_idx = np.rint(truth.time - truth.time.min()).astype(int)
-    first_bl = (truth.ant1 == 0) & (truth.ant2 == 1)
-    flag[first_bl & (t_idx >= 100) & (t_idx < 108)] = True     # 8 samples < max_gap
-    flag[first_bl & (t_idx >= 300) & (t_idx < 400)] = True     # 100 samples > max_gap
-    put(truth.ref_ms, "FLAG", flag)
+    # 8 samples (< max_gap), then 100 samples (> max_gap)
+    t_idx, first_bl = flag_first_baseline(truth, (100, 108), (300, 400))
     with caplog.at_level("INFO", logger="hitops"):
         out, rep = run(truth, tracker="smooth", coherence_time=30.0)
     entry = {e["baseline"]: e for e in rep["tracking"]["baselines"]}["AP-SM"]
@@ -353,11 +359,7 @@ def test_station_elevations_from_the_ms_geometry(tmp_path):
 
 def test_fixed_window_max_gap_and_elevation_scaling_options(tmp_path):
     truth = make_pair(tmp_path, n_ant=3, n_time=300, step_rad=0.1, corr_types=("RR",), seed=5)
-    flag = col(truth.ref_ms, "FLAG")
-    t_idx = np.rint(truth.time - truth.time.min()).astype(int)
-    first_bl = (truth.ant1 == 0) & (truth.ant2 == 1)
-    flag[first_bl & (t_idx >= 100) & (t_idx < 108)] = True
-    put(truth.ref_ms, "FLAG", flag)
+    flag_first_baseline(truth, (100, 108))
     _, rep = run(truth, tracker="smooth", half_window=3, max_gap=5)
     setup = rep["tracking"]["setup"]
     assert setup["half_window"] == 3 and setup["max_gap"] == 5
@@ -382,11 +384,7 @@ def test_offset_step_per_segment_resolves_a_long_gap(tmp_path, caplog):
     from hitops.calibrate.synthetic import add_column
 
     truth = make_pair(tmp_path, n_ant=3, n_time=900, step_rad=0.15, corr_types=("RR",), seed=21)
-    flag = col(truth.ref_ms, "FLAG")
-    t_idx = np.rint(truth.time - truth.time.min()).astype(int)
-    first_bl = (truth.ant1 == 0) & (truth.ant2 == 1)
-    flag[first_bl & (t_idx >= 300) & (t_idx < 600)] = True
-    put(truth.ref_ms, "FLAG", flag)
+    _, first_bl = flag_first_baseline(truth, (300, 600))
     out, rep = run(truth, tracker="smooth")
     valid = col(truth.target_ms, "FLAG")[:, 0, 0] == 0
     e = count_error(truth, out)[:, 0]
