@@ -49,7 +49,10 @@ HITOPS = str(Path(sys.executable).with_name("hitops"))
 MODES = [
     ("count (paper)", ["--tracker", "count"]),
     ("smooth, defaults", ["--tracker", "smooth"]),
-    ("smooth, zenith t_c 10 s", ["--tracker", "smooth", "--coherence-time", "10"]),
+    # --coherence-time is the zenith t_c of the reference-band (86 GHz) *baseline* phase,
+    # not a station's or the 230 GHz one (those of the scene, stations.yml, are 5-12 s)
+    ("smooth, t_c 10 s (86 GHz baseline, zenith)",
+     ["--tracker", "smooth", "--coherence-time", "10"]),
     ("smooth, h=5", ["--tracker", "smooth", "--half-window", "5"]),
     ("antenna, defaults", ["--tracker", "antenna"]),
     ("antenna, per-sample solve", ["--tracker", "antenna", "--solve-half-window", "0"]),

@@ -100,6 +100,17 @@ def test_no_overlapping_times(tmp_path):
           r"the same time \(tolerance 0.5 s\)")
 
 
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_non_finite_time(tmp_path, bad):
+    truth = make_pair(tmp_path, n_time=40, seed=25)
+    with pt.table(str(truth.ref_ms), readonly=False, ack=False) as t:
+        time = t.getcol("TIME")
+        time[17] = bad
+        t.putcol("TIME", time)
+    check(truth, MeasurementSetError, r"ref\.ms: TIME of row 17 is (nan|inf); rows without a "
+          r"valid time cannot be matched")
+
+
 def _add_subtable_row(ms, subtable):
     with pt.table(f"{ms}::{subtable}", readonly=False, ack=False) as t:
         t.addrows(1)

@@ -513,21 +513,25 @@ def _run(ctx: Dict, started: float) -> Dict:
             results = dask.compute(*[t[3] for t in tasks], **compute_kw)
             tasks = [t[:3] for t in tasks]   # drop the group inputs as soon as possible
             n_rows = ch["tgt_rows"].size
-            phasor_rows = {c: np.zeros((n_rows, n_corr), np.complex64) for c in codes}
-            calibrated = np.zeros((n_rows, n_corr), dtype=bool)
-            for (bls, picked, local_grid), res in zip(tasks, results):
-                if local_grid is None:   # cells map straight to chunk rows
-                    used = picked >= 0
-                    rows_used = picked[used]
-                    for c in codes:
-                        phasor_rows[c][rows_used] = res["phasors"][c][used]
-                    calibrated[rows_used] = res["calibrated"][used]
-                else:
+            if tasks[0][2] is None:
+                # threads: the groups are consecutive baselines whose cells hold chunk rows,
+                # so their grids stacked are the chunk's grid (one numba pass to row order)
+                phasor_rows = {c: fpt.scatter_rows(
+                    ch["tgt_grid"], np.concatenate([r["phasors"][c] for r in results]),
+                    n_rows, np.complex64(0)) for c in codes}
+                calibrated = fpt.scatter_rows(
+                    ch["tgt_grid"], np.concatenate([r["calibrated"] for r in results]),
+                    n_rows, False)
+            else:   # remote workers: each group's cells hold its own compact rows
+                phasor_rows = {c: np.zeros((n_rows, n_corr), np.complex64) for c in codes}
+                calibrated = np.zeros((n_rows, n_corr), dtype=bool)
+                for (bls, picked, local_grid), res in zip(tasks, results):
                     for c in codes:
                         phasor_rows[c][picked] = fpt.scatter_rows(
                             local_grid, res["phasors"][c], picked.size, np.complex64(0))
                     calibrated[picked] = fpt.scatter_rows(local_grid, res["calibrated"],
                                                           picked.size, False)
+            for (bls, picked, local_grid), res in zip(tasks, results):
                 for key in totals:
                     totals[key] += res[key]
                 wrap_events[bls] += res["wrap_events"]

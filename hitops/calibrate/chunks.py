@@ -34,7 +34,8 @@ import numpy as np
 from ..errors import MeasurementSetError
 from ..io import read as msio
 from ..io.layout import unique_times
-from ..io.match import BandRows, correlation_map, distinct_ints, distinct_values, pair_antennas
+from ..io.match import BandRows, correlation_map, distinct_counts, distinct_ints, pair_antennas
+from ..kernels.sorted_runs import lookup_sorted
 from ..io.ms_create import CORR_NAMES
 
 #: per-row columns read in the first (index) pass
@@ -159,6 +160,11 @@ def index_bands(bands: List[BandIndex], columns: List[List[str]], block_rows: in
 
 def _summarise_block(band: BandIndex, a: int, b: int, meta: Dict[str, np.ndarray], p) -> None:
     t = np.asarray(meta["TIME"], dtype=np.float64)
+    if not np.all(np.isfinite(t)):
+        bad = a + int(np.flatnonzero(~np.isfinite(t))[0])
+        raise MeasurementSetError(f"{band.ms}: TIME of row {bad} is {t[bad - a]}; rows without "
+                                  "a valid time cannot be matched: remove them (CASA split "
+                                  "with a time range) or repair the TIME column")
     one_block = a == 0 and b == band.n_row
     if t.size and band.time_sorted and (np.any(t[1:] < t[:-1]) or t[0] < band.last_time):
         # not in time order: the rows of a time chunk are found from the TIME column
@@ -173,9 +179,8 @@ def _summarise_block(band: BandIndex, a: int, b: int, meta: Dict[str, np.ndarray
         band.time[a:b] = t
     if t.size:
         band.last_time = float(t[-1])
-    values, inverse = distinct_values(t)   # one pass when the block is in time order
-    p["unique"], p["counts"] = _merge_time_counts(
-        p["unique"], p["counts"], values, np.bincount(inverse, minlength=values.size))
+    values, counts = distinct_counts(t)   # one pass when the block is in time order
+    p["unique"], p["counts"] = _merge_time_counts(p["unique"], p["counts"], values, counts)
     key = meta["ANTENNA1"].astype(np.int64) * band.n_ant + meta["ANTENNA2"]
     if key.size and (key.min() < 0 or key.max() >= band.pair_present.size):
         raise MeasurementSetError(f"{band.ms}: ANTENNA1/ANTENNA2 hold indices outside the "
@@ -317,8 +322,12 @@ class ChunkMatch:
 
     def index_rows(self, which, rows, meta) -> ChunkRows:
         band, group = (self.tgt, self.tgt_group) if which == "tgt" else (self.ref, self.ref_group)
-        values, inverse = distinct_values(meta["TIME"])   # few distinct times per chunk
-        time = group[np.searchsorted(band.unique_time, values)].astype(np.int32)[inverse]
+        # every TIME is one of the band's distinct times (read from the same column)
+        at = lookup_sorted(np.ascontiguousarray(meta["TIME"], dtype=np.float64), band.unique_time)
+        if at.size and at.min() < 0:
+            raise MeasurementSetError(f"{band.ms}: TIME changed while it was being read; "
+                                      "run again when nothing else writes to the set")
+        time = group.astype(np.int32)[at]
         key = meta["ANTENNA1"].astype(np.int64) * band.n_ant + meta["ANTENNA2"]
         if which == "tgt":
             bl, swapped = self.tgt_pair_bl[key], None
