@@ -38,7 +38,7 @@ import numpy as np
 from ..errors import InputError, MeasurementSetError, OutputExistsError
 from ..io import read as msio
 from ..io.match import parse_antenna_map
-from .chunks import INDEX_COLUMNS, BandIndex, ChunkMatch, index_bands
+from .chunks import INDEX_COLUMNS, ROW_COLUMNS, BandIndex, ChunkMatch, index_bands
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -259,6 +259,12 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
                        antenna_map, time_tolerance)
     bounds = _chunk_bounds(match.time_counts(), int(chunk_rows))
     match.set_chunks(bounds)
+    if len(bounds) > 2:
+        # one dataset per band whose row blocks are the chunks, read by both passes; the
+        # robust trackers read reference context beyond each chunk, so not for them
+        match.use_chunk_datasets(bounds, {
+            "tgt": ROW_COLUMNS + tgt_cols,
+            **({"ref": ROW_COLUMNS + ref_cols} if tracker == "count" else {})})
     # every chunk's cells are checked (duplicates, matches, scans) before anything is written
     first_chunk = match.check(bounds)
     timings["match"] = time.perf_counter() - stage
@@ -344,7 +350,7 @@ def _run(ctx: Dict, started: float) -> Dict:
 
     from ..kernels import fpt
     from .offsets import choose_offset
-    from .chunks import ROW_COLUMNS, ChunkRows
+    from .chunks import ChunkRows
     from .transfer import Carry, group_inputs, plan_groups, transfer_group
 
     g = ctx
@@ -401,15 +407,22 @@ def _run(ctx: Dict, started: float) -> Dict:
         # the chunk's rows and their grid cells; the metadata is read with the data (or
         # reused from the checks when the whole track is one chunk)
         first = g["first_chunk"] if (n_chunks == 1 and (t_lo, t_hi) == (t0, t1)) else None
-        t_rows = first[0].rows if first else match.row_numbers("tgt", t0, t1)
-        r_rows = first[1].rows if first else match.row_numbers("ref", t_lo, t_hi)
-        t_read = list(tgt_cols) + ([] if first or match.tgt.whole else ROW_COLUMNS)
-        r_read = list(ref_read_cols) + ([] if first or match.ref.whole else ROW_COLUMNS)
+        ref_blocks = "ref" in match.blocks and (t_lo, t_hi) == (t0, t1) and \
+            set(ref_read_cols) <= set(match.blocks["ref"].columns)
+        t_rows = first[0].rows if first else match.chunk_rows("tgt", i, t0, t1)
+        r_rows = (first[1].rows if first else match.chunk_rows("ref", i, t0, t1) if ref_blocks
+                  else match.row_numbers("ref", t_lo, t_hi))
+        t_read = list(dict.fromkeys(list(tgt_cols) + ([] if first or match.tgt.whole
+                                                      else ROW_COLUMNS)))
+        r_read = list(dict.fromkeys(list(ref_read_cols) + ([] if first or match.ref.whole
+                                                            else ROW_COLUMNS)))
         whole_t = t_rows.size == match.tgt.n_row
         whole_r = r_rows.size == match.ref.n_row
         tgt, ref = msio.compute_columns(
-            [(g["tgt_ds"], list(dict.fromkeys(t_read)), None if whole_t else t_rows),
-             (g["ref_ds"], list(dict.fromkeys(r_read)), None if whole_r else r_rows)],
+            [match.chunk_request("tgt", i, t_rows, t_read) if "tgt" in match.blocks
+             else (g["tgt_ds"], t_read, None if whole_t else t_rows),
+             match.chunk_request("ref", i, r_rows, r_read) if ref_blocks
+             else (g["ref_ds"], r_read, None if whole_r else r_rows)],
             scheduler=io_scheduler)
         if first:
             t_idx, r_idx = first

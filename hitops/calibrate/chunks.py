@@ -213,6 +213,32 @@ def _merge_time_counts(known, known_counts, values, counts):
                                minlength=merged.size).astype(np.int64)
 
 
+class ChunkedBand:
+    """One band's rows in time-chunk order, as one dask-ms dataset whose row blocks are the chunks.
+
+    Both passes over a chunked track (the checks, then the data) read a
+    chunk as one aligned block of this dataset.  Row numbers are held only
+    for tables not in time order (8 bytes per row, as their TIME already is);
+    a time-ordered table's chunks are consecutive row ranges.
+    """
+
+    def __init__(self, band: "BandIndex", parts: List[np.ndarray], columns: List[str]):
+        sizes = np.array([p.size for p in parts], dtype=np.int64)
+        self.offsets = np.concatenate([[0], np.cumsum(sizes)])
+        order = np.concatenate(parts) if parts else np.zeros(0, np.int64)
+        in_order = order.size == band.n_row and bool(np.all(order == np.arange(order.size)))
+        self.order = None if in_order else order.astype(np.int64)
+        self.columns = list(columns)
+        self.ds = msio.open_main_blocks(band.ms, self.columns, sizes, rows=self.order)
+
+    def rows(self, k: int) -> np.ndarray:
+        a, b = int(self.offsets[k]), int(self.offsets[k + 1])
+        return np.arange(a, b, dtype=np.int64) if self.order is None else self.order[a:b]
+
+    def request(self, k: int, columns: List[str]):
+        return (self.ds, list(columns), slice(int(self.offsets[k]), int(self.offsets[k + 1])))
+
+
 @dataclass
 class ChunkRows:
     """One band's rows of a time chunk on the (baseline, time) grid."""
@@ -277,6 +303,7 @@ class ChunkMatch:
         self.scan_of_time = np.zeros(self.times.size, dtype=np.int64)
         self.n_matched = 0
         self.n_ref_unused = 0
+        self.blocks: Dict[str, ChunkedBand] = {}   # see use_chunk_datasets
 
     @property
     def n_bl(self) -> int:
@@ -306,11 +333,36 @@ class ChunkMatch:
                 los = [self._time_range(band, group, t0, t0 + 1)[0] for t0 in bounds[:-1]]
                 band.bucket(np.array(los + [np.inf]))
 
+    def use_chunk_datasets(self, bounds: List[int], columns: Dict[str, List[str]]) -> None:
+        """Read the bands named in ``columns`` ("tgt", "ref") through one chunk-ordered dataset each.
+
+        Only for several chunks without overlap (a band read with context
+        beyond its chunk keeps a dataset per read).  A band with a chunk that
+        holds none of its rows keeps them too (dask-ms reads no empty block).
+        """
+        for which, cols in columns.items():
+            parts = [self.row_numbers(which, t0, t1) for t0, t1 in zip(bounds[:-1], bounds[1:])]
+            if len(parts) > 1 and all(p.size for p in parts):
+                band = self.tgt if which == "tgt" else self.ref
+                self.blocks[which] = ChunkedBand(band, parts, list(dict.fromkeys(cols)))
+
     def time_counts(self) -> np.ndarray:
         """Rows of both bands per union time (for cutting chunks)."""
         return (np.bincount(self.tgt_group, weights=self.tgt.time_rows, minlength=self.n_time)
                 + np.bincount(self.ref_group, weights=self.ref.time_rows,
                               minlength=self.n_time)).astype(np.int64)
+
+    def chunk_rows(self, which: str, k: int, t0: int, t1: int) -> np.ndarray:
+        """Row numbers of chunk ``k`` (union times [t0, t1)) of a band, ascending."""
+        if which in self.blocks:
+            return self.blocks[which].rows(k)
+        return self.row_numbers(which, t0, t1)
+
+    def chunk_request(self, which: str, k: int, rows: np.ndarray, columns: List[str]):
+        """A :func:`hitops.io.read.compute_columns` request for chunk ``k``'s ``columns``."""
+        if which in self.blocks:
+            return self.blocks[which].request(k, columns)
+        return (self.tgt.ds if which == "tgt" else self.ref.ds, list(columns), rows)
 
     def read_meta(self, which, rows, columns, scheduler=None):
         band = self.tgt if which == "tgt" else self.ref
@@ -344,15 +396,16 @@ class ChunkMatch:
         """
         kept = None
         cols = ["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER"]
-        for t0, t1 in zip(bounds[:-1], bounds[1:]):
-            t_rows = self.row_numbers("tgt", t0, t1)
-            r_rows = self.row_numbers("ref", t0, t1)
+        for k, (t0, t1) in enumerate(zip(bounds[:-1], bounds[1:])):
+            t_rows = self.chunk_rows("tgt", k, t0, t1)
+            r_rows = self.chunk_rows("ref", k, t0, t1)
             if self.tgt.whole is not None and self.ref.whole is not None:
                 t_meta = self.read_meta("tgt", t_rows, ROW_COLUMNS)
                 r_meta = self.read_meta("ref", r_rows, ROW_COLUMNS)
             else:
                 t_meta, r_meta = msio.compute_columns(
-                    [(self.tgt.ds, cols, t_rows), (self.ref.ds, cols, r_rows)], scheduler)
+                    [self.chunk_request("tgt", k, t_rows, cols),
+                     self.chunk_request("ref", k, r_rows, cols)], scheduler)
             tgt = self.index_rows("tgt", t_rows, t_meta)
             ref = self.index_rows("ref", r_rows, r_meta)
             self._check_chunk(tgt, ref, t0, t1)
