@@ -28,42 +28,18 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
-import numba
 import numpy as np
 
 from ..errors import MeasurementSetError
 from ..io import read as msio
 from ..io.layout import unique_times
 from ..io.match import BandRows, correlation_map, distinct_counts, distinct_ints, pair_antennas
-from ..kernels.sorted_runs import lookup_sorted
 from ..io.ms_create import CORR_NAMES
 
 #: per-row columns read in the first (index) pass
 INDEX_COLUMNS = ["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER", "INTERVAL", "FLAG_ROW"]
 #: per-row columns a chunk needs
 ROW_COLUMNS = ["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER", "FLAG_ROW"]
-
-
-@numba.njit(cache=True, nogil=True)
-def _bucket_rows(time, edges):
-    """Rows grouped by time bucket [edges[k], edges[k+1]), ascending within each.
-
-    Returns (order, start): bucket k's rows are order[start[k]:start[k+1]].
-    One counting pass and one filling pass, int32 row numbers (4 bytes per row).
-    """
-    n_bucket = edges.size - 1
-    bucket = np.searchsorted(edges, time, side="right") - 1
-    start = np.zeros(n_bucket + 1, dtype=np.int64)
-    for i in range(time.size):
-        start[bucket[i] + 1] += 1
-    for k in range(n_bucket):
-        start[k + 1] += start[k]
-    fill = start[:-1].copy()
-    order = np.empty(time.size, dtype=np.int32)
-    for i in range(time.size):
-        order[fill[bucket[i]]] = i
-        fill[bucket[i]] += 1
-    return order, start
 
 
 @dataclass
@@ -79,7 +55,7 @@ class BandIndex:
     last_time: float = -np.inf
     time_unsorted_from: int = 0           # first row whose block was kept in ``time``
     bucket_edges: np.ndarray = None       # unsorted tables: TIME edges of the chunks
-    bucket_order: np.ndarray = None       # ... their rows (int32), see _bucket_rows
+    bucket_order: np.ndarray = None       # ... their rows (int32), see kernels.sorted_runs.bucket_rows
     bucket_start: np.ndarray = None
     unique_time: np.ndarray = None        # sorted distinct TIME values
     time_rows: np.ndarray = None          # rows at each distinct TIME value
@@ -108,11 +84,12 @@ class BandIndex:
         """Group the rows of a table not in time order by chunk, once (O(n_row))."""
         if not self.time_sorted:
             self.bucket_edges = np.asarray(edges, dtype=np.float64)
-            self.bucket_order, self.bucket_start = _bucket_rows(self.time, self.bucket_edges)
+            from ..kernels.sorted_runs import bucket_rows
+            self.bucket_order, self.bucket_start = bucket_rows(self.time, self.bucket_edges)
 
 
 def index_bands(bands: List[BandIndex], columns: List[List[str]], block_rows: int,
-                scheduler=None, read_log: Optional[list] = None) -> None:
+                scheduler=None) -> None:
     """Fill each :class:`BandIndex` from blocks of at most ``block_rows`` rows.
 
     Blocks of both bands are read in one dask call (the tables concurrently).
@@ -374,6 +351,8 @@ class ChunkMatch:
 
     def index_rows(self, which, rows, meta) -> ChunkRows:
         band, group = (self.tgt, self.tgt_group) if which == "tgt" else (self.ref, self.ref_group)
+        from ..kernels.sorted_runs import lookup_sorted
+
         # every TIME is one of the band's distinct times (read from the same column)
         at = lookup_sorted(np.ascontiguousarray(meta["TIME"], dtype=np.float64), band.unique_time)
         if at.size and at.min() < 0:

@@ -51,7 +51,6 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from ..errors import InputError, StationError
-from .transfer import scan_segments
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -528,6 +527,7 @@ class ReferenceTracker:
         jump = np.zeros((self.n_bl, self.n_corr, n_ext))
         unmodelled = np.zeros_like(suspect)
         ant = {}
+        from .transfer import scan_segments   # imports the numba kernels (not at start-up)
         for a, b, _ in scan_segments(scan):
             pos = self.pos[t_lo + a:t_lo + b] - self.pos[t_lo + a]
             length = int(pos[-1]) + 1

@@ -7,7 +7,9 @@ how many rows each" and "where is each row's time in the list of distinct
 times" sort or binary-search every row (np.unique, np.searchsorted: 40-80 ms
 per 1.2 M rows here); walking the runs against the sorted list is linear.
 Shuffled columns (many short runs) fall back to NumPy, see
-:func:`hitops.io.match.distinct_counts`.
+:func:`hitops.io.match.distinct_counts`.  :func:`bucket_rows` groups the rows
+of a table not in time order by time chunk, once, so that each chunk's rows
+are found without a search over the whole column.
 """
 
 from __future__ import annotations
@@ -121,3 +123,25 @@ def lookup_sorted(values, table):
             out[i] = -1
             j = min(hi, n_table - 1)
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def bucket_rows(time, edges):
+    """Rows grouped by time bucket [edges[k], edges[k+1]), ascending within each.
+
+    Returns (order, start): bucket k's rows are order[start[k]:start[k+1]].
+    One counting pass and one filling pass, int32 row numbers (4 bytes per row).
+    """
+    n_bucket = edges.size - 1
+    bucket = np.searchsorted(edges, time, side="right") - 1
+    start = np.zeros(n_bucket + 1, dtype=np.int64)
+    for i in range(time.size):
+        start[bucket[i] + 1] += 1
+    for k in range(n_bucket):
+        start[k + 1] += start[k]
+    fill = start[:-1].copy()
+    order = np.empty(time.size, dtype=np.int32)
+    for i in range(time.size):
+        order[fill[bucket[i]]] = i
+        fill[bucket[i]] += 1
+    return order, start
