@@ -52,6 +52,7 @@ def make_pair(directory, *, n_ant: int = 4, n_time: int = 300, dt: float = 1.0,
               target_names: Optional[Sequence[str]] = None,
               t0: float = 5.1e9, seed: int = 0, phase_offset_rad: float = 0.0,
               shuffle_ref: bool = False, shuffle_target: bool = False,
+              time_order: bool = False,
               swap_ref_baselines: Sequence[int] = (), ref_time_shift: float = 0.0,
               ref_name: str = "ref.ms", target_name: str = "target.ms") -> PairTruth:
     """Write ``ref.ms`` and ``target.ms`` under ``directory``; return the truth.
@@ -64,6 +65,8 @@ def make_pair(directory, *, n_ant: int = 4, n_time: int = 300, dt: float = 1.0,
     antenna phase at the reference band, so that baselines start at
     different wrap counts (n0 != 0);
     ``shuffle_ref``/``shuffle_target``: store the rows in random order;
+    ``time_order``: store the rows of both bands sorted by time (as correlators
+    write them) rather than baseline by baseline;
     ``swap_ref_baselines``: baseline indices whose reference rows are stored
     with the antenna order reversed (visibility conjugated, RL <-> LR);
     ``ref_time_shift``: seconds added to the reference TIME column.
@@ -114,8 +117,9 @@ def make_pair(directory, *, n_ant: int = 4, n_time: int = 300, dt: float = 1.0,
         reverse = [list(corr_types).index(c[::-1]) for c in corr_types]
         r_ant1[swap], r_ant2[swap] = ant2[swap], ant1[swap]
         r_vis[swap] = np.conj(ref_vis[swap][:, reverse])
-    ref_order = rng.permutation(n_row) if shuffle_ref else np.arange(n_row)
-    tgt_order = rng.permutation(n_row) if shuffle_target else np.arange(n_row)
+    stored = np.argsort(time, kind="stable") if time_order else np.arange(n_row)
+    ref_order = rng.permutation(n_row) if shuffle_ref else stored
+    tgt_order = rng.permutation(n_row) if shuffle_target else stored
 
     def columns(order, a1_, a2_, vis, shift=0.0):
         return dict(TIME=time[order] + shift, ANTENNA1=a1_[order], ANTENNA2=a2_[order],
