@@ -375,6 +375,62 @@ def test_distributed_local_cluster_gives_identical_output(tmp_path):
     assert report["rows"]["matched"] == truth.time.size
 
 
+@pytest.mark.slow
+def test_command_line_with_a_cluster_creates_new_columns_first(tmp_path):
+    """The command line in its own process, a cluster in this one, a target set without
+    the output column: the scheduler and workers hold the table open from the reads,
+    so the column must exist before they do (once, this run hung)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from distributed import LocalCluster
+
+    truth = make_pair(tmp_path, n_time=200, seed=31, n_scans=2)
+    with pt.table(str(truth.target_ms), readonly=False, ack=False) as t:
+        flag = t.getcol("FLAG")
+        flag[::9, 0, 0] = True
+        t.putcol("FLAG", flag)
+    threads_dir = tmp_path / "threads"
+    threads_dir.mkdir()
+    threads_ms = threads_dir / "target.ms"
+    import shutil
+    shutil.copytree(truth.target_ms, threads_ms)
+    calibrate(truth.ref_ms, threads_ms, method="pwc,cfpt")
+    hitops = Path(sys.executable).with_name("hitops")
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster:
+        proc = subprocess.run([str(hitops), "calibrate", str(truth.ref_ms), str(truth.target_ms),
+                               "--method", "pwc,cfpt", "--scheduler", cluster.scheduler_address],
+                              capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr
+    assert "before sending work to the cluster" in proc.stderr
+    for c in ("PWC_DATA", "CFPT_DATA", "FLAG"):
+        assert np.array_equal(col(truth.target_ms, c), col(threads_ms, c)), c
+    assert np.array_equal(col(truth.target_ms, "FLAG_HITOPS_BACKUP"), flag)
+
+
+def test_cluster_run_that_fails_drops_the_columns_it_created(tmp_path, monkeypatch):
+    import hitops.io.read as msio
+    from distributed import LocalCluster
+
+    truth = make_pair(tmp_path, n_time=100, seed=32)
+    before = {c: col(truth.target_ms, c) for c in ("DATA", "FLAG")}
+
+    def failing(*args, **kwargs):
+        raise OSError("disk full (simulated)")
+
+    monkeypatch.setattr(msio, "write_main_columns", failing)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                      dashboard_address=None) as cluster:
+        with pytest.raises(OSError, match="simulated"):
+            calibrate(truth.ref_ms, truth.target_ms, scheduler=cluster.scheduler_address)
+    with pt.table(str(truth.target_ms), ack=False) as t:
+        assert "PWC_DATA" not in t.colnames() and "FLAG_HITOPS_BACKUP" not in t.colnames()
+    for c, value in before.items():
+        assert np.array_equal(col(truth.target_ms, c), value), c
+
+
 def test_all_reference_flagged_flags_everything_without_failing(tmp_path):
     truth = make_pair(tmp_path, n_time=50, seed=15)
     with pt.table(str(truth.ref_ms), readonly=False, ack=False) as t:

@@ -349,7 +349,6 @@ def _run(ctx: Dict, started: float) -> Dict:
     import dask
 
     from ..kernels import fpt
-    from .offsets import choose_offset
     from .chunks import ChunkRows
     from .transfer import Carry, group_inputs, plan_groups, transfer_group
 
@@ -375,7 +374,7 @@ def _run(ctx: Dict, started: float) -> Dict:
 
     ref_cols, tgt_cols = g["ref_cols"], g["tgt_cols"]
     setup = g["tracking_setup"]
-    from .robust import SEGMENT_KEY, ReferenceTracker, apply_segment_offsets, gather_grid
+    from .robust import ReferenceTracker, apply_segment_offsets, gather_grid
     ref_read_cols = list(ref_cols)
     if setup is not None and setup.snr_source in ("sigma", "weight"):
         ref_read_cols.append(setup.snr_source.upper())
@@ -579,7 +578,78 @@ def _run(ctx: Dict, started: float) -> Dict:
     state["backup_created"] = FLAG_BACKUP not in present
     g["_backup_needed"] = FLAG_BACKUP not in present
     g["_n_chunks"] = n_chunks
+    if client is not None and (state["created"] or state["backup_created"]):
+        _create_columns_for_cluster(g, state)
+    try:
+        offsets, offset_report = _offset_pass(g, run_pass, codes, n_corr, n_scan)
+    except BaseException:
+        if client is not None:   # the columns made above are dropped again
+            _rollback(g)
+        raise
+    try:
+        # robust trackers: offsets stays zero, the per-segment k goes into the counts
+        totals, wrap_events, _, _ = run_pass(offsets, write=True, segment_k=g.get("_segment_k"))
+    except BaseException:
+        _rollback(g)
+        raise
+    return _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, state,
+                   started, n_chunks)
 
+
+def _create_columns_for_cluster(g: Dict, state: Dict) -> None:
+    """Create the output columns and the FLAG backup before any graph goes to a cluster.
+
+    dask-ms adds a missing column while it builds the write graph, in this
+    process; a dask.distributed scheduler and its workers still hold the table
+    open from the reads, with the old column list, and casacore then refuses to
+    open it again ("another process changed the number of columns"), which left
+    the run hanging.  Made here, the columns exist before the cluster opens the
+    table; a failure later drops them again (:func:`_rollback`).  The backup
+    copies FLAG whole (in blocks of --chunk-rows rows).
+    """
+    from casacore import tables as pt
+
+    target_ms = g["target_ms"]
+    with pt.table(target_ms, readonly=False, ack=False) as t:
+        t.lock(write=True)
+        n_row = t.nrows()
+        new = [(c, g["target_column"]) for c in state["created"]]
+        if state["backup_created"]:
+            new.append((FLAG_BACKUP, "FLAG"))
+        for name, like in new:
+            desc = t.getcoldesc(like)
+            desc["name"] = name
+            t.addcols(pt.makecoldesc(name, desc), _like_dminfo(t.getdminfo(like), name))
+        if state["backup_created"]:
+            step = max(1, int(g["chunk_rows"]))
+            for start in range(0, n_row, step):
+                nrow = min(step, n_row - start)
+                t.putcol(FLAG_BACKUP, t.getcol("FLAG", start, nrow), start, nrow)
+    if state["backup_created"]:
+        g["_backup_needed"] = False
+        state["backup_written"] = True
+        state["backup_rows"] = [np.arange(n_row, dtype=np.int64)]
+    log.info("created %s in %s before sending work to the cluster",
+             ", ".join(n for n, _ in new), target_ms)
+
+
+def _like_dminfo(dminfo: Dict, name: str) -> Dict:
+    """A data manager of the same kind as ``dminfo`` (a column's) for new column ``name``."""
+    kind = dminfo.get("TYPE", "StandardStMan")
+    spec = dminfo.get("SPEC", {})
+    if kind.startswith("Tiled"):
+        keep = {"DEFAULTTILESHAPE": spec["DEFAULTTILESHAPE"]} if "DEFAULTTILESHAPE" in spec else {}
+        return {"TYPE": "TiledShapeStMan", "NAME": f"{name}_TSM", "SPEC": keep}
+    return {"TYPE": "StandardStMan", "NAME": f"{name}_SSM", "SPEC": {}}
+
+
+def _offset_pass(g, run_pass, codes, n_corr, n_scan):
+    """The n0 offset step's first pass (``--offset-reference-column``); (offsets, report)."""
+    from ..kernels import fpt
+    from .offsets import choose_offset
+    from .robust import SEGMENT_KEY
+
+    match, eps, off_col, setup = g["match"], g["eps"], g["offset_reference_column"], g["tracking_setup"]
     offsets = None
     offset_report = []
     if off_col and fpt.PWC not in codes and fpt.CWU not in codes:
@@ -644,13 +714,15 @@ def _run(ctx: Dict, started: float) -> Dict:
                      ", ".join(f"{e['baseline']} {e['correlation']} s{e['scan']}"
                                + (f"/{e['segment']}" if "segment" in e else "") + f": {e['k']}"
                                for e in chosen[:12]) + (" ..." if len(chosen) > 12 else ""))
-    try:
-        # robust trackers: offsets stays zero, the per-segment k goes into the counts
-        totals, wrap_events, _, _ = run_pass(offsets, write=True, segment_k=g.get("_segment_k"))
-    except BaseException:
-        _rollback(g)
-        raise
+    return offsets, offset_report
 
+
+def _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, state, started,
+            n_chunks):
+    """The log lines and the JSON report of a finished run."""
+    match, methods, outputs = g["match"], g["methods"], g["outputs"]
+    ref_ms, target_ms, eps = g["ref_ms"], g["target_ms"], g["eps"]
+    off_col, timings = g["offset_reference_column"], g["timings"]
     elapsed = time.perf_counter() - started
     n_samples = totals["n_samples"]
     flagged = totals["no_reference_row"] + totals["target_invalid"] + totals["reference_invalid"]
@@ -671,7 +743,7 @@ def _run(ctx: Dict, started: float) -> Dict:
         _log_tracking(tracking_report, setup, resolved)
     report = {
         "ref_ms": ref_ms, "target_ms": target_ms, "methods": methods, "columns": outputs,
-        "ratio": ratio, "r": g["r"], "eps": eps, "ratio_source": g["source"],
+        "ratio": g["ratio"], "r": g["r"], "eps": eps, "ratio_source": g["source"],
         "time_tolerance_s": match.tolerance, "tracker": g["tracker"], "chunks": n_chunks,
         "tracking": tracking_report if tracking_report is not None else {
             "setup": {"tracker": "count"},

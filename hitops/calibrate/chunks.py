@@ -202,15 +202,23 @@ class ChunkedBand:
     def __init__(self, band: "BandIndex", parts: List[np.ndarray], columns: List[str]):
         sizes = np.array([p.size for p in parts], dtype=np.int64)
         self.offsets = np.concatenate([[0], np.cumsum(sizes)])
-        order = np.concatenate(parts) if parts else np.zeros(0, np.int64)
-        in_order = order.size == band.n_row and bool(np.all(order == np.arange(order.size)))
-        self.order = None if in_order else order.astype(np.int64)
+        if (band.bucket_order is not None and band.bucket_start.size == sizes.size + 1
+                and np.array_equal(np.diff(band.bucket_start), sizes)):
+            # a table not in time order: its rows were already bucketed by chunk (int32,
+            # ascending within each bucket), and those buckets are the parts
+            self.order = band.bucket_order
+        else:
+            order = np.concatenate(parts) if parts else np.zeros(0, np.int64)
+            in_order = order.size == band.n_row and bool(np.all(order == np.arange(order.size)))
+            self.order = None if in_order else order.astype(np.int64)
         self.columns = list(columns)
         self.ds = msio.open_main_blocks(band.ms, self.columns, sizes, rows=self.order)
 
     def rows(self, k: int) -> np.ndarray:
         a, b = int(self.offsets[k]), int(self.offsets[k + 1])
-        return np.arange(a, b, dtype=np.int64) if self.order is None else self.order[a:b]
+        if self.order is None:
+            return np.arange(a, b, dtype=np.int64)
+        return self.order[a:b].astype(np.int64)
 
     def request(self, k: int, columns: List[str]):
         return (self.ds, list(columns), slice(int(self.offsets[k]), int(self.offsets[k + 1])))

@@ -143,14 +143,32 @@ def _storage_order_dataset(ms: str, columns: List[str], chunk_rows,
                 # the rows dask-ms's query returns for no index_cols and no where clause
                 order = da.arange(n_row, chunks=chunks, dtype=np.int64)
             else:
-                order = da.from_array(np.asarray(rows, dtype=np.int64),
-                                      chunks=self.chunks[0]["row"])
+                order = _blocks_of(np.asarray(rows), self.chunks[0]["row"])
             row_runs = order.map_blocks(row_run_factory, sort_dir="read", dtype=object)
             return self._single_dataset(table_proxy, (order, row_runs))
 
     # the keyword arguments xds_from_ms passes for a Measurement Set main table
     return _StorageOrderFactory(ms, columns, [], [], chunks={"row": chunk_rows},
                                 table_schema="MS", context="ms").datasets()
+
+
+def _blocks_of(rows: np.ndarray, chunks) -> "dask.array.Array":
+    """int64 dask array of ``rows`` whose blocks are views of it, converted block by block.
+
+    ``da.from_array`` would copy and hash the whole array; a chunked run's row
+    numbers (int32 for tables not in time order) stay one array in memory.
+    """
+    import uuid
+
+    import dask.array as da
+    from dask.array.core import normalize_chunks
+
+    (sizes,) = normalize_chunks(chunks, shape=rows.shape)
+    name = f"hitops-rows-{uuid.uuid4().hex}"
+    edges = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    graph = {(name, k): rows[edges[k]:edges[k + 1]] for k in range(len(sizes))}
+    blocks = da.Array(graph, name, chunks=(tuple(sizes),), dtype=rows.dtype)
+    return blocks if rows.dtype == np.int64 else blocks.astype(np.int64)
 
 
 def _take_rows(array, rows: Optional[np.ndarray]):
