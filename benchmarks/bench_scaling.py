@@ -384,7 +384,7 @@ wall times are upper bounds); whole benchmark {total / 60:.0f} min
 Growth exponents (wall ~ rows^k): k = {e_wall[0]:.2f} over all points, {e_wall[1]:.2f}
 between the two largest; peak RSS ~ rows^{e_rss[0]:.2f} ({e_rss[1]:.2f} between the two
 largest) with the default chunk of 2 000 000 rows, and ~ rows^{e_chunk[0]:.2f}
-({e_chunk[1]:.2f}) with --chunk-rows {CHUNK_ROWS:,}.  The fixed start-up cost (~1.2 s, see
+({e_chunk[1]:.2f}) with --chunk-rows {CHUNK_ROWS:,}.  The fixed start-up cost (about 0.7 s, see
 the calibrate section) dominates below 10^6 rows, which is why the ratio to the I/O
 floor falls as the data grow (at 10^7 rows calibrate is within {big_ratio:.1f}x the issue's
 floor).

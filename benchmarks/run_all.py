@@ -8,6 +8,7 @@ docs/performance.md.  Pass module names to run a subset:
 from __future__ import annotations
 
 import importlib
+import inspect
 import sys
 import time
 from pathlib import Path
@@ -20,7 +21,8 @@ def main(argv=None) -> int:
         module = importlib.import_module(f"benchmarks.bench_{name}")
         print(f"== benchmark {name}", flush=True)
         t0 = time.perf_counter()
-        module.main()
+        # each benchmark with its defaults (run_all's own arguments are not for them)
+        module.main(*([[]] if inspect.signature(module.main).parameters else []))
         print(f"== {name} done in {time.perf_counter() - t0:.0f} s", flush=True)
     return 0
 
