@@ -84,6 +84,10 @@ def lean_start(numba_target: bool = True) -> list:
             # first kernel call; doing it here keeps the probe inside the hidden block
             from numba.core.registry import cpu_target
             cpu_target.target_context.refresh()
+    # the ~120 000 objects the imports made live as long as the process: moved out of the
+    # collector's way, a full collection (and the table scan of fast_exit) takes ~2 ms
+    # instead of ~100 ms (measured after a paper-size calibrate)
+    gc.freeze()
     return hid
 
 

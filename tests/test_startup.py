@@ -28,6 +28,8 @@ def test_lean_start_skips_scipy_then_lets_it_be_imported():
         print("dask", float(dask.array.ones(4, chunks=2).sum().compute()))
         import scipy.linalg
         print("scipy importable", scipy.linalg.__name__)
+        import gc
+        print("imports frozen", gc.get_freeze_count() > 10000)
     """)
     assert proc.returncode == 0, proc.stderr
     out = proc.stdout
@@ -36,6 +38,7 @@ def test_lean_start_skips_scipy_then_lets_it_be_imported():
     assert "wraps [0, -1, -1, 0]" in out   # a step down across +-pi, then back up
     assert "dask 4.0" in out
     assert "scipy importable scipy.linalg" in out
+    assert "imports frozen True" in out
 
 
 def test_lean_start_leaves_an_imported_scipy_alone():
@@ -57,6 +60,8 @@ def test_fast_exit_flushes_open_tables_and_streams(tmp_path):
         import sys
         from casacore import tables as pt
         from hitops.startup import fast_exit
+        from hitops.startup import lean_start
+        lean_start(numba_target=False)   # tables opened after the freeze are still found
         t = pt.table({str(path)!r}, readonly=False, ack=False)
         t.putcol("X", [1.5, 2.5, 3.5])        # left open: only fast_exit can flush it
         keep = [t]
