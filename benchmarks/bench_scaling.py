@@ -428,8 +428,11 @@ wall ~ stations^{e_sim_st[0]:.2f} ({e_sim_st[1]:.2f} between 16 and 30).
 
 calibrate's workers are dask's threaded scheduler (`DASK_NUM_WORKERS`), simulate's
 `--threads`.  On a 2-core machine shared with other jobs the second worker can help
-only the parts that run in parallel (numba kernels release the GIL; casacore I/O
-does not).
+only the parts that run in parallel: the numba kernels release the GIL, and so does
+casacore while it reads (a thread reading DATA and one running Python took the time of
+the longer of the two, measured), but on a 10^6-row scene the kernels take ~0.2 s of a
+~1.5 s process, so one or two workers differ by less than this machine's run-to-run
+spread (repeated by hand: 1.4-3.2 s with one thread, 1.6-2.1 s with two).
 
 ![scaling]({fig.relative_to(PLOT_DIR.parent)})
 """
