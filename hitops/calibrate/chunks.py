@@ -194,9 +194,10 @@ class ChunkedBand:
     """One band's rows in time-chunk order, as one dask-ms dataset whose row blocks are the chunks.
 
     Both passes over a chunked track (the checks, then the data) read a
-    chunk as one aligned block of this dataset.  Row numbers are held only
-    for tables not in time order (8 bytes per row, as their TIME already is);
-    a time-ordered table's chunks are consecutive row ranges.
+    chunk as one aligned block of this dataset.  A time-ordered table's chunks
+    are consecutive row ranges (no row numbers held); a table not in time order
+    reuses its int32 chunk buckets (:meth:`BandIndex.bucket`), so no per-row
+    array is added.
     """
 
     def __init__(self, band: "BandIndex", parts: List[np.ndarray], columns: List[str]):
