@@ -16,7 +16,7 @@ import time as _time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, Optional
+from typing import Dict, List, Optional
 
 import numpy as np
 
@@ -44,6 +44,8 @@ class Observation:
     ant2: np.ndarray           # (n_row,) int32
     uvw: np.ndarray            # (n_row, 3) m, uvw[ant1] - uvw[ant2] (see geometry.py)
     phase_ref: np.ndarray      # (n_station, n_time) troposphere phase at the coherence frequency
+    coherence_time: Optional[np.ndarray] = None   # (n_station, n_time) zenith t_c used (s), at nu0
+    weather: Optional[List] = None                # per station: StationWeather or None
 
 
 def output_paths(outdir: str | Path, prefix: str, scene: Scene, save_truth: bool) -> Dict[str, Path]:
@@ -81,18 +83,76 @@ def observe(scene: Scene) -> Observation:
     uvw = station_uvw[ant1, time_index] - station_uvw[ant2, time_index]
 
     n_time = times.size
+    weather = station_weathers(scene, times)
+    t_c = coherence_times(scene, weather, n_time)
     if scene.troposphere:
         rng = np.random.default_rng(np.random.SeedSequence([scene.seed, 1]))
         # airmass of the turbulent layer, floored at the station's elevation limit
         # (phases below the limit are never observed; they only carry the walk on)
+        # and at the scene's airmass floor
         floor_el = np.maximum(elevation, limits[:, None])
+        if scene.airmass_elevation_floor is not None:
+            floor_el = np.maximum(floor_el, np.radians(scene.airmass_elevation_floor))
         air = noise_mod.airmass(floor_el)
         first_up = np.where(up.any(axis=1), up.argmax(axis=1), 0)
-        t_c = np.array([s.coherence_time for s in scene.stations]) * scene.coherence_scale
         phase_ref = troposphere.station_phases(n_time, scene.integration, t_c, air, first_up, rng)
     else:
         phase_ref = np.zeros((n_station, n_time))
-    return Observation(times, scan, elevation, station_uvw, time_index, ant1, ant2, uvw, phase_ref)
+    return Observation(times, scan, elevation, station_uvw, time_index, ant1, ant2, uvw, phase_ref,
+                       t_c, weather)
+
+
+def station_weathers(scene: Scene, times: np.ndarray) -> List:
+    """Each station's MERRA-2 weather on the time grid (None where the scene gives none).
+
+    Raises :class:`hitops.weather.WeatherError` (before anything is written) when
+    the tables cannot give a station's date, month or band.
+    """
+    from ..weather import station_weather
+    from ..weather.tables import MJD_EPOCH
+
+    out = []
+    start_date = (MJD_EPOCH.toordinal() + int(times.min() // 86400)) if times.size else None
+    for station in scene.stations:
+        spec = station.weather
+        if spec is None:
+            out.append(None)
+            continue
+        date = spec.date
+        if date is None and spec.month is None:
+            import datetime as _dt
+
+            date = _dt.date.fromordinal(start_date).isoformat()
+        bands = [(b.name, b.freq_hz) for b in scene.bands if b.name in spec.bands]
+        w = station_weather(station.code, bands, times, site=spec.site, date=date,
+                            year=spec.year, month=spec.month, statistic=spec.statistic,
+                            fallback=spec.fallback)
+        out.append(w)
+        values = ", ".join(f"tau{b} {np.median(w.tau[b]):.3f} Tb{b} {np.median(w.tb[b]):.1f} K"
+                           for b in w.tau)
+        log.info("weather %s: %s; median %s; wind %.1f m/s%s", station.code, w.description,
+                 values or "(opacities given in the scene)", float(np.median(w.wind)),
+                 "" if spec.coherence else " (coherence time given in the scene)")
+    return out
+
+
+def coherence_times(scene: Scene, weather: List, n_time: int) -> np.ndarray:
+    """Zenith t_c (s) at the coherence frequency per station and time (n_station, n_time).
+
+    Stations with weather-driven coherence: t_c(230 GHz) = r0 / wind, scaled to
+    the coherence frequency as nu^(-6/5); the others keep their scene value.
+    """
+    from ..weather.tables import MIN_WIND
+
+    t_c = np.empty((len(scene.stations), n_time))
+    for i, station in enumerate(scene.stations):
+        w, spec = weather[i], station.weather
+        if w is not None and spec.coherence:
+            r0 = spec.r0 * (scene.coherence_freq_hz / 230e9) ** (-6.0 / 5.0)
+            t_c[i] = r0 / np.maximum(w.wind, MIN_WIND)
+        else:
+            t_c[i] = station.coherence_time
+    return t_c * scene.coherence_scale
 
 
 def model_visibilities(scene: Scene, band_index: int, uvw: np.ndarray) -> np.ndarray:
@@ -127,15 +187,32 @@ def model_visibilities(scene: Scene, band_index: int, uvw: np.ndarray) -> np.nda
 def band_sigma(scene: Scene, band_index: int, obs: Observation) -> np.ndarray:
     """Per-row noise rms (Jy) of each of the real and imaginary parts."""
     band = scene.bands[band_index]
-    air = noise_mod.airmass(obs.elevation)
+    elevation = obs.elevation
+    if scene.airmass_elevation_floor is not None:
+        elevation = np.maximum(elevation, np.radians(scene.airmass_elevation_floor))
+    air = noise_mod.airmass(elevation)
     sefd = np.empty_like(obs.elevation)
     for i, station in enumerate(scene.stations):
         sb = station.bands[band.name]
-        t_sys = noise_mod.system_temperature(sb.t_rx, sb.t_atm, sb.tau, air[i])
+        tau, t_atm = station_opacity(scene, obs, i, band.name)
+        t_sys = noise_mod.system_temperature(sb.t_rx, t_atm, tau, air[i])
         sefd[i] = noise_mod.sefd(t_sys, station.diameter, sb.aperture_efficiency)
     return noise_mod.baseline_sigma(sefd[obs.ant1, obs.time_index], sefd[obs.ant2, obs.time_index],
                                     band.bandwidth_hz, scene.integration,
                                     scene.quantisation_efficiency)
+
+
+def station_opacity(scene: Scene, obs: Observation, index: int, band_name: str):
+    """(zenith opacity, T_atm) of a station in a band: arrays over time from the weather
+    (T_atm = Tb / (1 - exp(-tau)), so the zenith sky temperature is the tabulated Tb),
+    else the scene's scalars."""
+    w = obs.weather[index] if obs.weather else None
+    if w is not None and band_name in w.tau:
+        from ..weather import effective_temperature
+
+        return w.tau[band_name], effective_temperature(w.tau[band_name], w.tb[band_name])
+    sb = scene.stations[index].bands[band_name]
+    return sb.tau, sb.t_atm
 
 
 def band_phase(scene: Scene, band_index: int, obs: Observation) -> np.ndarray:
@@ -196,12 +273,31 @@ def write_truth(scene: Scene, obs: Observation, path: Path) -> None:
         "bands": np.array([b.name for b in scene.bands]),
         "freq_hz": np.array([b.freq_hz for b in scene.bands]),
         "elevation": obs.elevation,
-        "coherence_time": np.array([s.coherence_time * scene.coherence_scale
-                                    for s in scene.stations]),
+        "coherence_time": (np.median(obs.coherence_time, axis=1) if obs.coherence_time is not None
+                           else np.array([s.coherence_time * scene.coherence_scale
+                                          for s in scene.stations])),
         "coherence_freq_hz": np.float64(scene.coherence_freq_hz),
         "convention": np.array("V_pq = V_model * exp(i*(phase[p] - phase[q])), "
                                "p = ANTENNA1, q = ANTENNA2; radians, unwrapped"),
     }
+    # the weather actually used, per station and time (float32: values, not bit patterns)
+    n_time = obs.times.size
+    if obs.coherence_time is not None:
+        arrays["coherence_time_series"] = obs.coherence_time.astype(np.float32)
+    arrays["weather_source"] = np.array([w.description if w is not None else "scene values"
+                                         for w in (obs.weather or [None] * len(scene.stations))])
+    arrays["wind"] = np.array([w.wind if w is not None else np.full(n_time, np.nan)
+                               for w in (obs.weather or [None] * len(scene.stations))],
+                              dtype=np.float32)
+    for band in scene.bands:
+        taus, tskies = [], []
+        for i in range(len(scene.stations)):
+            tau, t_atm = station_opacity(scene, obs, i, band.name)
+            tau = np.broadcast_to(np.asarray(tau, dtype=np.float64), (n_time,))
+            taus.append(tau)
+            tskies.append(np.asarray(t_atm) * -np.expm1(-tau))
+        arrays[f"tau_{band.name}"] = np.array(taus, dtype=np.float32)
+        arrays[f"tsky_{band.name}"] = np.array(tskies, dtype=np.float32)
     for i, band in enumerate(scene.bands):
         arrays[f"phase_{band.name}"] = band_phase(scene, i, obs)
         arrays[f"antenna_names_{band.name}"] = np.array(

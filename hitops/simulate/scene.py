@@ -21,7 +21,11 @@ import yaml
 
 from ..errors import SceneError
 
-PACKAGED_SCENES = ("paper", "demo")
+PACKAGED_SCENES = ("paper", "demo", "triband")
+#: default phase coherence length at 230 GHz (m) turning a wind speed into t_c = r0 / v
+#: (10 m/s gives 10 s, the typical EHT value at 230 GHz; see docs/simulate.md)
+DEFAULT_R0_230 = 100.0
+WEATHER_KEYS = ("source", "site", "date", "year", "month", "statistic", "fallback", "r0")
 VALID_CORRELATIONS = ("RR", "RL", "LR", "LL", "XX", "XY", "YX", "YY")
 
 #: approximate zenith opacity from precipitable water vapour, tau = dry + wet * PWV.
@@ -44,6 +48,22 @@ class StationBand:
 
 
 @dataclass(frozen=True)
+class WeatherSpec:
+    """Where a station's weather comes from (``weather:`` in the scene or the station)."""
+
+    source: str              # 'merra2'
+    site: str                # site name or station code asked for (a proxy is resolved later)
+    date: Optional[str]      # ISO date the observation's first day is mapped onto
+    year: Optional[int]      # substitute year for the date
+    month: Optional[int]     # with statistic, when no date is given
+    statistic: str           # mean, median, good, bad
+    fallback: str            # 'climatology' or 'error' for a date not in the tables
+    r0: float                # m, phase coherence length at 230 GHz: t_c(230 GHz) = r0 / wind
+    bands: tuple             # band names whose opacity and sky temperature come from the tables
+    coherence: bool          # True: the coherence time comes from the wind
+
+
+@dataclass(frozen=True)
 class Station:
     code: str
     name: str
@@ -52,6 +72,7 @@ class Station:
     elevation_limit: float   # degrees
     coherence_time: float    # zenith t_c (s) at the scene's coherence frequency
     bands: Dict[str, StationBand]
+    weather: Optional[WeatherSpec] = None
 
 
 @dataclass(frozen=True)
@@ -95,6 +116,9 @@ class Scene:
     telescope: str
     stations: List[Station] = field(default_factory=list)
     source_file: str = ""
+    #: noise and turbulence use max(elevation, this) (deg); None: 1 deg for the noise and
+    #: the station's elevation limit for the turbulence
+    airmass_elevation_floor: Optional[float] = None
 
 
 def _catalogue() -> Dict[str, Any]:
@@ -203,7 +227,77 @@ def _per_band(reader: _Reader, data, where: str, band_names, minimum=0.0) -> Dic
     return out
 
 
-def _station(reader: _Reader, entry, index: int, catalogue: dict, bands: List[BandSpec]) -> Station:
+def _weather_options(reader: _Reader, data, where: str) -> Optional[dict]:
+    """A validated weather mapping (None: no weather); 'none'/false switch it off."""
+    if data is None or data is False or (isinstance(data, str) and data.lower() in ("none", "off")):
+        return None
+    if not isinstance(data, dict):
+        reader.fail(where, "must be a mapping like {source: merra2, date: 2023-04-10} or none")
+    data = {str(k): v for k, v in data.items()}
+    reader.check_keys(data, WEATHER_KEYS, where)
+    from ..weather.tables import STATISTICS, parse_date, WeatherError
+
+    source = str(data.get("source", "merra2")).lower()
+    if source in ("none", "off"):
+        return None
+    if source != "merra2":
+        reader.fail(f"{where}.source", f"must be merra2 (or none), got {source!r}")
+    out = {"source": source, "site": data.get("site"), "date": None, "year": None,
+           "month": None, "statistic": str(data.get("statistic", "median")),
+           "fallback": str(data.get("fallback", "climatology")),
+           "r0": reader.number(data, "r0", where, default=DEFAULT_R0_230, strictly_positive=True)}
+    if data.get("date") is not None:
+        try:
+            out["date"] = parse_date(data["date"]).isoformat()
+        except WeatherError:
+            reader.fail(f"{where}.date", f"is not a date like 2023-04-10: {data['date']!r}")
+    if data.get("year") is not None:
+        year = data["year"]
+        if not isinstance(year, int) or not 1900 < year < 2200:
+            reader.fail(f"{where}.year", f"must be a year like 2018, got {year!r}")
+        out["year"] = year
+    if data.get("month") is not None:
+        month = data["month"]
+        if not isinstance(month, int) or not 1 <= month <= 12:
+            reader.fail(f"{where}.month", f"must be a month number 1-12, got {month!r}")
+        out["month"] = month
+    if out["statistic"] not in STATISTICS:
+        reader.fail(f"{where}.statistic", f"must be one of {', '.join(STATISTICS)}, "
+                    f"got {out['statistic']!r}")
+    if out["fallback"] not in ("climatology", "error"):
+        reader.fail(f"{where}.fallback", f"must be climatology or error, got {out['fallback']!r}")
+    return out
+
+
+def _weather_spec(reader: _Reader, options: Optional[dict], entry: dict, code: str,
+                  bands: List[BandSpec], where: str) -> Optional[WeatherSpec]:
+    """The station's WeatherSpec: bands and coherence not given explicitly in the scene."""
+    if options is None:
+        return None
+    from ..weather.tables import WeatherError, band_column, resolve_site
+
+    explicit = {str(k): (v or {}) for k, v in (entry.get("bands") or {}).items()}
+    from_tables = tuple(b.name for b in bands
+                        if not ({"tau", "pwv"} & set(explicit.get(b.name, {}))))
+    coherence = not ({"coherence_time", "wind_speed"} & set(entry))
+    if not from_tables and not coherence:
+        return None
+    try:
+        folder, _ = resolve_site(options["site"] or code, code)
+        for b in bands:
+            if b.name in from_tables:
+                band_column(b.freq_hz, b.name, code, folder)
+    except WeatherError as err:
+        reader.fail(f"{where}.weather", f"cannot be met: {err}")
+    # no date and no month: the observation's own date (resolved when the time grid is known)
+    return WeatherSpec(options["source"], options["site"] or code, options["date"], options["year"],
+                       options["month"],
+                       options["statistic"], options["fallback"], options["r0"], from_tables,
+                       coherence)
+
+
+def _station(reader: _Reader, entry, index: int, catalogue: dict, bands: List[BandSpec],
+             scene_weather: Optional[dict] = None) -> Station:
     where = f"stations[{index}]"
     if isinstance(entry, str):
         entry = {"code": entry}
@@ -216,8 +310,15 @@ def _station(reader: _Reader, entry, index: int, catalogue: dict, bands: List[Ba
                     f"station catalogue ({', '.join(sorted(catalogue))}); give its itrf, "
                     "diameter, coherence_time and bands in the scene")
     reader.check_keys(entry, ("code", "name", "itrf", "diameter", "elevation_limit",
-                              "coherence_time", "wind_speed", "r0", "bands"), where)
-    merged = {**STATION_DEFAULTS, **base, **{k: v for k, v in entry.items() if k != "bands"}}
+                              "coherence_time", "wind_speed", "r0", "bands", "weather"), where)
+    options = scene_weather
+    if "weather" in entry:
+        own = entry["weather"]
+        if isinstance(own, dict) and scene_weather is not None:
+            own = {**{k: v for k, v in scene_weather.items() if v is not None}, **own}
+        options = _weather_options(reader, own, f"{where}.weather")
+    merged = {**STATION_DEFAULTS, **base,
+              **{k: v for k, v in entry.items() if k not in ("bands", "weather")}}
     merged_bands = {str(k): dict(v or {}) for k, v in (base.get("bands") or {}).items()}
     for k, v in (entry.get("bands") or {}).items():
         merged_bands.setdefault(str(k), {}).update(v or {})
@@ -265,19 +366,23 @@ def _station(reader: _Reader, entry, index: int, catalogue: dict, bands: List[Ba
             nearest = min(PWV_TO_TAU, key=lambda f: abs(f - band.freq_hz))
             dry, wet = PWV_TO_TAU[nearest]
             tau = dry + wet * pwv
+        elif options is not None:
+            tau = float("nan")        # from the weather tables (checked by _weather_spec)
         else:
-            reader.fail(f"{bwhere}.tau", "is missing (give tau, the zenith opacity, or pwv in mm)")
+            reader.fail(f"{bwhere}.tau", "is missing (give tau, the zenith opacity, or pwv in mm, "
+                        "or weather: {source: merra2})")
         station_bands[band.name] = StationBand(str(raw.get("name", code)), t_rx, eff, tau, t_atm)
+    weather = _weather_spec(reader, options, entry, code, bands, where)
     return Station(code, str(merged.get("name", code)), itrf, diameter, elevation_limit,
-                   coherence, station_bands)
+                   coherence, station_bands, weather)
 
 
 def parse_scene(scene: str | Path | dict) -> Scene:
     """A validated :class:`Scene` from a YAML path, a packaged scene name or a mapping."""
     data, origin = load_scene_mapping(scene)
     reader = _Reader(origin)
-    reader.check_keys(data, ("name", "source", "observation", "bands", "corruptions", "stations"),
-                      "")
+    reader.check_keys(data, ("name", "source", "observation", "bands", "corruptions", "stations",
+                             "weather"), "")
 
     raw_bands = data.get("bands")
     if not isinstance(raw_bands, list) or not raw_bands:
@@ -355,7 +460,12 @@ def parse_scene(scene: str | Path | dict) -> Scene:
     if not isinstance(corr, dict):
         reader.fail("corruptions", "must be a mapping")
     reader.check_keys(corr, ("troposphere", "noise", "seed", "coherence_freq_ghz",
-                             "coherence_scale", "quantisation_efficiency"), "corruptions")
+                             "coherence_scale", "quantisation_efficiency",
+                             "airmass_elevation_floor"), "corruptions")
+    airmass_floor = reader.number(corr, "airmass_elevation_floor", "corruptions",
+                                  required=False, minimum=0.0)
+    if airmass_floor is not None and airmass_floor >= 90:
+        reader.fail("corruptions.airmass_elevation_floor", f"must be below 90, got {airmass_floor}")
     coherence_freq = reader.number(corr, "coherence_freq_ghz", "corruptions", default=230.0,
                                    strictly_positive=True) * 1e9
     coherence_scale = reader.number(corr, "coherence_scale", "corruptions", default=1.0,
@@ -370,7 +480,9 @@ def parse_scene(scene: str | Path | dict) -> Scene:
     if not isinstance(raw_stations, list) or len(raw_stations) < 2:
         reader.fail("stations", "is missing or lists fewer than two stations")
     catalogue = _catalogue()
-    stations = [_station(reader, entry, i, catalogue, bands) for i, entry in enumerate(raw_stations)]
+    scene_weather = _weather_options(reader, data.get("weather"), "weather")
+    stations = [_station(reader, entry, i, catalogue, bands, scene_weather)
+                for i, entry in enumerate(raw_stations)]
     codes = [s.code for s in stations]
     if len(set(codes)) != len(codes):
         reader.fail("stations", f"lists a station twice: {codes}")
@@ -384,7 +496,7 @@ def parse_scene(scene: str | Path | dict) -> Scene:
                  noise=bool(corr.get("noise", True)), seed=int(seed),
                  coherence_freq_hz=coherence_freq, coherence_scale=coherence_scale,
                  quantisation_efficiency=eta_q, telescope=str(obs.get("telescope", "VLBA")),
-                 stations=stations, source_file=origin)
+                 stations=stations, source_file=origin, airmass_elevation_floor=airmass_floor)
 
 
 def apply_overrides(scene: Scene, *, duration=None, integration=None, seed=None,

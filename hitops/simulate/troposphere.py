@@ -143,21 +143,26 @@ def station_phases(n_time: int, dt: float, coherence_time: np.ndarray, airmass: 
                    start_index: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Unwrapped tropospheric phase (rad) of each station at the coherence frequency.
 
-    ``coherence_time`` (n_station,) is the zenith t_c in seconds at the
-    frequency the phases refer to; ``airmass`` (n_station, n_time) is 1/sin(el)
+    ``coherence_time`` (n_station,) or (n_station, n_time) is the zenith t_c in
+    seconds at the frequency the phases refer to (per sample: the increment from
+    sample j to j+1 uses t_c[:, j]); ``airmass`` (n_station, n_time) is 1/sin(el)
     on the time grid of step ``dt``.  The increment between samples j and j+1
     has structure-function coefficient airmass[j] * (dt/t_c)^(5/3), i.e. the
     local coherence time is t_c * sin(el)^(3/5).  Each station's phase is zero
     at ``start_index`` (its first sample above its elevation limit), as in the
     paper's simulations (n_p(t_p) = 0).
     """
-    n_station = coherence_time.size
+    coherence_time = np.asarray(coherence_time, dtype=np.float64)
+    n_station = coherence_time.shape[0]
     phases = np.zeros((n_station, n_time))
     if n_time < 2:
         return phases
     unit_steps = fgn_circulant(n_time - 1, n_station, HURST_KOLMOGOROV, rng)
     scale = (dt / coherence_time) ** (5.0 / 6.0)             # sqrt of (dt/t_c)^(5/3)
-    steps = unit_steps * scale[:, None] * np.sqrt(airmass[:, :-1])
+    # a coherence time per sample (n_station, n_time), e.g. from a wind that changes
+    # between MERRA-2 analyses, scales each increment by its own local value
+    scale = scale[:, :-1] if scale.ndim == 2 else scale[:, None]
+    steps = unit_steps * scale * np.sqrt(airmass[:, :-1])
     phases[:, 1:] = np.cumsum(steps, axis=-1)
     phases -= phases[np.arange(n_station), start_index][:, None]
     return phases

@@ -1,0 +1,298 @@
+"""Build the shipped MERRA-2 weather extract (hitops/weather/data/) from the source rows.
+
+    python -m hitops.weather.build_extract          # numpy only, no network
+
+Inputs: ``hitops/weather/sources/`` holds verbatim line copies of the public
+ngEHT weather tables (Smithsonian/ngeht-weather and the older text copy inside
+Smithsonian/ngehtsim), with a manifest naming repository, path and commit of
+every file (``sources/native/manifest_native.tsv``, ``sources/daily/manifest.tsv``):
+
+* ``native/<SITE>/04Apr/``: 3-hourly rows (MERRA-2 analysis times 00, 03, ..., 21 UT)
+  for 2018-04-06..14: ``SEFD_info_230.csv`` (tau, Tb at 230 GHz), ``SEFD_info_86.csv``
+  (86 GHz, APEX and KVNYS only), ``wind_speed.csv``, ``PWV.csv``;
+  ``GLT/04Apr/mean_SEFD_info_86.csv``: GLT daily means at 86 GHz, April 2018.
+* ``daily/<SITE>/04Apr/``: daily means (mean of the 8 analyses) for April 2009-2018:
+  ``mean_SEFD_info_230.csv``, ``mean_SEFD_info_345.csv``, ``mean_wind_speed.csv`` (2009 only).
+
+Outputs (``hitops/weather/data/``):
+
+* ``merra2_3hourly.csv``: one row per site, day (2018-04-07..13) and analysis time.
+* ``merra2_daily.csv``: one row per site and day (April 2009-2018).
+* ``derivation_86ghz.json``: the fitted 86 GHz model, its errors, the 345 GHz scaling.
+
+How the bands the tables lack are filled (column ``src86`` / ``src345``):
+
+* 86 GHz: native where tabulated (``merra2_am``); elsewhere ``derived``:
+  ``tau86 = a (P/P0)^2 + b tau230`` (a dry, oxygen term that scales with the
+  square of the surface pressure, P/P0 = exp(-h / 8 km), plus a wet term
+  proportional to the 230 GHz opacity, which water vapour dominates) and
+  ``Tb86 = c T_eff,230 (1 - exp(-tau86))`` with ``T_eff,230 = Tb230 / (1 - exp(-tau230))``.
+  a, b, c are fitted (weighted least squares) to every native 86 GHz value in the
+  sources: APEX and KVNYS 3-hourly, GLT daily means (weight 8, one day of analyses).
+* 345 GHz in the 3-hourly table: each analysis's 230 GHz opacity times that day's
+  ratio of the daily means tau345 / tau230 (``scaled_daily``), the brightness
+  from the daily mean's effective temperature; the mean over a day's 8 analyses
+  then equals the tabulated daily mean.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .sites import SITES, pressure_ratio
+
+HERE = Path(__file__).resolve().parent
+SOURCES = HERE / "sources"
+DATA = HERE / "data"
+YEAR, MONTH = 2018, 4
+NATIVE_DAYS = range(7, 14)          # every site has all 8 analyses of these days
+SEGMENTS = range(8)
+
+
+def _rows(path: Path):
+    """Numeric rows of a source file (header boxes and column-name lines skipped)."""
+    if not path.exists():
+        return []
+    out = []
+    for line in path.read_text().splitlines():
+        line = line.strip()
+        if not line or line.startswith("#") or not line[0].isdigit():
+            continue
+        out.append([p.strip() for p in line.split(",")])
+    return out
+
+
+def read_native(path: Path, n_values: int):
+    """{(day, segment): [values]} of a 3-hourly file in either source layout.
+
+    Layouts: ``year,month,day,segment,v...`` or (older 230 GHz files)
+    ``year,day,segment,v...``; told apart by the number of columns.
+    """
+    out = {}
+    for f in _rows(path):
+        if len(f) == 4 + n_values:
+            year, day, seg, vals = int(f[0]), int(f[2]), int(f[3]), f[4:]
+        elif len(f) == 3 + n_values:
+            year, day, seg, vals = int(f[0]), int(f[1]), int(f[2]), f[3:]
+        else:
+            raise ValueError(f"{path}: unexpected row {f}")
+        if year != YEAR:
+            raise ValueError(f"{path}: year {year}, expected {YEAR}")
+        if (day, seg) in out:
+            raise ValueError(f"{path}: duplicate row {(day, seg)}")
+        out[(day, seg)] = [float(v) for v in vals]
+    return out
+
+
+def read_daily(path: Path, n_values: int):
+    """{(year, day): [values]} of a daily-mean file (``year,[month,]day,v...``)."""
+    out = {}
+    for f in _rows(path):
+        if len(f) == 3 + n_values:
+            year, day, vals = int(f[0]), int(f[2]), f[3:]
+        elif len(f) == 2 + n_values:
+            year, day, vals = int(f[0]), int(f[1]), f[2:]
+        else:
+            raise ValueError(f"{path}: unexpected row {f}")
+        out[(year, day)] = [float(v) if v.lower() != "nan" else math.nan for v in vals]
+    return out
+
+
+def load_sources():
+    native, daily = {}, {}
+    for site_dir in sorted((SOURCES / "native").iterdir()):
+        d = site_dir / "04Apr"
+        if not d.is_dir():
+            continue
+        native[site_dir.name] = {
+            "230": read_native(d / "SEFD_info_230.csv", 2),
+            "86": read_native(d / "SEFD_info_86.csv", 2),
+            "wind": read_native(d / "wind_speed.csv", 1),
+            "pwv": read_native(d / "PWV.csv", 1),
+            "86daily": {k[1]: v for k, v in read_daily(d / "mean_SEFD_info_86.csv", 2).items()},
+        }
+    for site_dir in sorted((SOURCES / "daily").iterdir()):
+        d = site_dir / "04Apr"
+        if not d.is_dir():
+            continue
+        daily[site_dir.name] = {
+            "230": read_daily(d / "mean_SEFD_info_230.csv", 2),
+            "345": read_daily(d / "mean_SEFD_info_345.csv", 2),
+            "wind": read_daily(d / "mean_wind_speed.csv", 1),
+        }
+    return native, daily
+
+
+# ----------------------------------------------------------------------------- 86 GHz model
+
+def calibration_points(native):
+    """(site, (P/P0)^2, tau230, Tb230, tau86, Tb86, weight) for every native 86 GHz value."""
+    pts = []
+    for site, q in native.items():
+        x2 = pressure_ratio(SITES[site]) ** 2
+        if q["86"]:
+            for key, (t86, tb86) in q["86"].items():
+                if key in q["230"] and key[0] in NATIVE_DAYS:
+                    t230, tb230 = q["230"][key]
+                    pts.append((site, x2, t230, tb230, t86, tb86, 1.0))
+        for day, (t86, tb86) in q["86daily"].items():
+            segs = [q["230"].get((day, s)) for s in SEGMENTS]
+            if day in NATIVE_DAYS and all(segs):
+                t230 = float(np.mean([s[0] for s in segs]))
+                tb230 = float(np.mean([s[1] for s in segs]))
+                pts.append((site, x2, t230, tb230, t86, tb86, 8.0))
+    return pts
+
+
+def fit_86(pts):
+    """Weighted least squares for (a, b) of tau86 = a x2 + b tau230, then c of Tb86."""
+    x2 = np.array([p[1] for p in pts])
+    t230 = np.array([p[2] for p in pts])
+    tb230 = np.array([p[3] for p in pts])
+    t86 = np.array([p[4] for p in pts])
+    tb86 = np.array([p[5] for p in pts])
+    w = np.array([p[6] for p in pts])
+    sw = np.sqrt(w)
+    design = np.stack([x2, t230], axis=1)
+    (a, b), *_ = np.linalg.lstsq(design * sw[:, None], t86 * sw, rcond=None)
+    shape = tb230 / -np.expm1(-t230) * -np.expm1(-t86)
+    c = float(np.sum(w * shape * tb86) / np.sum(w * shape * shape))
+    return float(a), float(b), c
+
+
+def tau86_model(x2, tau230, a, b):
+    return a * x2 + b * tau230
+
+
+def tb86_model(tau230, tb230, tau86, c):
+    return c * tb230 / -np.expm1(-tau230) * -np.expm1(-tau86)
+
+
+def validate_86(pts, params):
+    """Median |fractional error| per site, in-sample and leaving that site out of the fit."""
+    out = {}
+    for site in sorted({p[0] for p in pts}):
+        mine = [p for p in pts if p[0] == site]
+        others = [p for p in pts if p[0] != site]
+        result = {"n_points": len(mine)}
+        for label, (a, b, c) in (("all_sites_fit", params), ("leave_site_out", fit_86(others))):
+            tau = np.array([tau86_model(p[1], p[2], a, b) for p in mine])
+            tb = np.array([tb86_model(p[2], p[3], t, c) for p, t in zip(mine, tau)])
+            t_pub = np.array([p[4] for p in mine])
+            tb_pub = np.array([p[5] for p in mine])
+            result[label] = {
+                "median_abs_frac_err_tau86": round(float(np.median(np.abs(tau / t_pub - 1))), 3),
+                "median_signed_frac_err_tau86": round(float(np.median(tau / t_pub - 1)), 3),
+                "median_abs_frac_err_tb86": round(float(np.median(np.abs(tb / tb_pub - 1))), 3),
+                "published_tau86_median": round(float(np.median(t_pub)), 4),
+                "model_tau86_median": round(float(np.median(tau)), 4),
+            }
+        out[site] = result
+    return out
+
+
+# ----------------------------------------------------------------------------- tables
+
+def _f(x):
+    """A tabulated value as the shortest text that reads back to the same float (exact)."""
+    return "" if x is None or (isinstance(x, float) and math.isnan(x)) else repr(float(x))
+
+
+def _d(x):
+    """A derived value, to 6 significant digits (the derivation is good to ~5-30 %)."""
+    return "" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.6g}"
+
+
+def build():
+    native, daily = load_sources()
+    pts = calibration_points(native)
+    a, b, c = fit_86(pts)
+    params = (a, b, c)
+
+    rows3 = []
+    for site in sorted(native):
+        q = native[site]
+        x2 = pressure_ratio(SITES[site]) ** 2
+        for day in NATIVE_DAYS:
+            d345 = daily.get(site, {}).get("345", {}).get((YEAR, day))
+            d230 = daily.get(site, {}).get("230", {}).get((YEAR, day))
+            for seg in SEGMENTS:
+                key = (day, seg)
+                if key not in q["230"] or key not in q["wind"]:
+                    raise ValueError(f"{site}: no 230 GHz or wind row for 2018-04-{day} segment {seg}")
+                tau230, tb230 = q["230"][key]
+                if key in q["86"]:
+                    (tau86, tb86), src86 = q["86"][key], "merra2_am"
+                else:
+                    tau86 = tau86_model(x2, tau230, a, b)
+                    tb86, src86 = tb86_model(tau230, tb230, tau86, c), "derived"
+                if d345 and d230:
+                    tau345 = tau230 * d345[0] / d230[0]
+                    tb345 = d345[1] / -math.expm1(-d345[0]) * -math.expm1(-tau345)
+                    src345 = "scaled_daily"
+                else:
+                    tau345 = tb345 = None
+                    src345 = ""
+                pwv = q["pwv"].get(key, [None])[0]
+                fmt86 = _f if src86 == "merra2_am" else _d
+                rows3.append([site, YEAR, MONTH, day, seg, fmt86(tau86), fmt86(tb86), src86,
+                              _f(tau230), _f(tb230), _d(tau345), _d(tb345), src345,
+                              _f(q["wind"][key][0]), _f(pwv)])
+
+    rows_d = []
+    for site in sorted(daily):
+        q = daily[site]
+        x2 = pressure_ratio(SITES[site]) ** 2
+        glt86 = native.get(site, {}).get("86daily", {})
+        for (year, day), (tau230, tb230) in sorted(q["230"].items()):
+            t345 = q["345"].get((year, day), [math.nan, math.nan])
+            wind = q["wind"].get((year, day), [math.nan])[0]
+            if year == YEAR and day in glt86:
+                (tau86, tb86), src86 = glt86[day], "merra2_am"
+            else:
+                tau86 = tau86_model(x2, tau230, a, b)
+                tb86, src86 = tb86_model(tau230, tb230, tau86, c), "derived"
+            fmt86 = _f if src86 == "merra2_am" else _d
+            rows_d.append([site, year, MONTH, day, fmt86(tau86), fmt86(tb86), src86, _f(tau230),
+                           _f(tb230), _f(t345[0]), _f(t345[1]), _f(wind)])
+
+    DATA.mkdir(exist_ok=True)
+    with open(DATA / "merra2_3hourly.csv", "w", newline="") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(["site", "year", "month", "day", "segment", "tau86", "tb86", "src86",
+                    "tau230", "tb230", "tau345", "tb345", "src345", "wind", "pwv"])
+        w.writerows(rows3)
+    with open(DATA / "merra2_daily.csv", "w", newline="") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(["site", "year", "month", "day", "tau86", "tb86", "src86", "tau230", "tb230",
+                    "tau345", "tb345", "wind"])
+        w.writerows(rows_d)
+    derivation = {
+        "model": "tau86 = a*(P/P0)^2 + b*tau230; Tb86 = c*Tb230/(1-exp(-tau230))*(1-exp(-tau86)); "
+                 "P/P0 = exp(-site elevation / 8000 m)",
+        "a": a, "b": b, "c": c,
+        "calibration": "every native 86 GHz value of the sources: APEX and KVNYS 3-hourly "
+                       "(2018-04-07..13), GLT daily means (weight 8)",
+        "n_points": len(pts),
+        "checks_against_published_86ghz": validate_86(pts, params),
+        "scaling_345": "tau345(segment) = tau230(segment) * tau345_daily / tau230_daily; "
+                       "Tb345 = Tb345_daily/(1-exp(-tau345_daily)) * (1-exp(-tau345))",
+    }
+    (DATA / "derivation_86ghz.json").write_text(json.dumps(derivation, indent=1) + "\n")
+    return derivation
+
+
+def main():
+    derivation = build()
+    print(f"wrote {DATA}: a={derivation['a']:.4f} b={derivation['b']:.4f} c={derivation['c']:.4f}")
+    for site, res in derivation["checks_against_published_86ghz"].items():
+        print(site, res)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,288 @@
+"""MERRA-2 weather: the shipped extract against its sources, lookups, and the simulator's use of it."""
+
+from __future__ import annotations
+
+import csv
+import datetime as dt
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from casacore import tables as pt
+
+import hitops.weather as weather
+from hitops.errors import HitopsError
+from hitops.simulate import parse_scene, simulate
+from hitops.simulate import noise as noise_mod
+from hitops.simulate import troposphere as tp
+from hitops.simulate.api import coherence_times, observe, station_weathers
+from hitops.simulate.scene import load_scene_mapping
+from hitops.weather.tables import mjd_seconds
+
+PACKAGE = Path(weather.__file__).resolve().parent
+SOURCES = PACKAGE / "sources"
+DATA = PACKAGE / "data"
+
+
+def shipped(name):
+    with open(DATA / name) as fh:
+        return list(csv.DictReader(fh))
+
+
+def source_values(path: Path, key_cols: int):
+    """{key tuple: [value strings]} read straight from a verbatim source file."""
+    out = {}
+    for line in path.read_text().splitlines():
+        if not line or line.startswith("#") or not line[0].isdigit():
+            continue
+        f = line.split(",")
+        out[tuple(int(x) for x in f[:key_cols])] = f[key_cols:]
+    return out
+
+
+# --------------------------------------------------------------------------- extract vs source
+
+@pytest.mark.parametrize("site,day,segment", [("APEX", 10, 0), ("IRAM", 10, 3), ("KVNYS", 7, 7),
+                                               ("NOEMA", 13, 5), ("GLT", 11, 2), ("SMA", 9, 6)])
+def test_3hourly_values_are_the_source_values_exactly(site, day, segment):
+    row = next(r for r in shipped("merra2_3hourly.csv")
+               if (r["site"], int(r["day"]), int(r["segment"])) == (site, day, segment))
+    d = SOURCES / "native" / site / "04Apr"
+    rows230 = source_values(d / "SEFD_info_230.csv", 3)
+    # two source layouts: year,day,segment,... (older) or year,month,day,segment,...
+    key3 = (2018, day, segment)
+    if key3 in rows230:
+        tau, tb = rows230[key3]
+    else:
+        tau, tb = source_values(d / "SEFD_info_230.csv", 4)[(2018, 4, day, segment)]
+    assert float(row["tau230"]) == float(tau) and float(row["tb230"]) == float(tb)
+    wind = source_values(d / "wind_speed.csv", 4)[(2018, 4, day, segment)][0]
+    assert float(row["wind"]) == float(wind)
+    if (d / "SEFD_info_86.csv").exists():
+        tau86, tb86 = source_values(d / "SEFD_info_86.csv", 4)[(2018, 4, day, segment)]
+        assert row["src86"] == "merra2_am"
+        assert float(row["tau86"]) == float(tau86) and float(row["tb86"]) == float(tb86)
+    else:
+        assert row["src86"] == "derived"
+
+
+@pytest.mark.parametrize("site,year,day", [("APEX", 2009, 1), ("KP", 2013, 17), ("KVNYS", 2016, 30),
+                                           ("SMA", 2018, 10), ("IRAM", 2011, 22)])
+def test_daily_values_are_the_source_values_exactly(site, year, day):
+    row = next(r for r in shipped("merra2_daily.csv")
+               if (r["site"], int(r["year"]), int(r["day"])) == (site, year, day))
+    d = SOURCES / "daily" / site / "04Apr"
+    for band in ("230", "345"):
+        rows = source_values(d / f"mean_SEFD_info_{band}.csv", 2)
+        if (year, day) in rows:
+            tau, tb = rows[(year, day)]
+        else:
+            tau, tb = source_values(d / f"mean_SEFD_info_{band}.csv", 3)[(year, 4, day)]
+        assert float(row[f"tau{band}"]) == float(tau) and float(row[f"tb{band}"]) == float(tb)
+
+
+def test_provenance_is_shipped_with_the_data():
+    text = (DATA / "PROVENANCE.md").read_text()
+    for needed in ("Smithsonian/ngeht-weather", "43f716b984740cc819e04e8eb60de54e485d4ced",
+                   "Rienecker", "Gelaro", "GMAO", "licen", "KVNYS"):
+        assert needed in text
+    size = sum(p.stat().st_size for p in DATA.iterdir())
+    assert size < 1_000_000
+
+
+def test_86ghz_derivation_checked_against_published_values():
+    """Leave-one-site-out check against the database's own native 86 GHz values."""
+    checks = json.loads((DATA / "derivation_86ghz.json").read_text())["checks_against_published_86ghz"]
+    assert checks["APEX"]["leave_site_out"]["median_abs_frac_err_tau86"] < 0.10
+    assert checks["GLT"]["leave_site_out"]["median_abs_frac_err_tau86"] < 0.25
+    assert checks["KVNYS"]["leave_site_out"]["median_abs_frac_err_tau86"] < 0.35
+
+
+# --------------------------------------------------------------------------- lookups
+
+def grid(date="2018-04-10", hours=12.0, step=600.0):
+    return mjd_seconds(dt.date.fromisoformat(date)) + np.arange(0, hours * 3600, step)
+
+
+def test_3hourly_values_are_interpolated_in_time():
+    t0 = mjd_seconds(dt.date(2018, 4, 10))
+    times = t0 + np.array([0.0, 1.5 * 3600, 3 * 3600])
+    w = weather.station_weather("PV", [("86", 86e9), ("230", 230e9)], times, date="2018-04-10")
+    rows = [r for r in shipped("merra2_3hourly.csv") if r["site"] == "IRAM" and r["day"] == "10"]
+    seg = {int(r["segment"]): r for r in rows}
+    assert w.mode == "3-hourly"
+    assert w.tau["230"][0] == float(seg[0]["tau230"])
+    assert w.tau["230"][1] == pytest.approx(0.5 * (float(seg[0]["tau230"]) + float(seg[1]["tau230"])))
+    assert w.wind[2] == float(seg[1]["wind"])
+
+
+def test_uncovered_date_uses_its_climatology_and_says_so():
+    w = weather.station_weather("AP", [("86", 86e9)], grid("2023-04-10"), date="2023-04-10")
+    assert w.mode == "climatology" and "2023-04-10 is not in the tables" in w.description
+    same_day = weather.station_weather("AP", [("86", 86e9)], grid("2023-04-10"),
+                                       date="2023-04-10", year=2018)
+    assert same_day.mode == "3-hourly" and "same day of 2018" in same_day.description
+    good = weather.station_weather("AP", [("230", 230e9)], grid(), month=4, statistic="good")
+    bad = weather.station_weather("AP", [("230", 230e9)], grid(), month=4, statistic="bad")
+    assert good.tau["230"][0] < bad.tau["230"][0]
+
+
+def test_pyeongchang_uses_yonsei_and_says_so():
+    w = weather.station_weather("KC", [("86", 86e9)], grid(), date="2018-04-10")
+    assert w.site == "KVNYS" and "KVNPC has no tables" in w.description
+
+
+@pytest.mark.parametrize("kwargs,station,bands,words", [
+    (dict(date="2023-07-10"), "AP", [("86", 86e9)], ["APEX", "2023-07-10", "nearest available date"]),
+    (dict(date="2023-04-10", fallback="error"), "PV", [("86", 86e9)],
+     ["IRAM", "2023-04-10", "2018-04-10", "year: 2018"]),
+    (dict(month=7), "PB", [("86", 86e9)], ["NOEMA", "month 7", "months with data: 4"]),
+    (dict(date="2018-04-10"), "QQ", [("86", 86e9)], ["unknown merra2 site 'QQ'", "nearest name"]),
+    (dict(date="2018-04-10"), "AP", [("100", 100e9)], ["100 GHz", "nearest: 86 GHz"]),
+    (dict(date="2018-04-10"), "LM", [("345", 345e9)], ["band '345'", "LMT", "86, 230"]),
+])
+def test_bad_requests_name_site_date_band_and_nearest(kwargs, station, bands, words):
+    with pytest.raises(weather.WeatherError) as err:
+        weather.station_weather(station, bands, grid(kwargs.get("date", "2018-04-10")), **kwargs)
+    message = str(err.value)
+    assert "\n" not in message
+    for word in words:
+        assert word in message
+
+
+# --------------------------------------------------------------------------- in the simulator
+
+def weather_scene(**changes) -> dict:
+    """Demo stations, 2 h from 2018-04-10 01:00 UTC at 10 s, weather of that day."""
+    scene, _ = load_scene_mapping("demo")
+    scene["observation"].update({"start": "2018-04-10T01:00:00", "duration": 7200,
+                                 "integration": 10})
+    scene["observation"].pop("scan_length")
+    scene["observation"].pop("scan_gap")
+    scene["weather"] = {"source": "merra2", "date": "2018-04-10"}
+    scene.update(changes)
+    return scene
+
+
+def test_scene_weather_sets_opacity_sky_and_coherence_with_overrides(tmp_path):
+    scene = weather_scene()
+    scene["stations"] = ["AP", {"code": "PV", "bands": {"230": {"tau": 0.5}}},
+                         {"code": "GL", "coherence_time": 3.0}, "PB", "KP"]
+    parsed = parse_scene(scene)
+    obs = observe(parsed)
+    ap, pv, gl = obs.weather[0], obs.weather[1], obs.weather[2]
+    assert ap.mode == "3-hourly" and set(ap.tau) == {"86", "230"}
+    assert set(pv.tau) == {"86"}                        # 230 GHz opacity given in the scene
+    np.testing.assert_allclose(obs.coherence_time[2], 3.0)   # coherence time given in the scene
+    np.testing.assert_allclose(obs.coherence_time[0], 100.0 / ap.wind)  # r0 / v at 230 GHz
+    paths = simulate(parsed, tmp_path, save_truth=True)
+    truth = np.load(paths["truth"])
+    assert truth["tau_230"][1, 0] == pytest.approx(0.5)
+    np.testing.assert_allclose(truth["tau_86"][0], ap.tau["86"], rtol=1e-6)
+    np.testing.assert_allclose(truth["tsky_86"][0], ap.tb["86"], rtol=1e-5)
+    assert "3-hourly" in str(truth["weather_source"][0])
+
+
+@pytest.mark.parametrize("change,words", [
+    ({"weather": {"source": "merra2", "date": "2023-07-10"}}, ["2023-07-10", "nearest"]),
+    ({"weather": {"source": "merra2", "month": 8}}, ["month 8", "months with data: 4"]),
+    ({"weather": {"source": "merra2", "date": "2018-04-10", "statistic": "best"}}, ["statistic"]),
+    ({"bands": [{"name": "86", "freq_ghz": 86, "bandwidth_ghz": 2},
+                {"name": "150", "freq_ghz": 150, "bandwidth_ghz": 2}]}, ["150 GHz", "nearest"]),
+])
+def test_bad_weather_in_a_scene_writes_nothing(tmp_path, change, words):
+    scene = weather_scene(**change)
+    if "bands" in change:
+        scene["source"]["flux"] = {"86": 1.0, "150": 1.0}
+        scene["stations"] = [{"code": c, "bands": {"150": {"t_rx": 50}}} for c in
+                             ("AP", "PV", "GL", "PB", "KP")]
+    path = tmp_path / "scene.yml"
+    path.write_text(yaml.safe_dump(scene))
+    with pytest.raises(HitopsError) as err:
+        simulate(str(path), tmp_path / "out")
+    for word in words:
+        assert word in str(err.value)
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+def test_noise_follows_radiometer_equation_with_weather_at_two_elevations(tmp_path):
+    """Scatter of DATA - model within 2% of the radiometer equation with the tables' tau and Tb."""
+    scene = weather_scene(corruptions={"troposphere": False, "noise": True, "seed": 7})
+    scene["observation"].update({"start": "2018-04-10T00:00:00", "duration": 21600,
+                                 "integration": 2})
+    parsed = parse_scene(scene)
+    paths = simulate(parsed, tmp_path, save_truth=True)
+    truth = np.load(paths["truth"])
+    codes = list(truth["stations"])
+    times = truth["time"]
+    for band, flux in (("86", 1.1), ("230", 1.0)):
+        with pt.table(str(paths[band]), ack=False) as t:
+            data = t.getcol("DATA")[:, 0, :]                  # RR and LL: two draws
+            a1, a2, tcol = t.getcol("ANTENNA1"), t.getcol("ANTENNA2"), t.getcol("TIME")
+        ti = np.searchsorted(times, tcol)
+        # independent: tables -> tau, Tb at each time -> Tsys -> SEFD -> sigma
+        sefd = {}
+        for i, code in enumerate(codes):
+            w = weather.station_weather(code, [(band, float(band) * 1e9)], times, date="2018-04-10")
+            st = parsed.stations[i]
+            x = 1.0 / np.sin(np.maximum(truth["elevation"][i], np.radians(1.0)))
+            t_atm = w.tb[band] / (1.0 - np.exp(-w.tau[band]))
+            tsys = (st.bands[band].t_rx + t_atm * (1 - np.exp(-w.tau[band] * x))) * np.exp(w.tau[band] * x)
+            sefd[i] = 2 * 1.380649e-23 * tsys / (st.bands[band].aperture_efficiency * np.pi
+                                                 * st.diameter ** 2 / 4) / 1e-26
+        expected = np.array([np.sqrt(sefd[p][k] * sefd[q][k] / (2 * 2e9 * 2.0)) / 0.88
+                             for p, q, k in zip(a1, a2, ti)])
+        resid = (data - flux) / expected[:, None]              # unit-variance if the model holds
+        el = np.degrees(np.minimum(truth["elevation"][a1, ti], truth["elevation"][a2, ti]))
+        for lo, hi in ((10, 30), (30, 90)):
+            sel = (el >= lo) & (el < hi)
+            assert sel.sum() > 15000
+            ratio = np.sqrt(0.5 * np.mean(np.abs(resid[sel]) ** 2))
+            assert ratio == pytest.approx(1.0, abs=0.02), (band, lo, hi, ratio)
+
+
+def test_structure_function_follows_the_wind_coherence_time():
+    """Ensemble D(lag) within 5% of the exact expectation for t_c = r0 / v(t) from the tables."""
+    scene = weather_scene()
+    scene["observation"].update({"start": "2018-04-10T00:00:00", "duration": 4 * 3600,
+                                 "integration": 2})
+    parsed = parse_scene(scene)
+    times = np.arange(7200) * 2.0 + mjd_seconds(dt.date(2018, 4, 10))
+    wx = station_weathers(parsed, times)
+    t_c = coherence_times(parsed, wx, times.size)
+    np.testing.assert_allclose(t_c[1], 100.0 / wx[1].wind)      # PV (IRAM): windy, short t_c
+    n_series = 1024
+    series_tc = np.repeat(t_c[1][None, :], n_series, axis=0)
+    rng = np.random.default_rng(3)
+    phases = tp.station_phases(times.size, 2.0, series_tc, np.ones((n_series, times.size)),
+                               np.zeros(n_series, int), rng)
+    scale = (2.0 / t_c[1]) ** (5.0 / 6.0)           # per-step coefficient s_j
+    for lag in (1, 5, 30):
+        gamma = tp.fgn_autocovariance(lag, tp.HURST_KOLMOGOROV)
+        cov = gamma[np.abs(np.subtract.outer(np.arange(lag), np.arange(lag)))]
+        for start in (100, 3000, 6000):             # three different MERRA-2 intervals
+            s = scale[start:start + lag]
+            expected = s @ cov @ s
+            measured = np.mean((phases[:, start + lag] - phases[:, start]) ** 2)
+            assert measured / expected == pytest.approx(1.0, abs=0.05 + 0.2 / np.sqrt(n_series / 8))
+        # whole-track structure function against the local coherence times
+        d_meas = np.mean((phases[:, lag:] - phases[:, :-lag]) ** 2)
+        d_pred = np.mean([scale[j:j + lag] @ cov @ scale[j:j + lag]
+                          for j in range(0, times.size - lag, 97)])
+        assert d_meas / d_pred == pytest.approx(1.0, abs=0.05)
+
+
+def test_paper_scene_has_all_28_baselines_with_weather():
+    parsed = parse_scene("paper")
+    assert all(s.weather is not None for s in parsed.stations)
+    assert all(s.elevation_limit <= -15 for s in parsed.stations)
+    short = parse_scene({**load_scene_mapping("paper")[0]})
+    from hitops.simulate.scene import apply_overrides
+
+    obs = observe(apply_overrides(short, integration=60.0))
+    pairs = set(zip(obs.ant1.tolist(), obs.ant2.tolist()))
+    assert len(pairs) == 28
+    assert all(w.mode == "climatology" for w in obs.weather)
+    assert "KVNYS" in obs.weather[6].description
