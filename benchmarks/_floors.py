@@ -9,9 +9,8 @@
 * ``imports_plain``: a process that only imports what ``hitops calibrate`` needs
   (the CLI, numpy, numba and the kernels module, python-casacore, dask and
   dask-ms), starts numba's CPU target and exits normally, touching no data: the
-  fixed cost of the required stack;
-* ``imports``: the same as the ``hitops`` command does it (hitops/startup.py:
-  the stack imported without SciPy's optional hooks, the teardown skipped).
+  fixed cost of the required stack, as the ``hitops`` command pays it (it
+  imports the stack plainly and exits through the interpreter's teardown).
 
 Each script is written to the work directory and run by
 :func:`benchmarks._report.run_process`.  The output column is created the
@@ -47,14 +46,6 @@ from numba.core.registry import cpu_target
 cpu_target.target_context.refresh()   # what the first kernel call does
 """
 
-_IMPORTS = """
-import hitops.cli
-from hitops.startup import fast_exit, lean_start
-lean_start()
-import casacore.tables, hitops.calibrate.api, hitops.kernels.fpt
-fast_exit(0)
-"""
-
 CALIBRATE_COLUMNS = ["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER", "INTERVAL", "FLAG_ROW",
                      "DATA", "FLAG"]
 
@@ -63,17 +54,14 @@ LABELS = {
     "same_columns": "I/O floor, same columns as calibrate (8 columns x 2 bands read, 1 written)",
     "imports_plain": "start-up only, plain: import the stack (numpy, numba, dask, dask-ms, casacore), "
                      "start numba's CPU target, normal exit",
-    "imports": "start-up only, as the hitops command does it (lean import, fast exit; hitops/startup.py)",
 }
 
 
 def floor_commands(workdir: Path, ref_ms, target_ms):
-    """{name: command} for the three floors (scripts written into ``workdir``)."""
+    """{name: command} for the floors (scripts written into ``workdir``)."""
     workdir = Path(workdir)
     rw = workdir / "io_floor.py"
     rw.write_text(_READ_WRITE)
-    imp = workdir / "imports_floor.py"
-    imp.write_text(_IMPORTS)
     plain = workdir / "imports_plain_floor.py"
     plain.write_text(_IMPORTS_PLAIN)
     return {
@@ -81,7 +69,6 @@ def floor_commands(workdir: Path, ref_ms, target_ms):
         "same_columns": [sys.executable, str(rw), str(ref_ms), str(target_ms),
                          ",".join(CALIBRATE_COLUMNS)],
         "imports_plain": [sys.executable, str(plain)],
-        "imports": [sys.executable, str(imp)],
     }
 
 

@@ -138,7 +138,7 @@ def main(argv=None) -> None:
                     str(workdir / "report-cold.json")]
     cold = run_process(cold_command, env=env)
     imports = measure_floors(workdir, ref_ms, target_ms, repeats=args.repeats,
-                             names=["imports_plain", "imports"], env=env)
+                             names=["imports_plain"], env=env)
     layouts = {"baseline": measure_layout(workdir, ref_ms, target_ms, args.repeats, env,
                                           "baseline"),
                "time": measure_layout(workdir, ref_time, target_time, args.repeats, env, "time")}
@@ -179,7 +179,7 @@ def main(argv=None) -> None:
                      chunked[tag][0], float("nan"), float("nan")))
     rows.append(("baseline-major: hitops calibrate --method pwc, cold numba cache",
                  cold["wall_s"], cold["cpu_s"], cold["peak_rss_mb"]))
-    for name in ("imports_plain", "imports"):
+    for name in ("imports_plain",):
         rows.append((FLOOR_LABELS[name], imports[name]["wall_s"], imports[name]["cpu_s"],
                      imports[name]["peak_rss_mb"]))
     table = "\n".join(f"| {name} | {w:.2f} | "
@@ -241,18 +241,12 @@ checks before anything is written, then the data); what remains of the differenc
 one more metadata read per chunk and, for a baseline-major table, one getcol per
 baseline run in each chunk.
 
-What start-up costs, and what was cut this round (hitops/startup.py, measured with the
-imports-only rows above):
+What start-up costs (the imports-only row above): the command imports the stack
+plainly and exits through the interpreter's normal teardown.  An earlier round hid
+SciPy while importing and skipped the teardown (about 0.8 s less); both were removed
+because a tool that writes tables must never end without the interpreter's own
+clean-up, and hiding installed packages changes what other code sees.
 
-* SciPy: installed for casatasks, never used by HITOPS, but imported by dask.array
-  (scipy.sparse, scipy.fftpack) and by numba's CPU target on the first kernel call
-  (scipy.linalg, to find BLAS): about 0.35 s.  The command line imports the stack with
-  SciPy (and jinja2, for dask's notebook widgets) hidden, so those optional hooks are
-  skipped, then un-hides them; the library import is unchanged.
-* Interpreter teardown: 0.3-0.4 s with numba loaded.  The command line closes any
-  python-casacore table still open (flushing it), runs the atexit handlers, flushes the
-  logs and ends the process (tests/test_startup.py checks that an open table's data reach
-  the disk).
 * Distinct times and row-to-time lookups: linear numba passes over the sorted runs of
   TIME (hitops/kernels/sorted_runs.py) instead of a stable sort and a binary search per
   row (about 0.1 s on this scene); the groups' phasors go back to row order in one numba

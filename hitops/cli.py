@@ -1,17 +1,36 @@
-"""The ``hitops`` command: one subcommand per tool schema.
+"""The ``hitops`` command: one subcommand per tool schema, behind one error boundary.
 
 Each subcommand's options come from ``hitops/schemas/<tool>.yml``; its
 implementation is the function ``run`` of module ``hitops.<tool>.app``,
 imported only when that subcommand runs so ``hitops --help`` stays fast.
-Bad input (any :class:`hitops.errors.HitopsError`) ends with a one-paragraph
-message and exit status 2, never a traceback.
+
+The error boundary (:func:`run_tool`) is the same for every tool and for the
+Stimela cabs, which run this command:
+
+* bad input (any :class:`hitops.errors.HitopsError`): one line naming the
+  file, column, station or value and the remedy; exit status 2 (1 for faults
+  the tool itself recognised, such as a failed rollback);
+* anything unexpected (casacore, dask, numba, CASA, the OS: a damaged table,
+  permission denied, a full disk): one line saying what failed, exit status 1;
+  the traceback goes to a file named in that line, and to the screen with
+  ``--debug`` (or ``HITOPS_DEBUG=1``);
+* SIGINT and SIGTERM: the tool's own clean-up runs (calibrate drops the
+  columns it created and restores FLAG), then one line and exit status 130
+  or 143.
+
+A missing required option is reported by click before any tool code runs.
 """
 
 from __future__ import annotations
 
 import importlib
 import logging
+import os
+import signal
 import sys
+import tempfile
+import time
+import traceback
 
 import click
 
@@ -19,31 +38,86 @@ from . import __version__
 from .errors import HitopsError
 from .logs import setup_logging
 from .schema import clickify, tools
-from .startup import fast_exit, lean_start
 
 log = logging.getLogger("hitops")
 
 
-#: tools whose work runs in numba kernels (their start-up initialises numba's CPU target)
-NUMBA_TOOLS = {"calibrate", "diagnose", "simulate"}
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the program is, so clean-up code (``finally``, rollbacks) runs.
+
+    A KeyboardInterrupt subclass: code that already cleans up after Ctrl-C
+    cleans up after a batch system's SIGTERM in the same way.
+    """
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated()
+
+
+def _one_line(text: str) -> str:
+    """A message folded onto one line (casacore and CASA messages span several)."""
+    return " ".join(str(text).split())
+
+
+def _save_traceback(tool: str) -> str:
+    """Write the current exception's traceback to a file; its path (or '' if that failed)."""
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    path = os.path.join(tempfile.gettempdir(), f"hitops-{tool}-{stamp}-{os.getpid()}.traceback.txt")
+    try:
+        with open(path, "w") as out:
+            out.write(f"hitops {__version__} {tool}: {' '.join(sys.argv)}\n\n")
+            traceback.print_exc(file=out)
+    except OSError:
+        return ""
+    return path
+
+
+def run_tool(tool: str, func, params: dict, debug: bool = False) -> int:
+    """Run one tool's function behind the error boundary; the process exit status."""
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        func(**params)
+        return 0
+    except HitopsError as err:
+        log.error("%s", _one_line(err))
+        if debug:
+            traceback.print_exc()
+        return err.exit_code
+    except Terminated:
+        log.error("hitops %s: terminated (SIGTERM); the input files are as they were before "
+                  "this run; rerun the same command to start again", tool)
+        return 143
+    except KeyboardInterrupt:
+        log.error("hitops %s: interrupted; the input files are as they were before this run; "
+                  "rerun the same command to start again", tool)
+        return 130
+    except Exception as err:
+        saved = _save_traceback(tool)
+        kind = type(err).__name__
+        detail = _one_line(err) or "no message"
+        if debug:
+            traceback.print_exc()
+        log.error("hitops %s failed unexpectedly: %s: %s. The input files are as they were "
+                  "before this run. %s", tool, kind, detail,
+                  (f"Traceback in {saved}; rerun with --debug to print it."
+                   if saved else "Rerun with --debug for the traceback."))
+        return 1
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _make_command(tool: str) -> click.Command:
-    def invoke(**params):
+    def invoke(debug=False, **params):
         setup_logging()
-        # the stack without SciPy's optional hooks: ~0.3 s less start-up (hitops/startup.py)
-        lean_start(numba_target=tool in NUMBA_TOOLS)
         module = importlib.import_module(f"hitops.{tool}.app")
-        try:
-            module.run(**params)
-        except HitopsError as err:
-            log.error("%s", err)
-            sys.exit(err.exit_code)
-        if tool in NUMBA_TOOLS:
-            # numba's interpreter teardown alone takes 0.3-0.4 s (hitops/startup.py)
-            fast_exit(0)
+        debug = debug or os.environ.get("HITOPS_DEBUG", "") not in ("", "0")
+        sys.exit(run_tool(tool, module.run, params, debug))
 
-    return clickify(tool, invoke)
+    command = clickify(tool, invoke)
+    command.params.append(click.Option(
+        ["--debug"], is_flag=True, default=False,
+        help="print the full traceback of an unexpected error (also: HITOPS_DEBUG=1)"))
+    return command
 
 
 @click.group()

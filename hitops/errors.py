@@ -39,3 +39,9 @@ class OutputExistsError(HitopsError):
 
 class ExternalToolError(HitopsError):
     """CASA, WSClean or another external tool failed."""
+
+
+class RollbackError(HitopsError):
+    """A run failed and could not undo what it had begun; the message says what is left."""
+
+    exit_code = 1

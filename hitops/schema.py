@@ -81,9 +81,11 @@ def _click_param(name: str, param: Dict[str, Any]) -> Callable:
         raise TypeError(f"schema parameter '{name}': dtype '{dtype}' has no CLI mapping")
     if param.get("choices"):
         ctype = click.Choice([str(c) for c in param["choices"]])
-    return click.option(option_name(name), name, type=ctype, default=default,
-                        required=required, help=help_text,
-                        show_default=default is not None)
+    # click >= 8.3 takes an explicit default=None as a default, which silences `required`:
+    # pass a default only when the schema has one
+    extra = {} if default is None else {"default": default, "show_default": True}
+    return click.option(option_name(name), name, type=ctype, required=required,
+                        help=help_text, **extra)
 
 
 def clickify(tool: str, func: Callable) -> click.Command:

@@ -4,9 +4,6 @@
 ``hitops calibrate``; see docs/calibrate.md.
 """
 
+from .api import calibrate
 
-def calibrate(ref_ms, target_ms, **kwargs):
-    """See :func:`hitops.calibrate.api.calibrate` (imported lazily to keep the CLI fast)."""
-    from .api import calibrate as _calibrate
-
-    return _calibrate(ref_ms, target_ms, **kwargs)
+__all__ = ["calibrate"]

@@ -35,15 +35,21 @@ from typing import Dict, List
 
 import numpy as np
 
-from ..errors import InputError, MeasurementSetError, OutputExistsError
+from ..errors import InputError, MeasurementSetError, OutputExistsError, RollbackError
+from ..io import access
 from ..io import read as msio
 from ..io.match import parse_antenna_map
+from ..options import make_options
 from .chunks import INDEX_COLUMNS, ROW_COLUMNS, BandIndex, ChunkMatch, index_bands
 
 log = logging.getLogger("hitops.calibrate")
 
 DEFAULT_COLUMNS = {"pwc": "PWC_DATA", "cfpt": "CFPT_DATA", "cwu": "CWU_DATA"}
 FLAG_BACKUP = "FLAG_HITOPS_BACKUP"
+#: output columns are written under this prefix and renamed when complete, so a run that is
+#: killed leaves nothing that looks like a result (and the next run removes the leftovers)
+STAGING_PREFIX = "HITOPS_PARTIAL_"
+STAGING_FLAG = STAGING_PREFIX + "FLAG"
 META_COLUMNS = INDEX_COLUMNS
 #: read only when the DATA_DESCRIPTION / FIELD subtables have several rows
 SELECTION_COLUMNS = ["DATA_DESC_ID", "FIELD_ID"]
@@ -148,12 +154,13 @@ def _chunk_bounds(per_time: np.ndarray, chunk_rows: int):
 
 
 def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column="DATA",
-              ref_model_column=None, offset_reference_column=None, max_offset_wraps=10,
+              ref_model_column=None, offset_reference_column=None, max_offset_wraps=50,
               offset_ambiguity_deg=2.0, ratio=None, antenna_map=None, output_column=None,
               overwrite=False, average_channels=False, time_tolerance=None, tracker="count",
               half_window=0, coherence_time=20.0, snr=0.0, max_gap=-1, jump_threshold=-1.0,
               jump_window=0, jump_action="segment", refant=None, solve_half_window=-1,
-              no_elevation_scaling=False, chunk_rows=2_000_000, report=None, scheduler=None) -> Dict:
+              no_elevation_scaling=False, chunk_rows=2_000_000, report=None, scheduler=None,
+              lock_timeout=60.0) -> Dict:
     """Frequency phase transfer from ``ref_ms`` (reference band) to ``target_ms``.
 
     Writes one column per method into ``target_ms`` (PWC_DATA, CFPT_DATA,
@@ -174,6 +181,49 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
     if os.path.realpath(ref_ms) == os.path.realpath(target_ms):
         raise InputError(f"REF_MS and TARGET_MS are the same set ({ref_ms}); give the "
                          "reference-band and the target-band Measurement Sets")
+    if not float(lock_timeout) >= 0:
+        raise InputError(f"--lock-timeout {lock_timeout} must be >= 0 seconds")
+    access.require_subtables(ref_ms, "reference-band Measurement Set")
+    access.require_subtables(target_ms, "target-band Measurement Set")
+    access.require_writable(target_ms, "target-band Measurement Set")
+    # one hitops run per target set at a time; then casacore's own locks, whose wait
+    # would otherwise be silent and unbounded (hitops/io/access.py)
+    with access.RunLock(target_ms, lock_timeout, "target-band Measurement Set"):
+        access.wait_for_table_lock(target_ms, True, lock_timeout, "target-band Measurement Set")
+        access.wait_for_table_lock(ref_ms, False, lock_timeout, "reference-band Measurement Set")
+        _drop_staging_columns(target_ms)
+        opts = make_options("calibrate", locals())
+        try:
+            return _calibrate_locked(opts, methods, ref_ms, target_ms, started)
+        except RuntimeError as err:
+            # casacore's messages do not always say which table failed: find the damage
+            _raise_if_damaged(err, [(ref_ms, [ref_column, "FLAG"] + INDEX_COLUMNS),
+                                    (target_ms, [target_column, "FLAG"] + INDEX_COLUMNS)])
+            raise
+
+
+def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
+                      started: float) -> Dict:
+    """The rest of :func:`calibrate`, holding the target set's run lock.
+
+    ``opts``: the validated-so-far options (:func:`hitops.options.options_class`);
+    ``ref_ms`` / ``target_ms`` are the checked paths.
+    """
+    ratio, max_offset_wraps, chunk_rows, tracker = (opts.ratio, opts.max_offset_wraps,
+                                                    opts.chunk_rows, opts.tracker)
+    half_window, coherence_time, snr, max_gap = (opts.half_window, opts.coherence_time,
+                                                 opts.snr, opts.max_gap)
+    jump_threshold, jump_window, jump_action = opts.jump_threshold, opts.jump_window, opts.jump_action
+    solve_half_window, refant, no_elevation_scaling = (opts.solve_half_window, opts.refant,
+                                                       opts.no_elevation_scaling)
+    output_column, antenna_map, time_tolerance = (opts.output_column, opts.antenna_map,
+                                                  opts.time_tolerance)
+    ref_column, ref_model_column, target_column = (opts.ref_column, opts.ref_model_column,
+                                                   opts.target_column)
+    offset_reference_column, offset_ambiguity_deg = (opts.offset_reference_column,
+                                                     opts.offset_ambiguity_deg)
+    overwrite, average_channels, scheduler, report = (opts.overwrite, opts.average_channels,
+                                                      opts.scheduler, opts.report)
     if ratio is not None and not (float(ratio) > 0 and math.isfinite(float(ratio))):
         raise InputError(f"--ratio {ratio}: R = nu_target / nu_reference must be a positive "
                          "number (e.g. 2.6744 for 230/86 GHz); omit it to take R from the sets")
@@ -193,15 +243,25 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
     if time_tolerance is not None and not float(time_tolerance) > 0:
         raise InputError(f"--time-tolerance {time_tolerance} must be a positive number of "
                          "seconds; omit it to use half the smallest INTERVAL")
+    present = set(msio.column_names(target_ms))
+    # a rerun with --overwrite starts from the flags hitops found before its first run
+    # (FLAG_HITOPS_BACKUP), so two identical runs give identical FLAG columns; a run that
+    # was killed half-way through writing FLAG is repaired the same way
+    flag_column = FLAG_BACKUP if (overwrite and FLAG_BACKUP in present) else "FLAG"
+    if flag_column == FLAG_BACKUP:
+        log.info("--overwrite: starting from %s (the flags before hitops first ran), not "
+                 "from FLAG, so this run's flags replace the earlier run's", FLAG_BACKUP)
     ref_cols = [ref_column, "FLAG"] + ([ref_model_column] if ref_model_column else [])
-    tgt_cols = [target_column, "FLAG"] + ([offset_reference_column] if offset_reference_column else [])
+    tgt_cols = [target_column, flag_column] + ([offset_reference_column] if offset_reference_column else [])
     msio.require_columns(ref_ms, ref_cols + META_COLUMNS, "reference-band Measurement Set",
                          "check --ref-column / --ref-model-column")
     msio.require_columns(target_ms, tgt_cols + META_COLUMNS, "target-band Measurement Set",
                          "check --target-column / --offset-reference-column")
     protected = {target_column, "FLAG", FLAG_BACKUP, "DATA", offset_reference_column} - {None}
-    present = set(msio.column_names(target_ms))
     for m, col in outputs.items():
+        if col.startswith(STAGING_PREFIX):
+            raise InputError(f"output column {col}: names starting with {STAGING_PREFIX} are "
+                             "hitops's own unfinished columns; choose another --output-column")
         if col in protected:
             raise InputError(f"output column {col} of {target_ms} is an input or flag column; "
                              "choose another --output-column (e.g. PWC_DATA)")
@@ -284,19 +344,16 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
                     n_target_rows - match.n_matched)
 
     # ---- 2. chunks and the dask machinery
-    client = None
+    client = closer = None
     if scheduler:
-        try:
-            from distributed import Client
-            client = Client(scheduler, set_as_default=False)
-        except OSError as err:
-            raise InputError(f"--scheduler {scheduler}: cannot reach a dask scheduler there "
-                             f"({err}); start one (dask scheduler) or omit the option") from err
+        # an address, or slurm[:N] (dask-jobqueue worker jobs): hitops/cluster.py
+        from ..cluster import dask_client
+        client, closer = dask_client(scheduler)
     try:
         return _run(locals(), started)
     finally:
-        if client is not None:
-            client.close()
+        if closer is not None:
+            closer.close()
 
 
 def _tracking_setup(g: Dict):
@@ -439,6 +496,8 @@ def _run(ctx: Dict, started: float) -> Dict:
                               scan=None)
         tgt_rows, ref_rows = t_idx.rows, r_idx.rows
         tgt_flag_row, ref_flag_row = t_idx.flag_row, r_idx.flag_row
+        if g["flag_column"] != "FLAG":   # --overwrite: the flags before hitops's first run
+            tgt["FLAG"] = tgt.pop(g["flag_column"])
         tvis, tok = _average(tgt[g["target_column"]], tgt["FLAG"], tgt_flag_row)
         rvis, rok = _average(ref[g["ref_column"]], ref["FLAG"], ref_flag_row)
         if g["ref_model_column"]:
@@ -562,7 +621,7 @@ def _run(ctx: Dict, started: float) -> Dict:
             timings["transfer"] += time.perf_counter() - stage
             if write:
                 stage = time.perf_counter()
-                _write_chunk(g, ch, phasor_rows, calibrated, codes, outputs, io_scheduler)
+                _write_chunk(g, ch, phasor_rows, calibrated, codes, staging, io_scheduler)
                 timings["write"] += time.perf_counter() - stage
         if tracker is not None:
             wrap_events = tracker.stats.per_series["wrap_events"].copy()
@@ -574,11 +633,12 @@ def _run(ctx: Dict, started: float) -> Dict:
     state = {"created": [], "backup_created": False}
     g["_state"] = state
     present = set(msio.column_names(target_ms))
-    state["created"] = [c for c in outputs.values() if c not in present]
-    state["backup_created"] = FLAG_BACKUP not in present
-    g["_backup_needed"] = FLAG_BACKUP not in present
-    g["_n_chunks"] = n_chunks
-    if client is not None and (state["created"] or state["backup_created"]):
+    staging = {m: STAGING_PREFIX + col for m, col in outputs.items()}
+    state["created"] = list(staging.values()) + [STAGING_FLAG]
+    state["rows_written"] = np.zeros(g["n_target_rows"], dtype=bool)
+    _check_space(g, staging, FLAG_BACKUP not in present)
+    if client is not None:
+        _release_cluster_tables(client)   # stale handles of an earlier run on this cluster
         _create_columns_for_cluster(g, state)
     try:
         offsets, offset_report = _offset_pass(g, run_pass, codes, n_corr, n_scan)
@@ -589,6 +649,9 @@ def _run(ctx: Dict, started: float) -> Dict:
     try:
         # robust trackers: offsets stays zero, the per-segment k goes into the counts
         totals, wrap_events, _, _ = run_pass(offsets, write=True, segment_k=g.get("_segment_k"))
+        if client is not None:
+            _release_cluster_tables(client)
+        _commit_columns(g, staging, outputs)
     except BaseException:
         _rollback(g)
         raise
@@ -596,39 +659,52 @@ def _run(ctx: Dict, started: float) -> Dict:
                    started, n_chunks)
 
 
+def _release_cluster_tables(client) -> None:
+    """Let the scheduler and workers close their handles of the tables before the commit.
+
+    The commit renames and removes columns; a process that still holds the table
+    open from this run's reads would fail on its next use of it ("another process
+    changed the number of columns").  dask-ms keeps its table handles only while
+    tasks refer to them: wait until the scheduler has released this run's tasks,
+    then collect the garbage everywhere (best effort: a failure here only means
+    a later run on the same cluster reopens the table).
+    """
+    import gc
+
+    def settle(dask_scheduler=None, timeout=5.0):
+        deadline = time.monotonic() + timeout
+        while dask_scheduler is not None and dask_scheduler.tasks and time.monotonic() < deadline:
+            time.sleep(0.05)
+        return gc.collect()
+
+    try:
+        client.run_on_scheduler(settle)
+        client.run(gc.collect)
+    except Exception as err:   # noqa: BLE001 - best effort, see above
+        log.debug("could not ask the cluster to release its tables: %s", err)
+
+
 def _create_columns_for_cluster(g: Dict, state: Dict) -> None:
-    """Create the output columns and the FLAG backup before any graph goes to a cluster.
+    """Create the staging columns before any graph goes to a cluster.
 
     dask-ms adds a missing column while it builds the write graph, in this
     process; a dask.distributed scheduler and its workers still hold the table
     open from the reads, with the old column list, and casacore then refuses to
     open it again ("another process changed the number of columns"), which left
     the run hanging.  Made here, the columns exist before the cluster opens the
-    table; a failure later drops them again (:func:`_rollback`).  The backup
-    copies FLAG whole (in blocks of --chunk-rows rows).
+    table; a failure later drops them again (:func:`_rollback`).
     """
     from casacore import tables as pt
 
     target_ms = g["target_ms"]
     with pt.table(target_ms, readonly=False, ack=False) as t:
         t.lock(write=True)
-        n_row = t.nrows()
-        new = [(c, g["target_column"]) for c in state["created"]]
-        if state["backup_created"]:
-            new.append((FLAG_BACKUP, "FLAG"))
+        new = [(c, g["target_column"]) for c in state["created"] if c != STAGING_FLAG]
+        new.append((STAGING_FLAG, "FLAG"))
         for name, like in new:
             desc = t.getcoldesc(like)
             desc["name"] = name
             t.addcols(pt.makecoldesc(name, desc), _like_dminfo(t.getdminfo(like), name))
-        if state["backup_created"]:
-            step = max(1, int(g["chunk_rows"]))
-            for start in range(0, n_row, step):
-                nrow = min(step, n_row - start)
-                t.putcol(FLAG_BACKUP, t.getcol("FLAG", start, nrow), start, nrow)
-    if state["backup_created"]:
-        g["_backup_needed"] = False
-        state["backup_written"] = True
-        state["backup_rows"] = [np.arange(n_row, dtype=np.int64)]
     log.info("created %s in %s before sending work to the cluster",
              ", ".join(n for n, _ in new), target_ms)
 
@@ -751,6 +827,7 @@ def _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, stat
                           for b, name in enumerate(match.baseline_names)]},
         "flags": {"column": "FLAG", "backup_column": FLAG_BACKUP,
                   "flag_updated": bool(state.get("flag_written")),
+                  "input_flags": g["flag_column"],
                   "backup_created": bool(state.get("backup_written"))},
         "rows": {"target": int(g["n_target_rows"]), "matched": match.n_matched,
                  "reference_unused": match.n_ref_unused},
@@ -820,7 +897,13 @@ def _merge_carry(carry, bls, part):
     carry.count[bls] = part.count
 
 
-def _write_chunk(g, ch, phasor_rows, calibrated, codes, outputs, io_scheduler):
+def _write_chunk(g, ch, phasor_rows, calibrated, codes, staging, io_scheduler):
+    """Write one chunk's output columns and new flags, all into staging columns.
+
+    FLAG itself is not touched here: :func:`_commit_columns` copies the staged
+    flags into it once every chunk has been written, so a failure or a kill
+    before then leaves FLAG as it was.
+    """
     from ..kernels import fpt
 
     names = {v: k for k, v in fpt.METHOD_CODES.items()}
@@ -828,49 +911,127 @@ def _write_chunk(g, ch, phasor_rows, calibrated, codes, outputs, io_scheduler):
     arrays, dims = {}, {}
     vis_dims = ("row", "chan", "corr")
     for c in codes:
-        arrays[outputs[names[c]]] = (data * phasor_rows[c][:, None, :]).astype(np.complex64, copy=False)
-        dims[outputs[names[c]]] = vis_dims
-    new_flag = ch["tgt_flag"] | ch["tgt_flag_row"][:, None, None] | ~calibrated[:, None, :]
-    # FLAG is rewritten only when this run adds flags; the backup is made the first time
-    # (with several chunks and no backup yet, every chunk writes both so the backup is whole)
-    changed = not np.array_equal(new_flag, ch["tgt_flag"])
-    write_flag = changed or (g["_backup_needed"] and g["_n_chunks"] > 1)
-    state = g["_state"]
-    if write_flag and g["_backup_needed"]:
-        arrays[FLAG_BACKUP] = ch["tgt_flag"]
-        dims[FLAG_BACKUP] = vis_dims
-    # outputs and the backup first, FLAG after: a failure in between leaves FLAG
-    # restorable from the backup of exactly the rows that have one
+        arrays[staging[names[c]]] = (data * phasor_rows[c][:, None, :]).astype(np.complex64, copy=False)
+        dims[staging[names[c]]] = vis_dims
+    arrays[STAGING_FLAG] = ch["tgt_flag"] | ch["tgt_flag_row"][:, None, None] | ~calibrated[:, None, :]
+    dims[STAGING_FLAG] = vis_dims
     msio.write_main_columns(g["target_ms"], ch["tgt_rows"], arrays, dims, scheduler=io_scheduler)
-    if FLAG_BACKUP in arrays:
-        state["backup_written"] = True
-        state.setdefault("backup_rows", []).append(ch["tgt_rows"])
-    if write_flag:
-        msio.write_main_columns(g["target_ms"], ch["tgt_rows"], {"FLAG": new_flag},
-                                {"FLAG": vis_dims}, scheduler=io_scheduler)
-        state["flag_written"] = True
+    g["_state"]["rows_written"][ch["tgt_rows"]] = True
+
+
+def _commit_columns(g: Dict, staging: Dict[str, str], outputs: Dict[str, str]) -> None:
+    """Make a finished run's output visible: FLAG backup, new FLAG, columns renamed.
+
+    In order: FLAG is backed up into FLAG_HITOPS_BACKUP the first time hitops
+    changes it; the staged flags replace FLAG on the rows this run wrote
+    (block by block, only where they differ); each staging column takes its
+    final name (an existing column of that name, kept until now, is removed
+    first).  Memory: one block of ``chunk_rows`` rows at a time.
+    """
+    from casacore import tables as pt
+
+    state = g["_state"]
+    written = state["rows_written"]
+    step = max(1, int(g["chunk_rows"]))
+    with pt.table(g["target_ms"], readonly=False, ack=False) as t:
+        t.lock(write=True)
+        n_row = t.nrows()
+        changed = []
+        for start in range(0, n_row, step):
+            n = min(step, n_row - start)
+            rows = written[start:start + n]
+            if not rows.any():
+                continue
+            flag = t.getcol("FLAG", start, n)
+            new = flag.copy()
+            new[rows] = t.getcol(STAGING_FLAG, start, n)[rows]
+            if not np.array_equal(new, flag):
+                changed.append(start)
+        if changed and FLAG_BACKUP not in t.colnames():
+            desc = t.getcoldesc("FLAG")
+            desc["name"] = FLAG_BACKUP
+            t.addcols(pt.makecoldesc(FLAG_BACKUP, desc), _like_dminfo(t.getdminfo("FLAG"),
+                                                                      FLAG_BACKUP))
+            for start in range(0, n_row, step):
+                n = min(step, n_row - start)
+                t.putcol(FLAG_BACKUP, t.getcol("FLAG", start, n), start, n)
+            state["backup_written"] = True
+        for start in changed:
+            n = min(step, n_row - start)
+            rows = written[start:start + n]
+            flag = t.getcol("FLAG", start, n)
+            flag[rows] = t.getcol(STAGING_FLAG, start, n)[rows]
+            t.putcol("FLAG", flag, start, n)
+        state["flag_written"] = bool(changed)
+        t.removecols([STAGING_FLAG])
+        for method, final in outputs.items():
+            if final in t.colnames():
+                t.removecols([final])
+            t.renamecol(staging[method], final)
 
 
 def _rollback(g):
-    """After a failure while writing: drop the columns this run created, restore FLAG."""
+    """After a failure or an interrupt: drop this run's staging columns.
+
+    Nothing else was changed before :func:`_commit_columns`, so the target set
+    is then as it was before the run.
+    """
     from casacore import tables as pt
 
     state = g["_state"]
     try:
         with pt.table(g["target_ms"], readonly=False, ack=False) as t:
             t.lock(write=True)
-            if state["backup_created"] and FLAG_BACKUP in t.colnames():
-                rows = np.concatenate(state.get("backup_rows") or [np.zeros(0, np.int64)])
-                if rows.size:   # only rows this run backed up may have a changed FLAG
-                    flag = t.getcol("FLAG")
-                    flag[rows] = t.getcol(FLAG_BACKUP)[rows]
-                    t.putcol("FLAG", flag)
-                t.removecols([FLAG_BACKUP])
             drop = [c for c in state["created"] if c in t.colnames()]
             if drop:
                 t.removecols(drop)
-        log.error("calibrate failed while writing %s: removed the new columns and restored "
-                  "FLAG", g["target_ms"])
+        log.error("calibrate stopped before it finished writing %s: removed its unfinished "
+                  "columns; the set is as it was before this run", g["target_ms"])
     except Exception as err:  # the original error matters more
-        log.error("calibrate failed while writing and could not roll back %s (%s); restore "
-                  "FLAG from %s by hand", g["target_ms"], err, FLAG_BACKUP)
+        raise RollbackError(
+            f"calibrate failed while writing {g['target_ms']} and could not remove its "
+            f"unfinished columns ({' '.join(str(err).split())}); they start with "
+            f"{STAGING_PREFIX}: the next hitops calibrate run on the set removes them, or "
+            "remove them by hand (casacore table.removecols)") from err
+
+
+def _drop_staging_columns(target_ms: str) -> None:
+    """Remove staging columns left by a run that was killed (they never hold a result)."""
+    from casacore import tables as pt
+
+    with pt.table(target_ms, ack=False) as t:
+        stale = [c for c in t.colnames() if c.startswith(STAGING_PREFIX)]
+    if stale:
+        with pt.table(target_ms, readonly=False, ack=False) as t:
+            t.removecols(stale)
+        log.warning("removed %s from %s: unfinished columns of an earlier run that was "
+                    "stopped", ", ".join(stale), target_ms)
+
+
+def _check_space(g: Dict, staging: Dict[str, str], backup_needed: bool) -> None:
+    """Refuse before writing when the staging columns (and the backup) cannot fit."""
+    from casacore import tables as pt
+
+    with pt.table(g["target_ms"], ack=False) as t:
+        n_row = t.nrows()
+        cell = t.getcell(g["target_column"], 0) if n_row else np.zeros((1, 1))
+    n_cells = n_row * int(np.prod(cell.shape))
+    # complex64 outputs, the staged flags, the backup (casacore stores Bool as bits in
+    # tiled columns and bytes in others: count bytes)
+    n_bytes = n_cells * (8 * len(staging) + 1 + (1 if backup_needed else 0))
+    access.require_free_space(g["target_ms"], n_bytes,
+                              f"{', '.join(g['outputs'].values())} and FLAG")
+
+
+def _raise_if_damaged(err: RuntimeError, tables) -> None:
+    """Turn an unexpected casacore error into a message naming the damaged table and column.
+
+    ``tables``: (ms, columns) pairs read by the run.  Returns without raising
+    when every column reads (the error had another cause).
+    """
+    for ms, columns in tables:
+        damage = access.locate_damage(ms, list(dict.fromkeys(columns)))
+        if damage:
+            raise MeasurementSetError(
+                f"'{ms}' is damaged: {damage}; the run stopped before writing anything: "
+                "restore the set from its source or a backup") from err

@@ -1,9 +1,4 @@
-"""Entry point of ``hitops calibrate`` (parameters from hitops/schemas/calibrate.yml)."""
+"""Entry point of ``hitops calibrate``: the Python function itself (parameters and defaults
+from hitops/schemas/calibrate.yml; tests/test_schema_defaults.py keeps them equal)."""
 
-from __future__ import annotations
-
-
-def run(**params):
-    from .api import calibrate
-
-    calibrate(**params)
+from .api import calibrate as run  # noqa: F401

@@ -1,12 +1,4 @@
-"""`hitops compare`: entry point built from hitops/schemas/compare.yml."""
+"""Entry point of ``hitops compare``: the Python function itself (parameters and defaults
+from hitops/schemas/compare.yml; tests/test_schema_defaults.py keeps them equal)."""
 
-from __future__ import annotations
-
-from .table import compare
-
-
-def run(fits, labels=None, input_peak=1.0, input_peak_err=0.0, coherence=None,
-        reference="none", outdir=".", name="peak-flux", overwrite=False):
-    compare(fits, labels=labels, input_peak=input_peak, input_peak_err=input_peak_err,
-            coherence=coherence, reference=reference, outdir=outdir, name=name,
-            overwrite=overwrite)
+from .table import compare as run  # noqa: F401

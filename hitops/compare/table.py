@@ -249,8 +249,8 @@ def _extract_per_baseline(data) -> Dict[str, Dict]:
 
 
 def compare(fits, labels=None, input_peak: float = 1.0, input_peak_err: float = 0.0,
-            coherence: Optional[str] = None, reference: str = "none",
-            outdir: str = ".", name: str = "peak-flux", overwrite: bool = False) -> Dict:
+            coherence: Optional[str] = None, reference: str = "none", *,
+            outdir: str, name: str = "peak-flux", overwrite: bool = False) -> Dict:
     """Write {outdir}/{name}.csv/.md/.json; return the JSON payload."""
     fit_files = _split(fits)
     if not fit_files:

@@ -1,9 +1,4 @@
-"""CLI entry of ``hitops diagnose`` (parameters from hitops/schemas/diagnose.yml)."""
+"""Entry point of ``hitops diagnose``: the Python function itself (parameters and defaults
+from hitops/schemas/diagnose.yml; tests/test_schema_defaults.py keeps them equal)."""
 
-from __future__ import annotations
-
-from .api import diagnose
-
-
-def run(**params) -> dict:
-    return diagnose(**params)
+from .api import diagnose as run  # noqa: F401

@@ -1,17 +1,4 @@
-"""Entry point of ``hitops simulate`` (parameters from hitops/schemas/simulate.yml)."""
+"""Entry point of ``hitops simulate``: the Python function itself (parameters and defaults
+from hitops/schemas/simulate.yml; tests/test_schema_defaults.py keeps them equal)."""
 
-from __future__ import annotations
-
-from .api import simulate
-
-
-def run(scene, outdir, prefix="sim", seed=None, save_truth=False, overwrite=False,
-        duration=None, integration=None, coherence_scale=None, no_noise=False,
-        no_troposphere=False, stations=None, start=None, scan_length=None, scan_gap=None,
-        correlations=None, threads=1):
-    return simulate(scene, outdir, prefix=prefix, seed=seed, save_truth=save_truth,
-                    overwrite=overwrite, duration=duration, integration=integration,
-                    coherence_scale=coherence_scale, no_noise=no_noise,
-                    no_troposphere=no_troposphere, stations=stations, start=start,
-                    scan_length=scan_length, scan_gap=scan_gap, correlations=correlations,
-                    threads=threads)
+from .api import simulate as run  # noqa: F401
