@@ -1,48 +1,53 @@
 # HITOPS: `make run` and `make test` each set up everything on a fresh machine
 # (virtual environment, Python packages, WSClean, CASA's offline data
-# configuration) and then run the demo recipe or the tests.
+# configuration) and then run the demo recipe or the tests. The set-up steps
+# are in scripts/setup.sh, where tests/test_setup.py runs them; `make help`
+# lists the targets (the text after "##" on each target's line).
 SHELL := /bin/bash
 PYTHON ?= python3
-VENV := .venv
+VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.hitops-installed
+SETUP := $(SHELL) scripts/setup.sh
+# scripts/setup.sh reads these (e.g. make setup PYTHON=python3.12)
+export PYTHON VENV
 # the venv's console scripts (hitops, stimela) must be found by Stimela's native backend
-export PATH := $(CURDIR)/$(VENV)/bin:$(PATH)
+export PATH := $(abspath $(VENV))/bin:$(PATH)
 # numba's compiled kernels are cached here between runs
-export NUMBA_CACHE_DIR ?= $(CURDIR)/.venv/numba-cache
+export NUMBA_CACHE_DIR ?= $(abspath $(VENV))/numba-cache
 
-.PHONY: setup run test bench cabs wsclean casa-config clean
+.PHONY: help setup run test bench cabs wsclean casa-config numba-cache clean
+# `make` alone sets up, as before `make help` existed
+.DEFAULT_GOAL := setup
 
-setup: $(STAMP) wsclean casa-config
+help: ## list the targets
+	@awk -F ':.*## ' '/^[a-zA-Z_.-]+:.*## /{printf "make %-12s %s\n", $$1, $$2}' $(MAKEFILE_LIST)
+
+setup: $(STAMP) wsclean casa-config numba-cache ## set up: .venv with the Python packages, WSClean, CASA offline data, numba cache
 
 $(STAMP): pyproject.toml
-	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test]'
-	touch $@
+	@$(SETUP) venv
 
-# WSClean from Debian, installed only when missing (root, or sudo when not root)
-wsclean:
-	@command -v wsclean >/dev/null || { \
-	  SUDO=$$([ "$$(id -u)" -eq 0 ] || echo sudo); \
-	  $$SUDO apt-get update -q && $$SUDO DEBIAN_FRONTEND=noninteractive apt-get install -y -q wsclean; }
+wsclean: ## install WSClean from Debian when missing (apt-get; through sudo when not root)
+	@$(SETUP) wsclean
 
-# CASA offline data configuration in ~/.cache/hitops, never in the user's ~/.casa
-casa-config: $(STAMP)
-	@$(PY) -m hitops.casa_env >/dev/null
+casa-config: $(STAMP) ## write CASA's offline data configuration into .venv/etc/hitops/
+	@$(SETUP) casa-config
 
-run: setup
+numba-cache: ## create the numba kernel cache directory (.venv/numba-cache)
+	@$(SETUP) numba-cache
+
+run: setup ## set up, then run the demo recipe (outputs in out/demo/)
 	stimela run recipes/fpt-demo.yml
 
-test: setup
+test: setup ## set up, then run all the tests
 	$(PY) -m pytest -q
 
-bench: setup
+bench: setup ## set up, then run every benchmark (each rewrites its section of docs/performance.md)
 	$(PY) -m benchmarks.run_all
 
-# regenerate cabs/hitops.yml from the parameter schemas
-cabs: $(STAMP)
+cabs: $(STAMP) ## regenerate cabs/hitops.yml from hitops/schemas/
 	$(PY) -m hitops.cabgen
 
-clean:
+clean: ## remove out/, bench-out/ and .pytest_cache (keeps .venv)
 	rm -rf out bench-out .pytest_cache

@@ -7,6 +7,11 @@ the pip package ``casadata`` and name it in ``CASASITECONFIG`` before the first
 ``import casatools``.  Debian's /usr/share/casacore/data is refused by
 casatools 6.7 ("measures data is not available"), so casadata is required.
 
+The file lives inside the Python environment (``<sys.prefix>/etc/hitops/``),
+next to the casadata it names: a per-user file was shared by every clone, so a
+second clone silently rewrote it and deleting that clone broke CASA for the
+first (issue 17).
+
 Call :func:`ensure_casa_offline` before importing casatools or casatasks, or
 run ``python -m hitops.casa_env`` to write the file and print its path.
 """
@@ -14,6 +19,7 @@ run ``python -m hitops.casa_env`` to write the file and print its path.
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 from .errors import ExternalToolError
@@ -45,12 +51,15 @@ def casadata_path() -> Path:
 
 
 def config_file() -> Path:
-    """Where the site configuration lives: $HITOPS_CASA_CONFIG or a user cache file."""
+    """Where the site configuration lives: $HITOPS_CASA_CONFIG, else inside the environment.
+
+    ``<sys.prefix>/etc/hitops/casasiteconfig.py``: each environment has its own
+    casadata, so each gets its own file (see the module docstring).
+    """
     explicit = os.environ.get("HITOPS_CASA_CONFIG")
     if explicit:
         return Path(explicit)
-    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"))
-    return cache / "hitops" / "casasiteconfig.py"
+    return Path(sys.prefix) / "etc" / "hitops" / "casasiteconfig.py"
 
 
 def ensure_casa_offline() -> Path:
@@ -63,13 +72,27 @@ def ensure_casa_offline() -> Path:
     path = config_file()
     text = _TEMPLATE.format(path=str(casadata_path()))
     if not path.exists() or path.read_text() != text:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(text)
-        tmp.replace(path)
+        # a per-process temporary name: two processes writing at once (parallel
+        # tests, dask workers) must not replace each other's half-written file
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp.write_text(text)
+            tmp.replace(path)
+        except OSError as err:
+            # e.g. an environment installed by another user (read-only sys.prefix)
+            raise ExternalToolError(
+                f"cannot write CASA's offline data configuration {path} ({err.strerror}); "
+                "run 'python -m hitops.casa_env' once as the environment's owner, "
+                "or set HITOPS_CASA_CONFIG to a writable file") from err
     os.environ["CASASITECONFIG"] = str(path)
     return path
 
 
 if __name__ == "__main__":
-    print(ensure_casa_offline())
+    from .errors import HitopsError
+
+    try:
+        print(ensure_casa_offline())
+    except HitopsError as err:  # one line, as the CLI prints it (scripts/setup.sh relies on it)
+        sys.exit(f"hitops: {err}")
