@@ -86,12 +86,30 @@ def test_existing_output_column_needs_overwrite(tmp_path):
         assert not np.allclose(t.getcol("PWC_DATA"), 1)
 
 
-def test_stations_without_counterpart(tmp_path):
+def test_no_station_in_common(tmp_path):
     truth = make_pair(tmp_path, n_time=40, seed=23, ref_names=("AP", "JC", "PV", "GL"),
-                      target_names=("AP", "SM", "PV", "GL"))
+                      target_names=("AA", "SM", "LM", "AZ"))
     check(truth, StationError,
-          r"target station\(s\) SM of .* have no counterpart in .*unpaired reference stations: JC.*"
-          r"--antenna-map REF=TARGET")
+          r"no baseline of .*target\.ms has both stations in .*ref\.ms .*--antenna-map REF=TARGET")
+
+
+def test_stations_with_one_code_far_apart(tmp_path):
+    """Two stations that share a code but whose positions disagree are not paired."""
+    truth = make_pair(tmp_path, n_time=40, seed=23)
+    with pt.table(f"{truth.ref_ms}::ANTENNA", readonly=False, ack=False) as t:
+        pos = t.getcol("POSITION")
+        pos[1] += [3000.0, 4000.0, 0.0]    # 5 km away
+        t.putcol("POSITION", pos)
+    check(truth, StationError, r"station SM of .*ref\.ms and station SM of .*target\.ms share "
+          r"a code but are 5\.0 km apart .*--antenna-map")
+
+
+def test_placeholder_names_without_station_codes(tmp_path):
+    truth = make_pair(tmp_path, n_time=40, seed=23)
+    with pt.table(f"{truth.target_ms}::ANTENNA", readonly=False, ack=False) as t:
+        t.putcol("NAME", ["1", "2", "3", "4"])
+        t.putcol("STATION", ["AP", "", "PV", "GL"])
+    check(truth, StationError, r"target-band .*antenna\(s\) 1 have no usable station name")
 
 
 def test_no_overlapping_times(tmp_path):

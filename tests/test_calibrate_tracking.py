@@ -9,6 +9,14 @@ How a count error is read off the output: with a noiseless target band,
 arg(PWC) = source - R theta + 2 pi eps e (mod 2 pi), theta the reference
 noise phase and e = n_tracked - n_true.  Both source and theta are known, so
 e is recovered modulo 43 (eps = 29/43), which is plenty for steps of +-1.
+
+The antenna tracker transfers each baseline's antenna model R (A_p - A_q)
+instead of the baseline's own reference phase, so its output keeps the target's
+closure phases and carries R times the reference band's non-closing part
+(``truth.extra["ref_offset"]``) and the antenna model's noise; its count
+errors are read off the output with that part removed (:func:`antenna_residual`)
+and its slips as persistent steps of the smoothed residual
+(:func:`antenna_slips`).
 """
 
 from __future__ import annotations
@@ -64,6 +72,40 @@ def count_error(truth, out):
     return np.where(e > 21, e - 43, e)
 
 
+def antenna_residual(truth, out):
+    """arg(out) - (source + R ref_offset): 2 pi eps (k_p - k_q) plus the model's noise."""
+    ideal = truth.source_phase + truth.ratio * truth.extra["ref_offset"]
+    return wrap(np.angle(out[:, 0, :]) - ideal)
+
+
+def antenna_count_error(truth, out):
+    """Noiseless antenna mode: the integer e of antenna_residual = 2 pi eps e (mod 2 pi)."""
+    y = antenna_residual(truth, out)
+    k = np.arange(43)
+    e = k[np.argmin(np.abs(wrap(y[..., None] - wrap(2 * np.pi * EPS * k))), axis=-1)]
+    return np.where(e > 21, e - 43, e)
+
+
+def antenna_slips(truth, out, window=101, threshold_deg=58.0):
+    """Persistent steps of the antenna-mode residual, over every baseline and correlation.
+
+    The residual is averaged as a phasor over ``window`` samples; a count slip moves it
+    by 2 pi eps (117 deg) for good, noise by a few degrees.  A run of consecutive
+    samples whose means ``window`` apart differ by more than ``threshold_deg`` is one step.
+    """
+    y = np.exp(1j * antenna_residual(truth, out))
+    total = 0
+    kernel = np.ones(window) / window
+    for a1, a2 in set(zip(truth.ant1.tolist(), truth.ant2.tolist())):
+        sel = np.flatnonzero((truth.ant1 == a1) & (truth.ant2 == a2))
+        sel = sel[np.argsort(truth.time[sel])]
+        for c in range(y.shape[1]):
+            mean = np.convolve(y[sel, c], kernel, mode="valid")
+            big = np.abs(np.angle(mean[window:] * np.conj(mean[:-window]))) > np.radians(threshold_deg)
+            total += int(np.sum(np.diff(np.concatenate([[0], big.astype(int)])) == 1))
+    return total
+
+
 def slips(truth, out, valid=None):
     """Persistent count changes summed over every baseline and correlation."""
     e = count_error(truth, out)
@@ -96,10 +138,12 @@ def test_smooth_removes_the_slips_of_naive_counting_at_snr_2(tmp_path):
     naive, _ = run(truth, tracker="count")
     smooth, rep = run(truth, tracker="smooth")
     antenna, rep_ant = run(truth, tracker="antenna")
-    n_naive, n_smooth, n_ant = slips(truth, naive), slips(truth, smooth), slips(truth, antenna)
+    n_naive, n_smooth, n_ant = slips(truth, naive), slips(truth, smooth), antenna_slips(truth, antenna)
     # expected ~6 baselines x 2 corr x 1500 steps x 3.4e-3 x 0.7 persistent = 43
     assert 15 <= n_naive <= 90
     assert n_smooth == 0 and n_ant == 0
+    # the antenna-mode measure sees the naive tracker's slips too (it is not blind)
+    assert antenna_slips(truth, naive) >= 10
     assert rep["tracking"]["setup"]["snr_source"] == "data"
     assert rep["tracking"]["setup"]["half_window"] == "per-sample"
     assert rep_ant["tracking"]["setup"]["tracker"] == "antenna"
@@ -141,7 +185,10 @@ def test_chunked_and_unchunked_outputs_agree(tmp_path, tracker):
 
 
 def test_gaps_are_bridged_or_start_reported_segments(tmp_path, caplog):
-    truth = make_pair(tmp_path, n_ant=3, n_time=600, step_rad=0.1, corr_types=("RR",), seed=5)
+    # a reference band without non-closing phases: with 3 stations the antenna solve fits
+    # them differently while one baseline is missing, which is not what is tested here
+    truth = make_pair(tmp_path, n_ant=3, n_time=600, step_rad=0.1, corr_types=("RR",), seed=5,
+                      ref_offset_scale=0.0)
     # 8 samples (< max_gap), then 100 samples (> max_gap)
     t_idx, first_bl = flag_first_baseline(truth, (100, 108), (300, 400))
     with caplog.at_level("INFO", logger="hitops"):
@@ -157,7 +204,7 @@ def test_gaps_are_bridged_or_start_reported_segments(tmp_path, caplog):
     assert np.unique(e[sel, 0]).size == 1          # bridged: no slip across the short gap
     # the report and the antenna mode: the long gap is resolved through the other baselines
     out_ant, rep_ant = run(truth, tracker="antenna", coherence_time=30.0)
-    e_ant = count_error(truth, out_ant)
+    e_ant = antenna_count_error(truth, out_ant)
     for bl in [(0, 1), (0, 2), (1, 2)]:
         sel = (truth.ant1 == bl[0]) & (truth.ant2 == bl[1]) & valid[:, 0]
         assert np.unique(e_ant[sel, 0]).size == 1
@@ -208,8 +255,10 @@ def test_antenna_mode_closes_where_baseline_mode_carries_2pi_eps_k(tmp_path):
     assert errs.max() > 8.0
     grid = np.degrees(wrap(2 * np.pi * EPS * np.arange(-10, 11)))
     assert np.all(np.min(np.abs(wrap(np.radians(errs[:, None] - np.abs(grid)[None]))), axis=1) < 1e-3)
-    # antenna mode: the closure phases of the output are those of the source (noiseless: exact)
-    assert np.degrees(np.max(np.abs(closure_ant[ok]))) < 1e-3
+    # antenna mode: the closure phases of the output are the target band's own, whatever
+    # the reference band's baselines carry (noiseless: exact to float precision)
+    closure_target = _closures(truth, col(truth.target_ms, "DATA"), flag)
+    assert np.max(np.abs(wrap(closure_ant[ok] - closure_target[ok]))) < 1e-6
     assert rep["tracking"]["setup"]["refants"] == [2]
 
 
@@ -234,7 +283,10 @@ def test_antenna_mode_through_the_command_line(tmp_path):
     assert report["tracking"]["setup"]["solve_half_window"] == 0
     flag = col(truth.target_ms, "FLAG")
     closure = _closures(truth, col(truth.target_ms, "PWC_DATA"), flag)
-    assert np.degrees(np.nanmax(np.abs(closure))) < 1e-3
+    closure_target = _closures(truth, col(truth.target_ms, "DATA"), flag)
+    ok = np.isfinite(closure)
+    assert ok.sum() > 1000
+    assert np.max(np.abs(wrap(closure[ok] - closure_target[ok]))) < 1e-6
 
 
 def _jump_pair(path):
@@ -338,7 +390,7 @@ def test_extreme_cases_one_sample_fully_flagged_and_cross_hands(tmp_path):
         good = ~tflag[:, 0, :]
         assert np.all(np.isfinite(out[:, 0, :][good]))
         sel = (truth.ant1 == 1) & (truth.ant2 == 2)
-        e = count_error(truth, out)
+        e = count_error(truth, out) if tracker == "smooth" else antenna_count_error(truth, out)
         assert np.unique(e[sel, 0]).size == 1 and np.unique(e[sel, 3]).size == 1
 
 

@@ -39,6 +39,7 @@ from ..errors import InputError, MeasurementSetError, OutputExistsError, Rollbac
 from ..io import access
 from ..io import read as msio
 from ..io.match import parse_antenna_map
+from ..io.stations import read_stations
 from ..options import make_options
 from .chunks import INDEX_COLUMNS, ROW_COLUMNS, BandIndex, ChunkMatch, index_bands
 
@@ -280,8 +281,9 @@ def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
     ref_ds = msio.open_main(ref_ms, list(dict.fromkeys(ref_meta_cols + ref_cols)), io_rows)
     tgt_ds = msio.open_main(target_ms, list(dict.fromkeys(tgt_meta_cols + tgt_cols)), io_rows)
     timings["open"] = time.perf_counter() - stage
-    ref_names = [str(n) for n in msio.read_subtable(ref_ms, "ANTENNA", ["NAME"])["NAME"]]
-    tgt_names = [str(n) for n in msio.read_subtable(target_ms, "ANTENNA", ["NAME"])["NAME"]]
+    ref_stations = read_stations(ref_ms, "reference-band Measurement Set")
+    tgt_stations = read_stations(target_ms, "target-band Measurement Set")
+    ref_names, tgt_names = ref_stations.codes, tgt_stations.codes
     ref_index = BandIndex(ms=ref_ms, ds=ref_ds, n_row=int(ref_ds["TIME"].shape[0]),
                           n_ant=len(ref_names))
     tgt_index = BandIndex(ms=target_ms, ds=tgt_ds, n_row=int(tgt_ds["TIME"].shape[0]),
@@ -315,8 +317,11 @@ def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
                     "the reference phases down (PWC still applies, eps = R)", ratio)
 
     stage = time.perf_counter()
-    match = ChunkMatch(ref_index, tgt_index, ref_names, tgt_names, ref_corr, tgt_corr,
+    match = ChunkMatch(ref_index, tgt_index, ref_stations, tgt_stations, ref_corr, tgt_corr,
                        antenna_map, time_tolerance)
+    log.info("stations paired by code (%s: ANTENNA::%s, %s: ANTENNA::%s): %s", ref_ms,
+             ref_stations.column, target_ms, tgt_stations.column,
+             ", ".join(f"{e['reference'] or '-'}->{e['target'] or '-'}" for e in match.pairing))
     bounds = _chunk_bounds(match.time_counts(), int(chunk_rows))
     match.set_chunks(bounds)
     if len(bounds) > 2:
@@ -544,8 +549,8 @@ def _run(ctx: Dict, started: float) -> Dict:
         seg_sums = {}
         ref_carry = Carry.empty(match.n_bl, n_corr)
         tgt_carry = Carry.empty(match.n_bl, n_corr)
-        totals = {"n_samples": 0, "no_reference_row": 0, "target_invalid": 0,
-                  "reference_invalid": 0}
+        totals = {"n_samples": 0, "target_invalid": 0, "no_reference_row": 0,
+                  "reference_invalid": 0, "other_uncalibrated": 0}
         wrap_events = np.zeros((match.n_bl, n_corr), dtype=np.int64)
         sums = np.zeros((match.n_bl, n_corr, n_scan), dtype=np.complex128)
         counts = np.zeros((match.n_bl, n_corr, n_scan), dtype=np.int64)
@@ -553,10 +558,10 @@ def _run(ctx: Dict, started: float) -> Dict:
             ch = load(i)
             stage = time.perf_counter()
             scan_local = match.scan_of_time[ch["t0"]:ch["t1"]]
-            ref_wraps = ref_exclude = seg_keys = None
+            ref_wraps = ref_exclude = seg_keys = ref_model = None
             if tracker is not None:
                 t_lo, t_hi, ext_vis, ext_valid, ext_sigma = ch["ext"]
-                ref_wraps, ref_exclude, seg_keys = tracker.track(
+                ref_wraps, ref_exclude, seg_keys, ref_model = tracker.track(
                     t_lo, ch["t0"], ch["t1"], t_hi, ext_vis, ext_valid, ext_sigma)
                 ref_wraps = apply_segment_offsets(ref_wraps, seg_keys, segment_k)
             tasks = []
@@ -574,6 +579,7 @@ def _run(ctx: Dict, started: float) -> Dict:
                           methods=codes, ratio=ratio, eps=eps,
                           tracker="count" if tracker is not None else g["tracker"],
                           ref_wraps=None if ref_wraps is None else ref_wraps[bls],
+                          ref_model=None if ref_model is None else ref_model[bls],
                           ref_exclude=None if ref_exclude is None else ref_exclude[bls],
                           segment_keys=(seg_keys[bls] if seg_keys is not None and offsets is None
                                         and off_col else None),
@@ -801,11 +807,14 @@ def _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, stat
     off_col, timings = g["offset_reference_column"], g["timings"]
     elapsed = time.perf_counter() - started
     n_samples = totals["n_samples"]
-    flagged = totals["no_reference_row"] + totals["target_invalid"] + totals["reference_invalid"]
-    log.info("flagged %d of %d target samples (row x correlation): %d without a reference row, "
-             "%d target flagged/NaN/zero, %d reference flagged/NaN/zero",
-             flagged, n_samples, totals["no_reference_row"], totals["target_invalid"],
-             totals["reference_invalid"])
+    flagged = (totals["target_invalid"] + totals["no_reference_row"]
+               + totals["reference_invalid"] + totals["other_uncalibrated"])
+    log.info("%d of %d target samples (row x correlation) not calibrated, each counted once: "
+             "%d flagged/NaN/zero in the target, %d without a reference row, %d with the "
+             "reference sample flagged/NaN/zero%s; %d calibrated", flagged, n_samples,
+             totals["target_invalid"], totals["no_reference_row"], totals["reference_invalid"],
+             (f", {totals['other_uncalibrated']} other" if totals["other_uncalibrated"] else ""),
+             n_samples - flagged)
     for b, name in enumerate(match.baseline_names):
         log.info("wraps %s: %s", name, ", ".join(f"{cn} {int(wrap_events[b, c])}"
                                                  for c, cn in enumerate(match.corr_names)))
@@ -821,6 +830,7 @@ def _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, stat
         "ref_ms": ref_ms, "target_ms": target_ms, "methods": methods, "columns": outputs,
         "ratio": g["ratio"], "r": g["r"], "eps": eps, "ratio_source": g["source"],
         "time_tolerance_s": match.tolerance, "tracker": g["tracker"], "chunks": n_chunks,
+        "stations": match.pairing,
         "tracking": tracking_report if tracking_report is not None else {
             "setup": {"tracker": "count"},
             "baselines": [{"baseline": name, "wrap_events": int(wrap_events[b].sum())}
@@ -835,7 +845,10 @@ def _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, stat
                     "no_reference_row": totals["no_reference_row"],
                     "target_invalid": totals["target_invalid"],
                     "reference_invalid": totals["reference_invalid"],
-                    "jump_flagged": totals.get("jump_flagged", 0)},
+                    "other_uncalibrated": totals["other_uncalibrated"],
+                    "jump_flagged": totals.get("jump_flagged", 0),
+                    "causes": "disjoint: target_invalid + no_reference_row + reference_invalid "
+                              "+ other_uncalibrated = flagged"},
         "wraps": [{"baseline": name, "correlation": cn, "wrap_events": int(wrap_events[b, c])}
                   for b, name in enumerate(match.baseline_names)
                   for c, cn in enumerate(match.corr_names)],

@@ -33,7 +33,9 @@ import numpy as np
 from ..errors import MeasurementSetError
 from ..io import read as msio
 from ..io.layout import unique_times
-from ..io.match import BandRows, correlation_map, distinct_counts, distinct_ints, pair_antennas
+from ..io.match import (correlation_map, distinct_counts, distinct_ints, pair_antennas,
+                        pairing_table)
+from ..io.stations import Stations
 from ..io.ms_create import CORR_NAMES
 
 #: per-row columns read in the first (index) pass
@@ -244,19 +246,16 @@ class ChunkMatch:
     scan_of_time, tolerance, n_matched, n_ref_unused).
     """
 
-    def __init__(self, ref: BandIndex, tgt: BandIndex, ref_names, tgt_names, ref_corr,
-                 tgt_corr, antenna_map, tolerance=None):
+    def __init__(self, ref: BandIndex, tgt: BandIndex, ref_stations: Stations,
+                 tgt_stations: Stations, ref_corr, tgt_corr, antenna_map, tolerance=None):
         self.ref, self.tgt = ref, tgt
-        n_ant_t, n_ant_r = len(tgt_names), len(ref_names)
+        tgt_names = tgt_stations.codes
+        n_ant_t, n_ant_r = tgt_stations.n_ant, ref_stations.n_ant
         pairs = np.flatnonzero(tgt.pair_present)
         bl_a1, bl_a2 = pairs // n_ant_t, pairs % n_ant_t
-        # pair_antennas checks the map and that each used target station has a partner
-        ref_to_tgt = pair_antennas(
-            BandRows(ms=ref.ms, time=None, ant1=None, ant2=None, scan=None, interval=None,
-                     antenna_names=list(ref_names), corr_types=list(ref_corr)),
-            BandRows(ms=tgt.ms, time=None, ant1=bl_a1, ant2=bl_a2, scan=None, interval=None,
-                     antenna_names=list(tgt_names), corr_types=list(tgt_corr)),
-            antenna_map)
+        # stations paired by code (never by antenna index); see hitops/io/match.py
+        ref_to_tgt = pair_antennas(ref_stations, tgt_stations, antenna_map, bl_a1, bl_a2)
+        self.pairing = pairing_table(ref_stations, tgt_stations, ref_to_tgt)
         self.corr_map = correlation_map(ref_corr, tgt_corr)
         self.corr_names = [CORR_NAMES.get(int(c), str(c)) for c in tgt_corr]
         if not np.any(self.corr_map[0] >= 0):

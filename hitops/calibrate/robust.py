@@ -57,6 +57,11 @@ log = logging.getLogger("hitops.calibrate")
 TRACKER_CHOICES = ("count", "smooth", "antenna")
 JUMP_ACTIONS = ("segment", "flag")
 TWO_PI = 2.0 * math.pi
+
+
+def _wrap_pi(x):
+    """Radians wrapped to [-pi, pi) (NaN stays NaN)."""
+    return (x + math.pi) % TWO_PI - math.pi
 #: smoothed-phasor mean resultant below which a sample is suspect (kernel default)
 MIN_COHERENCE = 0.2
 #: antenna tracks are smoothed over +-2 samples after a windowed solve (docs/tracking.md)
@@ -466,6 +471,24 @@ class Stats:
 
 # ----------------------------------------------------------------------------- tracking
 
+def _per_sample_model(out):
+    """Unwrapped per-sample antenna phases on the tracked antennas' lobes; (phase, valid).
+
+    ``out``: one scan run of :meth:`ReferenceTracker._antenna`, aligned.  The
+    per-sample solution and the tracked one may sit in frames rotated by a common
+    angle (reference-antenna changes): that angle (circular mean over the antennas)
+    is removed before each antenna takes the 2 pi lobe nearest its tracked phase.
+    A common angle cancels in every baseline A_p - A_q.
+    """
+    tracked = out["ant_phase"] - TWO_PI * out["ant_counts"]
+    ok = out["raw_valid"] & out["ant_valid"] & np.isfinite(out["raw_phase"])
+    raw = np.where(ok, out["raw_phase"], 0.0)
+    frame = np.angle(np.sum(np.where(ok, np.exp(1j * (tracked - raw)), 0), axis=0))
+    raw = raw + frame[None, :]
+    model = raw + TWO_PI * np.round((np.where(ok, tracked, 0.0) - raw) / TWO_PI)
+    return model, ok
+
+
 def _smooth_series(args):
     """track_wraps_smooth on one regular series (a thread-pool job; the kernel is nogil)."""
     from ..kernels.tracking import track_wraps_smooth
@@ -591,13 +614,25 @@ class ReferenceTracker:
                 ant.setdefault(c, []).append((a, b, out))
         seg = np.where(valid, seg, -1)
         counts, seg, ant = self._align(t_lo, t0, t1, scan, valid, counts, seg, ant)
+        # antenna mode: each baseline's reference phase becomes its antenna model, the
+        # unwrapped difference of its two stations' tracked phases; R times it is what the
+        # target band receives, so the target's closure phases are kept (docs/tracking.md)
+        model = np.full((self.n_bl, self.n_corr, n_ext), np.nan)
+        p_ant, q_ant = self.match.ant1, self.match.ant2
         for c, runs in ant.items():
             for a, b, out in runs:
                 # a baseline's segment is the pair of its antennas' (aligned) segments
-                sp, sq = out["ant_seg"][self.match.ant1], out["ant_seg"][self.match.ant2]
-                counts[:, c, a:b] = out["counts"]
+                sp, sq = out["ant_seg"][p_ant], out["ant_seg"][q_ant]
                 seg[:, c, a:b] = np.where(valid[:, c, a:b] & (sp >= 0) & (sq >= 0),
                                           sp * 1_000_003 + sq, -1)
+                ant_model, ant_ok = _per_sample_model(out)
+                both = ant_ok[p_ant] & ant_ok[q_ant]
+                bl_model = np.where(both, ant_model[p_ant] - ant_model[q_ant], np.nan)
+                model[:, c, a:b] = bl_model
+                # the count that goes with the model's wrapped phase (unwrapped = phase - 2 pi n)
+                with np.errstate(invalid="ignore"):
+                    model_counts = np.round((_wrap_pi(bl_model) - bl_model) / TWO_PI)
+                counts[:, c, a:b] = np.where(both, model_counts, out["counts"]).astype(np.int64)
         exclude = self._jump_flags(t_lo, t0, t1, scan, valid, seg, jump, ant)
         self._collect(t_lo, t0, t1, scan, valid, counts, seg, suspect, bridged, jump,
                       unmodelled, ant, exclude)
@@ -605,7 +640,7 @@ class ReferenceTracker:
         i0, i1 = t0 - t_lo, t1 - t_lo
         # segment keys (scan index << 32 | aligned segment id): the per-segment offset step
         keys = np.where(seg >= 0, scan.astype(np.int64)[None, None, :] * SEGMENT_KEY + seg, -1)
-        return counts[..., i0:i1], exclude[..., i0:i1], keys[..., i0:i1]
+        return counts[..., i0:i1], exclude[..., i0:i1], keys[..., i0:i1], model[..., i0:i1]
 
     def _solve_windows(self, vis, valid, sigma, coherence_time=None):
         """Per-time solve half-windows from the antennas' combined per-sample SNR.
@@ -644,6 +679,15 @@ class ReferenceTracker:
                              min_coherence=MIN_COHERENCE)
         ant_res = res.extra["antenna"]
         self.stats.frame_breaks += int(res.extra["frame_break"][pos].sum())
+        # the phases transferred in antenna mode are solved per sample: the windowed solve
+        # above chooses the lobes, but its smoothing error would enter the target band
+        from ..kernels.antenna import solve_antenna_phases
+        if np.any(np.asarray(solve_half_window) > 0):
+            raw_phase, raw_valid = solve_antenna_phases(
+                np.ascontiguousarray(vis), np.ascontiguousarray(valid), self.match.ant1,
+                self.match.ant2, self.n_ant, np.asarray(setup.refants, np.int64))[:2]
+        else:
+            raw_phase, raw_valid = res.extra["ant_phase"], res.extra["ant_valid"]
         return {"counts": res.counts[:, pos], "seg": res.segment[:, pos],
                 "suspect": res.suspect[:, pos], "bridged": res.bridged[:, pos],
                 "unmodelled": res.extra["unmodelled"][:, pos],
@@ -651,6 +695,7 @@ class ReferenceTracker:
                 "ant_counts": ant_res.counts[:, pos], "ant_seg": ant_res.segment[:, pos],
                 "ant_suspect": ant_res.suspect[:, pos], "ant_bridged": ant_res.bridged[:, pos],
                 "ant_jump": ant_res.jump[:, pos], "bl_phase": np.angle(vis[:, pos]),
+                "raw_phase": raw_phase[:, pos], "raw_valid": raw_valid[:, pos],
                 "bl_valid": valid[:, pos]}
 
     # -- alignment with what earlier chunks wrote

@@ -54,7 +54,8 @@ def make_pair(directory, *, n_ant: int = 4, n_time: int = 300, dt: float = 1.0,
               shuffle_ref: bool = False, shuffle_target: bool = False,
               time_order: bool = False,
               swap_ref_baselines: Sequence[int] = (), ref_time_shift: float = 0.0,
-              ref_name: str = "ref.ms", target_name: str = "target.ms") -> PairTruth:
+              ref_name: str = "ref.ms", target_name: str = "target.ms",
+              ref_offset_scale: float = 0.3) -> PairTruth:
     """Write ``ref.ms`` and ``target.ms`` under ``directory``; return the truth.
 
     ``step_rad``: std of each antenna's per-sample random-walk step at the
@@ -69,7 +70,10 @@ def make_pair(directory, *, n_ant: int = 4, n_time: int = 300, dt: float = 1.0,
     write them) rather than baseline by baseline;
     ``swap_ref_baselines``: baseline indices whose reference rows are stored
     with the antenna order reversed (visibility conjugated, RL <-> LR);
-    ``ref_time_shift``: seconds added to the reference TIME column.
+    ``ref_time_shift``: seconds added to the reference TIME column;
+    ``ref_offset_scale``: the reference band's constant per baseline and correlation
+    is uniform in +-pi times this; it does not close (as source structure would not),
+    and 0 makes the reference band purely antenna-based.
     The truth is given per target row, in the target's storage order.
     """
     rng = np.random.default_rng(seed)
@@ -93,7 +97,7 @@ def make_pair(directory, *, n_ant: int = 4, n_time: int = 300, dt: float = 1.0,
     scan = np.tile(scan_of_time, n_bl)
     t_idx = np.tile(np.arange(n_time), n_bl)
     bl_phase = ant_phase[ant1, t_idx] - ant_phase[ant2, t_idx]
-    corr_offset = rng.uniform(-np.pi, np.pi, (n_bl, n_corr)) * 0.3
+    corr_offset = rng.uniform(-np.pi, np.pi, (n_bl, n_corr)) * ref_offset_scale
     ref_true = bl_phase[:, None] + np.repeat(corr_offset, n_time, axis=0)
     source = np.repeat(rng.uniform(-np.pi, np.pi, (n_bl, n_corr)), n_time, axis=0)
     n_row = time.size
@@ -137,7 +141,10 @@ def make_pair(directory, *, n_ant: int = 4, n_time: int = 300, dt: float = 1.0,
     o = tgt_order
     return PairTruth(ref_ms=ref_ms, target_ms=target_ms, ratio=ratio, ant1=ant1[o], ant2=ant2[o],
                      time=time[o], scan=scan[o], ref_phase_true=ref_true[o],
-                     source_phase=source[o])
+                     source_phase=source[o],
+                     # the reference band's per-baseline constant, which does not close (like
+                     # source structure): antenna-based FPT leaves R times it in the output
+                     extra={"ref_offset": np.repeat(corr_offset, n_time, axis=0)[o]})
 
 
 def add_column(ms, name: str, values: np.ndarray, like: str = "DATA") -> None:

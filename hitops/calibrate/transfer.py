@@ -93,6 +93,8 @@ def transfer_group(g: Dict) -> Dict:
     tgt_vis, tgt_ok (n_tgt, n_corr); ref_vis, ref_ok (n_ref, n_corr_ref);
     ref_swapped (n_ref,); corr_map (2, n_corr); scan_of_time (n_time,);
     n_scan; methods (list of method codes); ratio; eps; tracker (name);
+    ref_model (n_bl, n_corr, n_time) or None: antenna mode's unwrapped model phase of
+    each baseline (NaN where not modelled); it replaces the baseline's own phase;
     ref_wraps, ref_exclude (n_bl, n_corr, n_time) or None: reference wrap counts
     and excluded reference samples from :mod:`hitops.calibrate.robust`;
     ref_carry, tgt_carry (Carry); offsets (n_bl, n_corr, n_scan) or None;
@@ -119,6 +121,15 @@ def transfer_group(g: Dict) -> Dict:
         ref_wraps, ref_carry = g["ref_wraps"], g["ref_carry"]
         if g.get("ref_exclude") is not None:
             ref_valid = ref_valid & ~g["ref_exclude"]
+        model = g.get("ref_model")
+        if model is not None and np.isfinite(model).any():
+            # antenna mode: the baseline's reference phase is its antenna model (the counts
+            # already belong to it), so the transferred phase closes on every triangle;
+            # correlations without a model (cross-hands) keep their own phase
+            modelled = np.isfinite(model)
+            antenna_corr = modelled.any(axis=(0, 2))
+            ref_phase = np.where(modelled, (model + np.pi) % (2 * np.pi) - np.pi, ref_phase)
+            ref_valid = np.where(antenna_corr[None, :, None], ref_valid & modelled, ref_valid)
     else:
         ref_wraps, ref_carry = track(tracker, ref_phase, ref_valid, scan_of_time, g["ref_carry"])
     tgt_wraps, tgt_carry = np.zeros((1, 1, 1), np.int64), g["tgt_carry"]
@@ -144,14 +155,21 @@ def transfer_group(g: Dict) -> Dict:
         first = ref_wraps[:, :, 0] - np.where(g["ref_carry"].has_last, g["ref_carry"].count, 0)
         steps = steps + np.abs(np.where(g["ref_carry"].has_last, first, 0))
     out["wrap_events"] = steps
-    # why target samples are not calibrated
+    # why target samples are not calibrated: disjoint causes, in this order, that add up
+    # to the samples left uncalibrated (a sample flagged in the target and without a
+    # reference row counts once, as target-flagged)
     has_tgt = tgt_rows >= 0
     has_ref = ref_rows >= 0
     out["n_samples"] = int(has_tgt.sum()) * n_corr
-    out["no_reference_row"] = int((has_tgt & ~has_ref).sum()) * n_corr
     tgt_cell = has_tgt[:, None, :]
-    out["target_invalid"] = int((tgt_cell & ~tgt_valid).sum())
-    out["reference_invalid"] = int((tgt_cell & has_ref[:, None, :] & ~ref_valid & tgt_valid).sum())
+    tgt_bad = tgt_cell & ~tgt_valid
+    no_ref = tgt_cell & tgt_valid & ~has_ref[:, None, :]
+    ref_bad = tgt_cell & tgt_valid & has_ref[:, None, :] & ~ref_valid
+    out["target_invalid"] = int(tgt_bad.sum())
+    out["no_reference_row"] = int(no_ref.sum())
+    out["reference_invalid"] = int(ref_bad.sum())
+    not_calibrated = ~np.swapaxes(calibrated, 1, 2)   # (n_bl, n_time, n_corr) -> (n_bl, n_corr, n_time)
+    out["other_uncalibrated"] = int((tgt_cell & not_calibrated & ~tgt_bad & ~no_ref & ~ref_bad).sum())
     offset_method = fpt.PWC if fpt.PWC in phasors else (fpt.CWU if fpt.CWU in phasors else None)
     if g.get("off_vis") is not None and offset_method is not None:
         off_phase, off_valid = fpt.gather_phase(tgt_rows, g["off_vis"], g["off_ok"],

@@ -26,6 +26,7 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 
 from ..errors import ColumnError, InputError, MeasurementSetError
+from ..io.stations import read_stations
 from ..io import read as msio
 from ..io.layout import baseline_time_layout
 
@@ -42,7 +43,7 @@ class GridData:
     """Selected baselines of one Measurement Set on a (baseline, time) grid."""
 
     ms: str
-    antenna_names: List[str]            # ANTENNA::NAME by antenna index
+    antenna_names: List[str]            # station codes by antenna index (hitops.io.stations)
     ant1: np.ndarray                    # (n_bl,) antenna index
     ant2: np.ndarray                    # (n_bl,)
     times: np.ndarray                   # (n_time,) MJD seconds
@@ -179,7 +180,8 @@ def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = 
         raise ColumnError(f"{ms}: column(s) {', '.join(missing)} not found; complex data "
                           f"columns present: {', '.join(available) or 'none'}")
 
-    ant_names = [str(n) for n in _subtable(ms, "ANTENNA", ["NAME"])["NAME"]]
+    # station codes (ANTENNA::STATION where NAME is only a number, as after importuvfits)
+    ant_names = read_stations(ms).codes
     pol = _subtable(ms, "POLARIZATION", ["CORR_TYPE"])["CORR_TYPE"]
     spw = _subtable(ms, "SPECTRAL_WINDOW", ["REF_FREQUENCY"])["REF_FREQUENCY"]
 

@@ -1,9 +1,10 @@
 """Matching the rows of a reference-band and a target-band Measurement Set.
 
 Rows are matched by time (within a tolerance, by default half the smallest
-INTERVAL of either band), by station pair (ANTENNA::NAME, through an
-antenna map for stations whose names differ between bands, e.g. the paper's
-JCMT at 86 GHz paired with SMA at 230 GHz) and by correlation type
+INTERVAL of either band), by station pair (station codes from
+:mod:`hitops.io.stations`, through an antenna map for stations whose names
+differ between bands, e.g. the paper's JCMT at 86 GHz paired with SMA at
+230 GHz) and by correlation type
 (POLARIZATION::CORR_TYPE), never by row order or position.  A reference row
 whose antenna order is reversed with respect to the target baseline is
 conjugated, which also exchanges its cross-hand correlations (RL <-> LR).
@@ -15,31 +16,16 @@ target's, times the union of both bands' times.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import logging
 from typing import Dict, List, Mapping, Sequence
 
 import numpy as np
 
 from ..errors import StationError
 from .ms_create import CORR_NAMES
+from .stations import SAME_STATION_M, Stations
 
-
-@dataclass
-class BandRows:
-    """Per-row metadata of one band (storage order)."""
-
-    ms: str
-    time: np.ndarray
-    ant1: np.ndarray
-    ant2: np.ndarray
-    scan: np.ndarray
-    interval: np.ndarray
-    antenna_names: List[str]
-    corr_types: List[int]
-
-    @property
-    def n_row(self) -> int:
-        return self.time.size
+log = logging.getLogger("hitops")
 
 
 def parse_antenna_map(text: str | Mapping[str, str] | None) -> Dict[str, str]:
@@ -65,43 +51,81 @@ def parse_antenna_map(text: str | Mapping[str, str] | None) -> Dict[str, str]:
     return mapping
 
 
-def pair_antennas(ref: BandRows, tgt: BandRows, antenna_map: Mapping[str, str]) -> np.ndarray:
+def pair_antennas(ref: Stations, tgt: Stations, antenna_map: Mapping[str, str],
+                  tgt_ant1: np.ndarray, tgt_ant2: np.ndarray) -> np.ndarray:
     """Target antenna index of each reference antenna (-1 when it has none).
 
-    Raises :class:`StationError` when a map entry names an unknown station or
-    a target station used in the data has no reference counterpart.
+    Stations are paired by code (:mod:`hitops.io.stations`), or through
+    ``antenna_map`` for stations named differently in the two bands.
+    ``tgt_ant1``/``tgt_ant2``: the target band's baselines.  A target station
+    with no partner is left out (its baselines are flagged) with one warning
+    naming it and its baselines; a pair of stations whose positions are more
+    than 1 km apart, a map entry naming an unknown station, or no baseline in
+    common is a :class:`StationError`.
     """
-    tgt_index = {name: i for i, name in enumerate(tgt.antenna_names)}
-    for ref_name, tgt_name in antenna_map.items():
-        if ref_name not in ref.antenna_names:
-            raise StationError(f"--antenna-map {ref_name}={tgt_name}: reference station "
-                               f"{ref_name} is not in {ref.ms} (stations: "
-                               f"{', '.join(ref.antenna_names)})")
-        if tgt_name not in tgt_index:
-            raise StationError(f"--antenna-map {ref_name}={tgt_name}: target station "
-                               f"{tgt_name} is not in {tgt.ms} (stations: "
-                               f"{', '.join(tgt.antenna_names)})")
-    ref_to_tgt = np.full(len(ref.antenna_names), -1, dtype=np.int64)
-    for i, name in enumerate(ref.antenna_names):
-        ref_to_tgt[i] = tgt_index.get(antenna_map.get(name, name), -1)
+    tgt_index = {code: i for i, code in enumerate(tgt.codes)}
+    for ref_code, tgt_code in antenna_map.items():
+        if ref_code not in ref.codes:
+            raise StationError(f"--antenna-map {ref_code}={tgt_code}: reference station "
+                               f"{ref_code} is not in {ref.ms} (stations: {', '.join(ref.codes)})")
+        if tgt_code not in tgt_index:
+            raise StationError(f"--antenna-map {ref_code}={tgt_code}: target station "
+                               f"{tgt_code} is not in {tgt.ms} (stations: {', '.join(tgt.codes)})")
+    ref_to_tgt = np.full(ref.n_ant, -1, dtype=np.int64)
+    for i, code in enumerate(ref.codes):
+        ref_to_tgt[i] = tgt_index.get(antenna_map.get(code, code), -1)
     mapped = ref_to_tgt[ref_to_tgt >= 0]
     if np.unique(mapped).size != mapped.size:
         raise StationError("two reference stations map to the same target station; "
-                           "check --antenna-map and the ANTENNA tables of "
-                           f"{ref.ms} and {tgt.ms}")
-    # stations used by the target rows: counts over the few antenna indices (no sort)
-    n_ant_t = len(tgt.antenna_names)
-    used_tgt = np.flatnonzero(np.bincount(tgt.ant1, minlength=n_ant_t)
-                              + np.bincount(tgt.ant2, minlength=n_ant_t))
+                           f"check --antenna-map and the ANTENNA tables of {ref.ms} and {tgt.ms}")
+    if ref.positions is not None and tgt.positions is not None:
+        for i in np.flatnonzero(ref_to_tgt >= 0):
+            j = ref_to_tgt[i]
+            distance = float(np.linalg.norm(ref.positions[i] - tgt.positions[j]))
+            if ref.codes[i] in antenna_map:
+                log.info("station %s of %s paired with %s of %s by --antenna-map: %.0f m apart",
+                         ref.codes[i], ref.ms, tgt.codes[j], tgt.ms, distance)
+            elif distance > SAME_STATION_M:
+                raise StationError(
+                    f"station {ref.codes[i]} of {ref.ms} and station {tgt.codes[j]} of {tgt.ms} "
+                    f"share a code but are {distance / 1e3:.1f} km apart (ANTENNA::POSITION); "
+                    "they are not the same station: fix the ANTENNA table, or pair stations "
+                    "on purpose with --antenna-map REF=TARGET")
     paired = set(mapped.tolist())
-    orphans = [tgt.antenna_names[a] for a in used_tgt if a not in paired]
-    if orphans:
-        unused_ref = [n for i, n in enumerate(ref.antenna_names) if ref_to_tgt[i] < 0]
+    n_ant_t = tgt.n_ant
+    used = np.flatnonzero(np.bincount(tgt_ant1, minlength=n_ant_t)
+                          + np.bincount(tgt_ant2, minlength=n_ant_t))
+    orphans = [a for a in used if a not in paired]
+    both = np.array([a in paired and b in paired for a, b in zip(tgt_ant1, tgt_ant2)], bool)
+    if not both.any():
         raise StationError(
-            f"target station(s) {', '.join(orphans)} of {tgt.ms} have no counterpart in "
-            f"{ref.ms} (unpaired reference stations: {', '.join(unused_ref) or 'none'}); "
-            "pair them with --antenna-map REF=TARGET (e.g. --antenna-map JC=SM)")
+            f"no baseline of {tgt.ms} has both stations in {ref.ms} (target stations "
+            f"{', '.join(tgt.codes)}; reference stations {', '.join(ref.codes)}); nothing can be "
+            "calibrated: check that the sets are the two bands of one observation, or pair "
+            "stations named differently with --antenna-map REF=TARGET")
+    for a in orphans:
+        names = [f"{tgt.codes[p]}-{tgt.codes[q]}" for p, q in zip(tgt_ant1, tgt_ant2)
+                 if a in (p, q)]
+        log.warning("target station %s of %s is not in %s: its %d baseline(s) %s have no "
+                    "reference and are left out (flagged in the output); pair it with "
+                    "--antenna-map REF=%s if it is named differently there", tgt.codes[a], tgt.ms,
+                    ref.ms, len(names), ", ".join(names[:8]) + (" ..." if len(names) > 8 else ""),
+                    tgt.codes[a])
     return ref_to_tgt
+
+
+def pairing_table(ref: Stations, tgt: Stations, ref_to_tgt: np.ndarray) -> List[Dict]:
+    """One entry per station of either band: how it was paired (for the log and report)."""
+    rows = []
+    for i, code in enumerate(ref.codes):
+        j = int(ref_to_tgt[i])
+        rows.append({"reference": code, "reference_antenna": i,
+                     "target": tgt.codes[j] if j >= 0 else None,
+                     "target_antenna": j if j >= 0 else None})
+    for j in sorted(set(range(tgt.n_ant)) - set(int(x) for x in ref_to_tgt if x >= 0)):
+        rows.append({"reference": None, "reference_antenna": None, "target": tgt.codes[j],
+                     "target_antenna": j})
+    return rows
 
 
 def correlation_map(ref_types: Sequence[int], tgt_types: Sequence[int]) -> np.ndarray:
