@@ -51,3 +51,5 @@ cabs: $(STAMP) ## regenerate cabs/hitops.yml from hitops/schemas/
 
 clean: ## remove out/, bench-out/ and .pytest_cache (keeps .venv)
 	rm -rf out bench-out .pytest_cache
+
+include mk/containers.mk

@@ -1,5 +1,6 @@
-"""What can be checked here of the containerised/HPC route (no Docker daemon,
-Apptainer or slurm on this machine):
+"""The containerised/HPC route as far as it can be checked without a container
+tool or slurm (tests/test_image_scripts.py covers the build scripts with
+stand-ins, tests/test_cluster_slurm.py a real one-node slurm when present):
 
 * the container definitions parse and name only files that exist;
 * the cabs name the hitops image, and Stimela's singularity backend and slurm
@@ -44,37 +45,44 @@ def docker_instructions(text):
     return out
 
 
-def test_dockerfile_parses_and_copies_existing_files():
+def test_dockerfile_parses_and_installs_offline_from_the_wheelhouse():
     instructions = docker_instructions((ROOT / "docker" / "Dockerfile").read_text())
     words = [w for w, _ in instructions]
-    assert words[0] == "FROM"
+    # ARG BASE before FROM: scripts/image-base.sh passes a locally made base
+    assert words[:2] == ["ARG", "FROM"] and instructions[1][1] == "${BASE}"
+    assert instructions[0][1] == "BASE=debian:bookworm-slim"
     assert set(words) <= DOCKER_INSTRUCTIONS, set(words) - DOCKER_INSTRUCTIONS
     for word, args in instructions:
         if word == "COPY":
+            # scripts/image-build.sh copies these into the build context
             for src in args.split()[:-1]:
                 assert (ROOT / src).exists(), f"COPY {src}: no such file in the repository"
+                assert src in ("cabs", "recipes"), f"COPY {src}: not in the staged build context"
     text = " ".join(a for _, a in instructions)
-    assert "wsclean" in text and "pip install ." in text
+    assert "wsclean" in text
+    # offline: only the wheelhouse (bind-mounted, not a layer), never the index
+    assert "--mount=type=bind,source=wheelhouse,target=/wheelhouse" in text
+    assert "pip install --no-index --find-links /wheelhouse 'hitops[hpc]'" in text
     assert "CASASITECONFIG=/opt/hitops/casasiteconfig.py" in text
     # the image tag documented in the Dockerfile is the one the cabs name
     assert IMAGE in (ROOT / "docker" / "Dockerfile").read_text()
 
 
-def test_apptainer_definition_parses_and_names_existing_files():
+def test_apptainer_definition_bootstraps_from_the_image_archive():
+    """docker/hitops.def is not a second recipe: it starts from the archive of the
+    image docker/Dockerfile built (scripts/image-archive.sh writes it)."""
     text = (ROOT / "docker" / "hitops.def").read_text()
-    header = dict(re.findall(r"^(Bootstrap|From):\s*(\S+)", text, re.M))
-    assert header == {"Bootstrap": "docker", "From": "debian:bookworm-slim"}
+    header = dict(re.findall(r"^(Bootstrap|From):\s*(.+)$", text, re.M))
+    assert header == {"Bootstrap": "docker-archive", "From": "{{ archive }}"}
     sections = re.findall(r"^%(\w+)", text, re.M)
-    assert set(sections) <= {"files", "environment", "post", "test", "runscript", "labels",
-                             "help", "setup", "startscript", "arguments"}
-    assert {"files", "post", "environment"} <= set(sections)
-    files = text.split("%files", 1)[1].split("\n%", 1)[0]
-    for line in files.strip().splitlines():
-        src = line.split()[0]
-        assert (ROOT / src).exists(), f"%files {src}: no such file in the repository"
-    assert "wsclean" in text and "pip install /opt/hitops/src" in text
-    # same base as the Dockerfile
-    assert "FROM debian:bookworm-slim" in (ROOT / "docker" / "Dockerfile").read_text()
+    assert set(sections) <= {"arguments", "test", "runscript", "labels", "help", "environment"}
+    assert "post" not in sections and "files" not in sections
+    arguments = text.split("\n%arguments\n", 1)[1].split("\n%", 1)[0]
+    default = dict(line.strip().split("=", 1) for line in arguments.strip().splitlines())
+    version = IMAGE.rsplit(":", 1)[1]
+    assert default == {"archive": f"hitops-{version}.docker.tar"}
+    archive_script = (ROOT / "scripts" / "image-archive.sh").read_text()
+    assert 'tar=$CACHE/hitops-$version.docker.tar' in archive_script
 
 
 SINGULARITY_SHIM = """#!/bin/bash
