@@ -68,7 +68,23 @@ def load(ms: str, report: Optional[str]) -> Tuple[Optional[dict], List[str]]:
     antennas = {e["antenna"]: {k: int(e[k]) for k in FIELDS if k in e}
                 for e in tracking.get("antennas", [])}
     return {"tracker": tracker, "baselines": baselines, "antennas": antennas,
-            "path": str(path)}, warnings
+            "verdict": _verdicts(data.get("verdict")), "path": str(path)}, warnings
+
+
+def _verdicts(section) -> Dict[str, dict]:
+    """{baseline: {"predicted_pct", "verdict"}}: calibrate's prediction, mean over hands."""
+    out: Dict[str, dict] = {}
+    if not isinstance(section, dict):
+        return out
+    changes: Dict[str, list] = {}
+    for e in section.get("baselines", []):
+        if e.get("predicted_change") is not None:
+            changes.setdefault(e["baseline"], []).append(float(e["predicted_change"]))
+    for name, values in changes.items():
+        pct = 100.0 * sum(values) / len(values)
+        out[name] = {"predicted_pct": pct,
+                     "verdict": "help" if pct > 1 else "hurt" if pct < -1 else "neutral"}
+    return out
 
 
 def antenna_totals(info: dict, antenna: str, baselines: List[str]) -> Dict[str, int]:
@@ -91,6 +107,7 @@ def annotate(comparisons: List[dict], info: Optional[dict]) -> None:
     for comp in comparisons:
         for r in comp["ranking"]:
             r["tracking"] = info["baselines"].get(r["baseline"])
+            r["predicted"] = info.get("verdict", {}).get(r["baseline"])
         for a in comp["antennas"]:
             mine = [r["baseline"] for r in comp["ranking"]
                     if a["antenna"] in (r["ant1"], r["ant2"])]

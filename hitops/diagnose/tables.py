@@ -239,6 +239,13 @@ def _cell(value, bound=None, digits=4) -> str:
 TRACKING_FIELDS = ["suspected_slips", "bridged_gaps", "segments", "long_gap_segments", "jumps"]
 
 
+def _predicted_cells(entry) -> dict:
+    """calibrate's verdict for the baseline (empty without a report that has one)."""
+    if not entry:
+        return {"predicted_pct": "", "verdict": ""}
+    return {"predicted_pct": round(entry["predicted_pct"], 2), "verdict": entry["verdict"]}
+
+
 def _tracking_cells(entry) -> dict:
     return {k: ("" if not entry else entry.get(k, "")) for k in TRACKING_FIELDS}
 
@@ -247,7 +254,7 @@ def write_csv(path, comparisons: List[dict]) -> None:
     fields = ["comparison", "rank", "baseline", "ant1", "ant2", "metric", "before_column",
               "after_column", "before", "before_bound", "after", "after_bound",
               "improvement_pct", "improvement_bound", "n_intervals_worse", "note"]
-    fields += TRACKING_FIELDS
+    fields += TRACKING_FIELDS + ["predicted_pct", "verdict"]
     with open(path, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=fields)
         writer.writeheader()
@@ -266,7 +273,8 @@ def write_csv(path, comparisons: List[dict]) -> None:
                                         else f"{r['improvement_pct']:.4f}"),
                     "improvement_bound": r["improvement_bound"] or "",
                     "n_intervals_worse": len(r["worse_at_s"]),
-                    "note": r["note"], **_tracking_cells(r.get("tracking"))})
+                    "note": r["note"], **_tracking_cells(r.get("tracking")),
+                    **_predicted_cells(r.get("predicted"))})
 
 
 def write_antenna_csv(path, comparisons: List[dict]) -> None:
@@ -301,6 +309,9 @@ def render_text(summary: dict) -> str:
         lines.append(f"wrap tracking ({summary['tracking']['tracker']}, from "
                      f"{summary['tracking']['path']}): 'tracking' = suspected slips / bridged "
                      "gaps / segments / jumps of the reference-band wrap count")
+        if summary["tracking"].get("verdict"):
+            lines.append("'predicted' = hitops calibrate's verdict: the change of the coherence "
+                         "factor that FPT was expected to make, before it ran (docs/calibrate.md)")
         lines.append("")
     if summary["warnings"]:
         lines.append("WARNINGS")
@@ -312,8 +323,11 @@ def render_text(summary: dict) -> str:
         lines.append(f"== {after} against {before}: baselines ranked from worst to best "
                      "improvement")
         track = summary.get("tracking") is not None
+        predicted = any(r.get("predicted") for r in comp["ranking"])
         lines.append(f"{'rank':>4}  {'baseline':<10} {before:>{width}} {after:>{width}} "
-                     f"{'improvement':>12}  " + (f"{'tracking':>12}  " if track else "") + "note")
+                     f"{'improvement':>12}  "
+                     + (f"{'predicted':>17}  " if predicted else "")
+                     + (f"{'tracking':>12}  " if track else "") + "note")
         for r in comp["ranking"]:
             pct = r["improvement_pct"]
             pct_s = "n/a" if pct is None else (
@@ -323,6 +337,7 @@ def render_text(summary: dict) -> str:
                          f"{_cell(r['before'], r['before_bound'], digits):>{width}} "
                          f"{_cell(r['after'], r['after_bound'], digits):>{width}} "
                          f"{pct_s:>12}  "
+                         + (f"{_predicted_text(r.get('predicted')):>17}  " if predicted else "")
                          + (f"{_track_cell(r.get('tracking')):>12}  " if track else "")
                          + r["note"])
         if comp["n_defined"]:
@@ -363,6 +378,10 @@ def render_text(summary: dict) -> str:
                          + f"{a['worst_baseline']} ({a['worst_improvement_pct']:+.1f}%){mark}")
         lines.append("")
     return "\n".join(lines) + "\n"
+
+
+def _predicted_text(entry) -> str:
+    return "-" if not entry else f"{entry['predicted_pct']:+.1f}% ({entry['verdict']})"
 
 
 def _track_cell(entry) -> str:
