@@ -99,8 +99,8 @@ def run_tool(tool: str, func, params: dict, debug: bool = False) -> int:
             traceback.print_exc()
         log.error("hitops %s failed unexpectedly: %s: %s. The input files are as they were "
                   "before this run. %s", tool, kind, detail,
-                  (f"Traceback in {saved}; rerun with --debug to print it."
-                   if saved else "Rerun with --debug for the traceback."))
+                  (f"Details in {saved}; rerun with --debug to print them."
+                   if saved else "Rerun with --debug for the details."))
         return 1
     finally:
         signal.signal(signal.SIGTERM, previous)

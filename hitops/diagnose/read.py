@@ -26,6 +26,7 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 
 from ..errors import ColumnError, InputError, MeasurementSetError
+from ..io.access import locate_damage, require_subtables
 from ..io.stations import read_stations
 from ..io import read as msio
 from ..io.layout import baseline_time_layout
@@ -77,6 +78,7 @@ def _check_ms(ms: str) -> None:
     path = Path(ms)
     if not (path / "table.dat").exists():
         raise MeasurementSetError(f"{ms}: not a Measurement Set (no table.dat); check the path")
+    require_subtables(ms, "Measurement Set")
 
 
 def _subtable(ms: str, name: str, columns: Sequence[str]):
@@ -194,7 +196,15 @@ def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = 
     # the threaded scheduler passed as a function (inside compute_columns): named or
     # default schedulers make dask look for a distributed client, whose import alone
     # costs ~0.2 s of a run budgeted at a few seconds
-    values = msio.compute_columns([(xds, wanted_cols + selection, None)])[0]
+    try:
+        values = msio.compute_columns([(xds, wanted_cols + selection, None)])[0]
+    except RuntimeError as err:
+        # casacore does not always say which file is damaged: find the column that fails
+        damage = locate_damage(ms, wanted_cols + selection)
+        if damage:
+            raise MeasurementSetError(f"'{ms}' is damaged: {damage}; restore it from its "
+                                      "source or a backup") from err
+        raise
     if values["TIME"].size == 0:
         raise MeasurementSetError(f"{ms}: the main table has no rows")
     ddid = 0
