@@ -252,3 +252,36 @@ def test_full_disk_is_refused_before_writing(tmp_path):
         assert "MB missing" in out
     finally:
         subprocess.run(["umount", str(mnt)], capture_output=True)
+
+
+SLOW_WRITE = textwrap.dedent("""
+    import sys, time
+    import hitops.io.read as msio
+    original = msio.write_main_columns
+    def slow_write(*args, **kwargs):
+        print("writing", flush=True)
+        time.sleep(8)                       # a long write: the second run meets the lock
+        return original(*args, **kwargs)
+    msio.write_main_columns = slow_write
+    from hitops.calibrate import calibrate
+    calibrate(sys.argv[1], sys.argv[2], method="pwc")
+""")
+
+
+def test_two_runs_on_one_set_the_second_waits_and_says_so(copy):
+    ref, tgt = copy
+    first = subprocess.Popen([sys.executable, "-c", SLOW_WRITE, str(ref), str(tgt)],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert first.stdout.readline().strip() == "writing"
+        rc, out = hitops("calibrate", ref, tgt, "--method", "cfpt", "--lock-timeout", "2")
+    finally:
+        first.wait(timeout=120)
+    assert first.returncode == 0, first.stderr.read()
+    assert rc == 2 and "Traceback" not in out
+    assert "being written by another hitops run" in out and "waited 2 s" in out
+    # the first run's result is whole; the second wrote nothing
+    with pt.table(str(tgt), ack=False) as t:
+        names = t.colnames()
+    assert "PWC_DATA" in names and "CFPT_DATA" not in names
+    assert not any(c.startswith("HITOPS_PARTIAL_") for c in names)
