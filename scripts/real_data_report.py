@@ -44,22 +44,12 @@ def closures(ms: Path, column: str, flag: np.ndarray):
     """{(time, p, q, r): closure phase} of RR over triangles of unflagged baselines."""
     from casacore import tables as pt
 
+    from hitops.diagnose.closures import row_closures
+
     with pt.table(str(ms), ack=False) as t:
         time, a1, a2 = t.getcol("TIME"), t.getcol("ANTENNA1"), t.getcol("ANTENNA2")
-        vis = t.getcol(column)[:, 0, 0].astype(np.complex128)
-    ok = ~flag[:, 0, 0] & (np.abs(vis) > 0)
-    by_time = {}
-    for i in np.flatnonzero(ok):
-        by_time.setdefault(round(float(time[i]), 1), {})[(a1[i], a2[i])] = np.angle(vis[i])
-    out = {}
-    for t_, bls in by_time.items():
-        ants = sorted({a for bl in bls for a in bl})
-        for i, p in enumerate(ants):
-            for j, q in enumerate(ants[i + 1:], i + 1):
-                for r in ants[j + 1:]:
-                    if (p, q) in bls and (q, r) in bls and (p, r) in bls:
-                        out[(t_, p, q, r)] = bls[(p, q)] + bls[(q, r)] - bls[(p, r)]
-    return out
+        vis = t.getcol(column)[:, 0, 0]
+    return row_closures(time, a1, a2, vis, ~flag[:, 0, 0] & (np.abs(vis) > 0))
 
 
 def main():
@@ -76,6 +66,7 @@ def main():
 
     from hitops.calibrate import calibrate
     from hitops.calibrate import verdict as V
+    from hitops.diagnose.closures import closure_change
 
     reports = {}
     for column, method, tracker in RUNS:
@@ -87,11 +78,8 @@ def main():
     print("| column | method, tracker | triangles x times | median abs closure change (rad) | max (rad) |")
     print("|---|---|---|---|---|")
     for column, method, tracker in RUNS:
-        after = closures(tgt, column, flag)
-        keys = sorted(after.keys() & before.keys())
-        diff = np.array([after[k] - before[k] for k in keys])
-        diff = np.abs((diff + np.pi) % (2 * np.pi) - np.pi)
-        print(f"| {column} | {method}, {tracker} | {len(keys)} | {np.median(diff):.3g} | "
+        diff = closure_change(before, closures(tgt, column, flag))
+        print(f"| {column} | {method}, {tracker} | {diff.size} | {np.median(diff):.3g} | "
               f"{diff.max():.3g} |")
 
     verdict = V.Verdict(interval=60.0, ratio=reports["PWC_DATA"]["ratio"],

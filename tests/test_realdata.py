@@ -29,6 +29,7 @@ import pytest
 from casacore import tables as pt
 
 from hitops.calibrate import calibrate
+from hitops.diagnose.closures import row_closures
 from hitops.errors import MeasurementSetError
 
 DATA = Path(__file__).parent / "data" / "eht2017-m87"
@@ -168,20 +169,8 @@ def test_one_band_without_a_station_still_pairs_by_code(pair, caplog):
 def closure_phases(ms, column, flag):
     """{(time, triangle): closure phase} of RR over every triangle of unflagged baselines."""
     time, a1, a2, vis = read(ms, "TIME", "ANTENNA1", "ANTENNA2", column)
-    vis = vis[:, 0, 0].astype(np.complex128)   # phases in float64
-    ok = ~flag[:, 0, 0] & (np.abs(vis) > 0)
-    by_time = {}
-    for i in np.flatnonzero(ok):
-        by_time.setdefault(round(float(time[i]), 1), {})[(a1[i], a2[i])] = np.angle(vis[i])
-    out = {}
-    for t, bls in by_time.items():
-        ants = sorted({a for bl in bls for a in bl})
-        for i, p in enumerate(ants):
-            for j, q in enumerate(ants[i + 1:], i + 1):
-                for s in ants[j + 1:]:
-                    if (p, q) in bls and (q, s) in bls and (p, s) in bls:
-                        out[(t, p, q, s)] = bls[(p, q)] + bls[(q, s)] - bls[(p, s)]
-    return out
+    vis = vis[:, 0, 0]
+    return row_closures(time, a1, a2, vis, ~flag[:, 0, 0] & (np.abs(vis) > 0))
 
 
 def test_antenna_tracker_keeps_the_closure_phases_of_m87(pair):
