@@ -189,7 +189,7 @@ def _bintable(name: str, columns: Sequence[Tuple[str, str, str, np.ndarray]],
         if tform.endswith("A"):
             rows[ttype] = [str(v).encode("ascii", "replace") for v in values]
         else:
-            rows[ttype] = values
+            rows[ttype] = np.asarray(values).reshape(rows[ttype].shape)
     cards = [_card("XTENSION", "BINTABLE"), _card("BITPIX", 8), _card("NAXIS", 2),
              _card("NAXIS1", rows.dtype.itemsize), _card("NAXIS2", n_row),
              _card("PCOUNT", 0), _card("GCOUNT", 1), _card("TFIELDS", len(columns))]
