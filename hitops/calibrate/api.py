@@ -158,6 +158,7 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
               ref_model_column=None, offset_reference_column=None, max_offset_wraps=50,
               offset_ambiguity_deg=2.0, ratio=None, antenna_map=None, output_column=None,
               overwrite=False, average_channels=False, time_tolerance=None, tracker="count",
+              workdir=None, export_uvfits=None,
               half_window=0, coherence_time=20.0, snr=0.0, max_gap=-1, jump_threshold=-1.0,
               jump_window=0, jump_action="segment", refant=None, solve_half_window=-1,
               no_elevation_scaling=False, chunk_rows=2_000_000, report=None, scheduler=None,
@@ -177,6 +178,11 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
     started = time.perf_counter()
     # ---- 1. inputs, all checked before anything is written
     methods = parse_methods(method)
+    # ---- issue 13 (hitops/io/convert.py): --export-uvfits checked, UVFITS / FITS-IDI inputs
+    # converted once into Measurement Sets in --workdir, before anything is written
+    from ..io.convert import prepare_inputs
+    ref_ms, target_ms = prepare_inputs(ref_ms, target_ms, workdir, export_uvfits, overwrite)
+    # ---- end issue 13
     ref_ms = msio.check_ms(ref_ms, "reference-band Measurement Set")
     target_ms = msio.check_ms(target_ms, "target-band Measurement Set")
     if os.path.realpath(ref_ms) == os.path.realpath(target_ms):
@@ -861,6 +867,11 @@ def _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, stat
     }
     report_path = Path(g["report"]) if g["report"] else Path(target_ms + ".hitops-calibrate.json")
     report_path.write_text(json.dumps(report, indent=1))
+    # ---- issue 13 (hitops/io/convert.py): the input conversions in the report, --export-uvfits
+    from ..io.convert import finish_report
+    if finish_report(report, g["opts"], ref_ms, target_ms, outputs, methods):
+        report_path.write_text(json.dumps(report, indent=1))
+    # ---- end issue 13
     log.info("wrote %s to %s; report %s; %.2f s (%s)", ", ".join(outputs.values()), target_ms,
              report_path, elapsed, ", ".join(f"{k} {v:.2f}" for k, v in timings.items()))
     report["report_path"] = str(report_path)
