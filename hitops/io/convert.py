@@ -288,8 +288,12 @@ def ensure_ms(path, role: str = "input", workdir: Optional[str] = None,
     fmt = detect_format(path, role)
     if fmt == "ms":
         return Conversion(source=str(path), format="ms", ms=str(path).rstrip("/"))
-    path = str(path)
-    dest = converted_path(path, workdir)
+    return _ensure_at(str(path), converted_path(path, workdir), fmt, role, overwrite)
+
+
+def _ensure_at(path: str, dest: Path, fmt: str, role: str, overwrite: bool,
+               reader: str = "auto") -> Conversion:
+    """The conversion of ``path`` at ``dest``: reused when current, else (re)converted."""
     if not overwrite:
         record = _reusable(path, dest)
         if record:
@@ -311,7 +315,7 @@ def ensure_ms(path, role: str = "input", workdir: Optional[str] = None,
             raise InputError(
                 f"{role} '{path}' would be converted to '{dest}', which hitops converted from "
                 f"another file ({record.get('source')}); pass --workdir to convert elsewhere")
-    return convert(path, dest, fmt, role)
+    return convert(path, dest, fmt, role, reader=reader)
 
 
 def convert(path, dest, fmt: Optional[str] = None, role: str = "input",
@@ -731,3 +735,22 @@ def _import_uvfits_direct(path: str, hdus, out: str) -> None:
     create_ms(out, ArrayLayout(names, names, d["positions"], d["diameters"]),
               Band(d["freq"], d["bandwidth"], tuple(d["corr"])), Field(*d["field"]), main,
               telescope=d["telescope"], overwrite=True)
+
+
+# ---------------------------------------------------------------- Stimela cab (cabs/interop.yml)
+
+def convert_cab(source: str, ms: str, overwrite: bool = False, reader: str = "auto") -> Dict:
+    """``hitops.convert``: the UVFITS or FITS-IDI file ``source`` as the Measurement Set ``ms``.
+
+    An earlier conversion of the unchanged file at ``ms`` is reused unless
+    ``overwrite``; a set at ``ms`` that hitops did not convert from ``source`` is
+    never replaced.  Returns plain values for Stimela's python flavour.
+    """
+    fmt = detect_format(source, "input")
+    if fmt == "ms":
+        raise InputError(f"input '{source}' is a Measurement Set already; give a UVFITS or "
+                         "FITS-IDI file (hitops calibrate takes the set itself)")
+    c = _ensure_at(str(source), Path(str(ms).rstrip("/")), fmt, "input", bool(overwrite),
+                   reader)
+    return {"ms": c.ms, "n_scans": int(c.n_scans), "format": c.format, "tool": c.tool,
+            "seconds": float(c.seconds), "reused": bool(c.reused)}

@@ -482,3 +482,10 @@ def export_uvfits(ms, path, column: str = "DATA", overwrite: bool = False,
              "%.2f s", path, column, ms, n_row, starts.size, 100.0 * summary["flagged_fraction"],
              seconds)
     return summary
+
+
+def export_cab(ms: str, uvfits: str, column: str = "PWC_DATA", overwrite: bool = False) -> Dict:
+    """``hitops.export-uvfits`` (cabs/interop.yml): plain values for Stimela's python flavour."""
+    out = export_uvfits(ms, uvfits, column, overwrite=bool(overwrite))
+    return {"uvfits": out["path"], "rows": int(out["rows"]), "scans": int(out["scans"]),
+            "flagged_fraction": float(out["flagged_fraction"])}
