@@ -175,9 +175,11 @@ def write_gain_table(path, ms, time, antenna_phase, valid, corr_names: Sequence[
 
 def _create_empty(ms: str, path: str) -> None:
     """An empty G Jones table laid out by CASA itself (calibrater.createcaltable)."""
-    from ..casa.runner import _casalog, _log_path
+    from ..casa_env import ensure_casa_offline
 
-    _log_path(_casalog())       # CASA's log to its per-process file, as for the tasks
+    ensure_casa_offline()
+    # casatasks sets up CASA's log sink (INFO lines off the console, as for hitops.casa tasks)
+    import casatasks  # noqa: F401
     import casatools
 
     cb = casatools.calibrater()
