@@ -359,3 +359,17 @@ def test_public_eht_uvfits_pair_end_to_end(tmp_path):
     headers = read_headers(out)
     assert headers[0][0]["GCOUNT"] == 6458
     assert [h.get("EXTNAME") for h, _, _ in headers][1:] == ["AIPS AN", "AIPS FQ", "AIPS NX"]
+
+
+def test_caltable_checks_for_the_lead(demo, tmp_path):
+    # prepare_inputs checks --caltable before anything is written (calibrate passes it once
+    # --caltable is wired): the antenna tracker is needed, an existing table needs --overwrite
+    _, _, files = demo
+    with pytest.raises(InputError, match=r"--caltable '.*x\.G' needs --tracker antenna"):
+        convert.prepare_inputs(files["86"], files["230"], str(tmp_path / "w"),
+                               caltable=str(tmp_path / "x.G"), tracker="count")
+    (tmp_path / "old.G").mkdir()
+    with pytest.raises(OutputExistsError, match=r"--caltable '.*old\.G' exists; pass --overwrite"):
+        convert.prepare_inputs(files["86"], files["230"], str(tmp_path / "w"),
+                               caltable=str(tmp_path / "old.G"), tracker="antenna")
+    assert not (tmp_path / "w").exists()

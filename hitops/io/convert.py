@@ -46,7 +46,7 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
-from ..errors import ExternalToolError, InputError, MeasurementSetError
+from ..errors import ExternalToolError, InputError, MeasurementSetError, OutputExistsError
 
 log = logging.getLogger("hitops.io")
 
@@ -444,8 +444,6 @@ _SEEN: Dict[str, Conversion] = {}
 
 def check_output_file(path, overwrite: bool, option: str) -> None:
     """Before anything is written: an existing output file needs ``--overwrite``."""
-    from ..errors import OutputExistsError
-
     if not path:
         return
     p = Path(path)
@@ -461,18 +459,31 @@ def check_output_file(path, overwrite: bool, option: str) -> None:
 
 
 def prepare_inputs(ref, target, workdir: Optional[str] = None,
-                   export_uvfits: Optional[str] = None, overwrite: bool = False):
+                   export_uvfits: Optional[str] = None, overwrite: bool = False,
+                   caltable: Optional[str] = None, tracker: Optional[str] = None):
     """calibrate's first step for issue 13: check the outputs, convert non-MS inputs.
 
-    Returns (ref MS, target MS).  The --export-uvfits path is checked before any
-    conversion or calibration, so a refused run changes nothing.
+    Returns (ref MS, target MS).  The --export-uvfits and --caltable paths are
+    checked before any conversion or calibration, so a refused run changes
+    nothing; a caltable needs the antenna tracker (``tracker``), the only one
+    with per-antenna solutions.
     """
     check_output_file(export_uvfits, overwrite, "--export-uvfits")
+    if caltable:
+        if tracker is not None and tracker != "antenna":
+            raise InputError(f"--caltable '{caltable}' needs --tracker antenna: a calibration "
+                             "table holds one phase per antenna, and only the antenna tracker "
+                             f"solves per antenna (--tracker {tracker} works per baseline)")
+        if Path(caltable).exists() and not overwrite:
+            raise OutputExistsError(f"--caltable '{caltable}' exists; pass --overwrite to "
+                                    "replace it or give another --caltable path (nothing was "
+                                    "written)")
     for given in (ref, target):
-        if export_uvfits and Path(given).exists() and \
-                os.path.realpath(given) == os.path.realpath(export_uvfits):
-            raise InputError(f"--export-uvfits '{export_uvfits}' is an input file; give "
-                             "another path (inputs are never written)")
+        for option, out in (("--export-uvfits", export_uvfits), ("--caltable", caltable)):
+            if out and Path(given).exists() and \
+                    os.path.realpath(given) == os.path.realpath(out):
+                raise InputError(f"{option} '{out}' is an input; give another path (inputs "
+                                 "are never written)")
     ref_ms, target_ms, conversions = prepare_pair(ref, target, workdir)
     for c in conversions:
         if c.format != "ms":
