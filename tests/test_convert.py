@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -171,6 +172,7 @@ def test_scans_survive_a_casa_round_trip(demo, caplog):
         c = convert.convert(files["230"], work / f"scans-{reader}.ms", reader=reader)
         assert c.n_scans == n_scans, reader
     # and calibrate sees them: one tracking restart per scan, wraps not counted across gaps
+    caplog.set_level(logging.INFO)
     rep = calibrate(files["86"], files["230"], workdir=str(work / "cal"), method="pwc",
                     no_verdict=True)
     assert [c["n_scans"] for c in rep["conversions"]] == [n_scans, n_scans]
