@@ -468,6 +468,7 @@ def prepare_inputs(ref, target, workdir: Optional[str] = None,
     nothing; a caltable needs the antenna tracker (``tracker``), the only one
     with per-antenna solutions.
     """
+    _SEEN.clear()           # this run's conversions only (a process may run calibrate often)
     check_output_file(export_uvfits, overwrite, "--export-uvfits")
     if caltable:
         if tracker is not None and tracker != "antenna":
