@@ -581,3 +581,23 @@ def test_failure_while_writing_rolls_back(tmp_path, monkeypatch):
     assert "PWC_DATA" not in names and "FLAG_HITOPS_BACKUP" not in names
     for c, value in before.items():
         assert np.array_equal(col(truth.target_ms, c), value), c
+
+
+def test_a_time_gap_inside_one_scan_restarts_the_count(tmp_path, caplog):
+    """SCAN_NUMBER says one scan (as after some UVFITS round trips), but no sample exists
+    for two minutes: the count must restart after the gap, as it does at a new scan."""
+    truth = make_pair(tmp_path, n_time=400, n_scans=2, seed=12, drift_rad=0.08,
+                      phase_offset_rad=1.0)
+    second = truth.scan == 2
+    for ms in (truth.ref_ms, truth.target_ms):
+        with pt.table(str(ms), readonly=False, ack=False) as t:
+            scan, time = t.getcol("SCAN_NUMBER"), t.getcol("TIME")
+            later = scan == 2
+            t.putcol("TIME", np.where(later, time + 120.0, time))
+            t.putcol("SCAN_NUMBER", np.ones_like(scan))
+    truth.time[second] += 120.0
+    with caplog.at_level("INFO", logger="hitops"):
+        calibrate(truth.ref_ms, truth.target_ms)
+    assert "1 time gap(s) longer than" in caplog.text and "SCAN_NUMBER 1" in caplog.text
+    # the truth of the two-scan pair: the count restarts after the gap
+    assert np.max(np.abs(wrap(out_phase(truth.target_ms) - expected_pwc_phase(truth)))) < 1e-5

@@ -427,6 +427,35 @@ class ChunkMatch:
         self.scan_of_time[ref.time] = np.searchsorted(self.scans, ref.scan)
         self.scan_of_time[tgt.time] = np.searchsorted(self.scans, tgt.scan)
 
+    def split_at_gaps(self, min_gap_s: float) -> List[tuple]:
+        """Start a new tracking scan at every time gap longer than ``min_gap_s``.
+
+        Wrap counting must not run across a stretch with no data at all, whatever
+        SCAN_NUMBER says (a UVFITS round trip through CASA can merge every scan
+        into one).  Call after :meth:`check` (which fills ``scan_of_time``);
+        ``scans`` then holds the SCAN_NUMBER of each tracking scan (a number
+        repeats where one was split).  Returns (SCAN_NUMBER, time of the first
+        sample after the gap, gap length) of every split.
+        """
+        if self.n_time < 2:
+            return []
+        gaps = np.diff(self.times)
+        cut = np.flatnonzero((gaps > min_gap_s)
+                             & (self.scan_of_time[1:] == self.scan_of_time[:-1])) + 1
+        if cut.size == 0:
+            return []
+        new_scan = np.zeros(self.n_time, dtype=np.int64)
+        starts = np.zeros(self.n_time, dtype=bool)
+        starts[0] = True
+        starts[1:] = self.scan_of_time[1:] != self.scan_of_time[:-1]
+        starts[cut] = True
+        new_scan = np.cumsum(starts) - 1
+        splits = [(int(self.scans[self.scan_of_time[i]]), float(self.times[i]), float(gaps[i - 1]))
+                  for i in cut]
+        self.scans = self.scans[self.scan_of_time[starts]]
+        self.scan_of_time = new_scan
+        return splits
+
     def _raise_duplicate(self, cells, n_t, t0, ms):
         counts = np.bincount(cells, minlength=self.n_bl * n_t)
         dup = np.flatnonzero(counts > 1)
