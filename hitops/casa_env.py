@@ -28,10 +28,12 @@ _TEMPLATE = """# written by hitops.casa_env: CASA offline data configuration
 measurespath = {path!r}
 measures_auto_update = False
 data_auto_update = False
-# CASA would otherwise drop casa-<date>.log into whatever directory a step runs in;
-# hitops.casa.runner reads SEVERE lines back from this same per-process file
-import os as _os, tempfile as _tempfile
-logfile = _os.path.join(_tempfile.gettempdir(), "hitops-casa-%d.log" % _os.getpid())
+# CASA would otherwise drop casa-<date>.log into whatever directory a step runs in.
+# Until hitops.casa.runner names the log of a task (HITOPS_CASA_LOG, or casa.log
+# beside the task's output), CASA's start-up lines go nowhere: no file in the
+# working directory or in /tmp
+import os as _os
+logfile = _os.environ.get("HITOPS_CASA_LOG") or _os.devnull
 """
 
 

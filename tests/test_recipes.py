@@ -80,9 +80,19 @@ def test_demo_pwc_peak_flux_recovery(demo_run):
     assert pwc["recovery"] >= 0.9
     assert pwc["recovery"] <= 1.05  # a peak above the input would mean a broken image
     assert pwc["recovery"] > ffsc["recovery"]
-    # the images themselves exist as the table says
-    for label in rows:
-        assert (out / "images" / f"{label}-image.fits").is_file()
+    # the images themselves exist as the table says: a diverged CLEAN's restored
+    # image is renamed *.diverged.fits and its dirty image named instead
+    for label, row in rows.items():
+        fit = json.loads((out / "images" / f"{label}-imfit.json").read_text())
+        if fit.get("diverged"):
+            assert row["fit"] == "max-pixel" and "CLEAN diverged" in row["note"]
+            assert not (out / "images" / f"{label}-image.fits").exists()
+            assert (out / "images" / f"{label}-image.diverged.fits").is_file()
+            assert Path(fit["fallback_image"]).name == f"{label}-dirty.fits"
+        else:
+            assert (out / "images" / f"{label}-image.fits").is_file()
+    # raw data keep the troposphere: no source above the noise, and no number for it
+    assert rows["raw"]["fit"] == "no-source" and rows["raw"]["recovery"] is None
     for name in ("peak-flux.md", "peak-flux.csv"):
         assert (out / name).stat().st_size > 0
 

@@ -2,37 +2,71 @@
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
 import re
-import tempfile
+import sys
+from collections import Counter
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterable, List
+from typing import Any, Iterable, List, Optional
 
 from ..casa_env import ensure_casa_offline
 from ..errors import ExternalToolError
 
 log = logging.getLogger("hitops.casa")
 
-#: SEVERE messages that do not mean the task failed.  casatools 6.7 with the
-#: casadata measures logs one about the TAI_UTC leap-second table on first use
-#: of the measures; the task still runs correctly (GUIDE.md section 3).
-#: The message spans three SEVERE lines, all from MeasTable::dUTC.
+#: SEVERE messages that do not mean the task failed.  casatools 6.7 logs one
+#: about the TAI_UTC leap-second table when the table in casadata is more than
+#: a few months older than today's date (casadata 2025.9.22's is dated
+#: 2025-09-16); it spans three SEVERE lines, all from MeasTable::dUTC.  No leap
+#: second has been announced since 2017, so the table is still right for any
+#: date the simulations use.  These lines are kept in the CASA log and replaced
+#: by one note in ours (:data:`LEAP_SECOND_NOTE`).
 HARMLESS_SEVERE = (
     re.compile(r"MeasTable::dUTC"),
     re.compile(r"TAI_UTC"),
 )
 
+LEAP_SECOND_NOTE = ("CASA logged its leap-second message (SEVERE 'Leap second table TAI_UTC "
+                    "seems out-of-date': casadata's table is older than six months); harmless "
+                    "here, no leap second has been added since 2017")
+
 _SEVERE = re.compile(r"\bSEVERE\b")
+# date, priority, origin, message; a continued message has an origin ending in "+"
+_WARN = re.compile(r"\tWARN\t([^\t]*)\t(.*)$")
+_CASA_LINE = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\t")
+# what CASA's solvers print straight to the console, one per failed interval
+_CONSOLE = re.compile(r"^\s*(Insufficient unflagged antennas.*|Found no unflagged data.*)$")
 
 
 def severe_lines(lines: Iterable[str]) -> List[str]:
     """The SEVERE lines of a CASA log excerpt, without the harmless ones."""
-    found = []
+    found: List[str] = []
     for line in lines:
         if _SEVERE.search(line) and not any(p.search(line) for p in HARMLESS_SEVERE):
-            found.append(line.rstrip())
+            if line.rstrip() not in found:   # the console copy of a logged line
+                found.append(line.rstrip())
     return found
+
+
+def warning_summary(lines: Iterable[str], top: int = 3) -> List[str]:
+    """The most frequent WARN messages of a CASA log excerpt, with their counts.
+
+    gaincal on the paper scene warns "Insufficient unflagged antennas" for
+    thousands of intervals; one line with the count says the same.
+    """
+    counts: Counter = Counter()
+    for line in lines:
+        match = _WARN.search(line)
+        console = None if _CASA_LINE.match(line) else _CONSOLE.match(line)
+        if (match and not match.group(1).endswith("+")) or console:
+            text = (match.group(2) if match else console.group(1)).strip()
+            # the interval or antenna named in a message differs from line to line
+            text = re.sub(r"\d[\d:/.,]*", "#", text)
+            counts[text[:120]] += 1
+    return [f"{n} x {text}" for text, n in counts.most_common(top)]
 
 
 def _casalog():
@@ -42,25 +76,67 @@ def _casalog():
     return casalog
 
 
-def _log_path(casalog) -> Path:
-    """The CASA log file of this process, moved out of the working directory.
+def log_path(default_dir: Optional[str] = None) -> Path:
+    """Where CASA's log of a task goes: $HITOPS_CASA_LOG, else casa.log in ``default_dir``.
 
-    CASA writes casa-<date>.log into the current directory by default; a
-    pipeline step should not litter its working directory, so the log goes to
-    $HITOPS_CASA_LOG or a per-process file in the temporary directory.
+    ``default_dir`` is the directory of the task's output (the calibration
+    table, the applycal receipt, the fit file), so a step's CASA log stays
+    beside its results; ``python -m hitops.run`` sets HITOPS_CASA_LOG to the
+    run's log directory.  Never the working directory nor /tmp.
     """
-    wanted = os.environ.get("HITOPS_CASA_LOG") or str(
-        Path(tempfile.gettempdir()) / f"hitops-casa-{os.getpid()}.log")
-    if casalog.logfile() != wanted:
-        casalog.setlogfile(wanted)
-    return Path(wanted)
+    explicit = os.environ.get("HITOPS_CASA_LOG")
+    if explicit:
+        return Path(explicit)
+    return Path(default_dir or ".") / "casa.log"
 
 
-def run_task(name: str, **kwargs: Any) -> Any:
+def _select_log(casalog, wanted: Path) -> Path:
+    wanted.parent.mkdir(parents=True, exist_ok=True)
+    if casalog.logfile() != str(wanted):
+        casalog.setlogfile(str(wanted))
+    # CASA's lines go to the file only: the SEVERE ones are raised by run_task,
+    # the rest would drown a pipeline's output (thousands of WARN lines)
+    casalog.showconsole(False)
+    return wanted
+
+
+@contextmanager
+def _console_to(path: Path):
+    """Send what C++ code prints on stdout/stderr to ``path`` for the duration.
+
+    CASA's solvers print "Insufficient unflagged antennas to proceed with this
+    solve." for every interval without a solution straight to the console
+    (4,576 lines on the paper scene), and casalog echoes SEVERE lines there:
+    they belong in CASA's log with the rest.
+    """
+    for stream in (sys.stdout, sys.stderr):
+        stream.flush()
+    saved = (os.dup(1), os.dup(2))
+    try:
+        with open(path, "ab") as fh:
+            os.dup2(fh.fileno(), 1)
+            os.dup2(fh.fileno(), 2)
+        yield
+    finally:
+        try:
+            ctypes.CDLL(None).fflush(None)   # C stdio buffers, before the descriptors move back
+        except (OSError, AttributeError):
+            pass
+        for stream in (sys.stdout, sys.stderr):
+            stream.flush()
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        os.close(saved[0])
+        os.close(saved[1])
+
+
+def run_task(name: str, *, log_dir: Optional[str] = None, **kwargs: Any) -> Any:
     """Call ``casatasks.<name>(**kwargs)``; raise on an exception or a SEVERE line.
 
-    Returns whatever the task returned.  The log lines the task wrote are
-    re-emitted at debug level and, on failure, quoted in the exception.
+    Returns whatever the task returned.  CASA's log goes to :func:`log_path`
+    (``log_dir``: the directory of the task's output); the lines the task
+    wrote are re-emitted at debug level, summarised (most frequent warnings)
+    at info level and, on failure, quoted in the exception.
     """
     casalog = _casalog()
     import casatasks
@@ -68,13 +144,14 @@ def run_task(name: str, **kwargs: Any) -> Any:
     task = getattr(casatasks, name, None)
     if task is None:
         raise ExternalToolError(f"casatasks has no task '{name}'")
-    logfile = _log_path(casalog)
+    logfile = _select_log(casalog, log_path(log_dir))
     start = logfile.stat().st_size if logfile.exists() else 0
     log.info("CASA %s(%s)", name, ", ".join(f"{k}={v!r}" for k, v in kwargs.items()))
     error = None
     result = None
     try:
-        result = task(**kwargs)
+        with _console_to(logfile):
+            result = task(**kwargs)
     except Exception as err:  # CASA raises RuntimeError/AssertionError/ValueError...
         error = err
     text = ""
@@ -85,6 +162,14 @@ def run_task(name: str, **kwargs: Any) -> Any:
     lines = text.splitlines()
     for line in lines:
         log.debug("casa: %s", line)
+    if any(_SEVERE.search(line) and any(p.search(line) for p in HARMLESS_SEVERE)
+           for line in lines):
+        # filtered from the failure check; the note sits right after the lines in CASA's log
+        casalog.post(f"hitops: the SEVERE leap-second lines above are not an error: {LEAP_SECOND_NOTE}",
+                     "INFO", "hitops")
+        log.debug(LEAP_SECOND_NOTE)
+    for summary in warning_summary(lines):
+        log.info("CASA %s warned %s (log %s)", name, summary, logfile)
     severe = severe_lines(lines)
     if error is not None or severe:
         detail = "\n  ".join(severe[-10:]) if severe else ""

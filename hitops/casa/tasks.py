@@ -35,6 +35,11 @@ def _as_list(value: StrList) -> List[str]:
     return [str(v) for v in value]
 
 
+def _parent(path: str) -> str:
+    """The directory of a step's output: its CASA log goes there (hitops.casa.runner.log_path)."""
+    return str(Path(path).resolve().parent)
+
+
 def _check_ms(vis: str) -> None:
     if not (Path(vis) / "table.dat").exists():
         raise MeasurementSetError(f"'{vis}' is not a Measurement Set (no table.dat); "
@@ -104,7 +109,8 @@ def fringefit(vis: str, caltable: str, solint: str = "20s", refant: StrList = ""
     _prepare_output(caltable, overwrite)
     refants = _as_list(refant)
     with _no_table_on_failure(caltable):
-        run_task("fringefit", vis=vis, caltable=caltable, field=field, spw=spw,
+        run_task("fringefit", log_dir=_parent(caltable), vis=vis, caltable=caltable,
+                 field=field, spw=spw,
                  solint=solint, refant=",".join(refants), minsnr=float(minsnr),
                  zerorates=bool(zerorates), globalsolve=bool(globalsolve),
                  gaintable=_as_list(gaintable))
@@ -126,7 +132,8 @@ def gaincal(vis: str, caltable: str, solint: str = "10s", refant: StrList = "",
         raise InputError(f"gaincal calmode '{calmode}' must be one of p, a, ap")
     _prepare_output(caltable, overwrite)
     with _no_table_on_failure(caltable):
-        run_task("gaincal", vis=vis, caltable=caltable, field=field, spw=spw,
+        run_task("gaincal", log_dir=_parent(caltable), vis=vis, caltable=caltable,
+                 field=field, spw=spw,
                  solint=solint, refant=",".join(_as_list(refant)), calmode=calmode,
                  gaintype=gaintype, minsnr=float(minsnr), gaintable=_as_list(gaintable),
                  minblperant=int(minblperant))
@@ -153,7 +160,8 @@ def applycal(vis: str, gaintable: StrList, interp: StrList = None,
         if not (Path(table) / "table.dat").exists():
             raise InputError(f"applycal: calibration table '{table}' does not exist; "
                              "run the solve step first")
-    run_task("applycal", vis=vis, gaintable=tables, interp=_as_list(interp),
+    run_task("applycal", log_dir=_parent(receipt or vis), vis=vis, gaintable=tables,
+             interp=_as_list(interp),
              applymode=applymode, calwt=[bool(calwt)] * len(tables),
              flagbackup=bool(flagbackup))
     with pt.table(vis, ack=False) as tab:
@@ -223,9 +231,49 @@ def centre_box(imagename: str, half_width: int) -> str:
     return f"{max(cx - half, 0)},{max(cy - half, 0)},{min(cx + half, shape[0] - 1)},{min(cy + half, shape[1] - 1)}"
 
 
+#: WSClean's products of one image name that a diverged CLEAN leaves unusable
+DIVERGED_PRODUCTS = ("image", "model", "residual")
+
+
+def diverged_name(path: str | Path) -> Path:
+    """Where a diverged CLEAN's product is kept: X-image.fits -> X-image.diverged.fits."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}.diverged{path.suffix}")
+
+
+def _wsclean_products(imagename: str | Path) -> List[Path]:
+    """The restored, model and residual images of a WSClean name (X-image.fits -> X-*.fits)."""
+    path = Path(imagename)
+    if not path.name.endswith("-image.fits"):
+        return [path]
+    prefix = path.name[: -len("-image.fits")]
+    return [path.with_name(f"{prefix}-{kind}.fits") for kind in DIVERGED_PRODUCTS]
+
+
+def _conform_fits(*paths: Optional[str]) -> None:
+    """Fix WSClean's non-conforming header cards before CASA reads the files."""
+    from .fits import conform_header
+
+    for path in paths:
+        if path and str(path).endswith(".fits"):
+            for sibling in _wsclean_products(path) + [Path(path)]:
+                changed = conform_header(sibling)
+                if changed:
+                    log.debug("%s: header cards %s rewritten in FITS fixed format",
+                              sibling, ",".join(changed))
+
+
+def _box_contains(box: str, x: float, y: float) -> bool:
+    if not box:
+        return True
+    blcx, blcy, trcx, trcy = (float(v) for v in box.split(","))
+    return blcx <= x <= trcx and blcy <= y <= trcy
+
+
 def imfit(imagename: str, box: str = "", region: str = "", stokes: str = "I",
           centre_half_width: int = 0, fallback: bool = False,
           fallback_image: Optional[str] = None, max_abs_peak: float = 0.0,
+          detection_snr: float = 0.0, mark_diverged: bool = False,
           label: str = "", outfile: Optional[str] = None) -> Dict[str, object]:
     """Fit one 2-D Gaussian with CASA imfit; return its peak and error (Jy/beam).
 
@@ -233,35 +281,61 @@ def imfit(imagename: str, box: str = "", region: str = "", stokes: str = "I",
     (pixels), all plain floats.  ``centre_half_width`` > 0 restricts the fit
     to a box of that many pixels around the image centre (the phase centre,
     where the simulated source sits), which keeps imfit off sidelobes and fast.
-    A fit that does not converge, or whose |peak| exceeds ``max_abs_peak``
-    (> 0; CLEAN can diverge on incoherent data with sparse VLBI coverage and
-    restore a peak of 1e20 Jy) fails the step, unless ``fallback`` is set: then
-    the brightest pixel in the box of ``fallback_image`` (e.g. the dirty image,
-    which needs no deconvolution) or of the image itself is reported with the
-    robust rms as its error, marked ``method: max-pixel``.  ``outfile`` (JSON) keeps
-    the result with its ``label`` (e.g. "pwc") for the peak-flux comparison,
-    which reads files so that it still works when this step is skipped on a
-    rerun.
+
+    * **No source**: with ``detection_snr`` > 0, a fit whose peak is below
+      ``detection_snr`` times the image's robust rms, or whose centre lies
+      outside the box, is not a measurement: the result is ``method:
+      no-source`` with no peak (the JSON keeps the fitted value, the rms and
+      the ratio under ``brightest``, ``rms`` and ``snr``).  Raw data with the
+      troposphere left in image to noise, and a Gaussian fitted to that noise
+      is not a peak flux.
+    * **CLEAN diverged**: a fit that does not converge, or whose |peak| exceeds
+      ``max_abs_peak`` (> 0; CLEAN can diverge on incoherent data with sparse
+      VLBI coverage and restore a peak of 1e20 Jy), fails the step, unless
+      ``fallback`` is set: then the brightest pixel in the box of
+      ``fallback_image`` (e.g. the dirty image, which needs no deconvolution)
+      or of the image itself is reported with the robust rms as its error,
+      marked ``method: max-pixel``.  With ``mark_diverged`` a diverged
+      WSClean image X-image.fits (and X-model, X-residual) is renamed
+      X-image.diverged.fits, so that only usable images keep the usual names;
+      the dirty image stays where it is and the JSON names it.
+
+    ``outfile`` (JSON) keeps the result with its ``label`` (e.g. "pwc") for the
+    peak-flux comparison, which reads files so that it still works when this
+    step is skipped on a rerun.  WSClean's FITS headers are first rewritten in
+    the FITS fixed format where they are not (:mod:`hitops.casa.fits`).
     """
+    log_dir = _parent(outfile or imagename)
+    marked = diverged_name(imagename)
+    earlier = None
     if not Path(imagename).exists():
-        raise InputError(f"imfit: image '{imagename}' does not exist; run the imaging step first")
+        if not (fallback and marked.exists()):
+            raise InputError(f"imfit: image '{imagename}' does not exist; run the imaging step first")
+        # an earlier run found this CLEAN diverged and renamed the image
+        earlier = f"CLEAN diverged (the restored image was renamed {marked} by an earlier run)"
+    _conform_fits(imagename, fallback_image)
     if centre_half_width and not box:
-        box = centre_box(imagename, centre_half_width)
-    error = None
-    try:
-        # CASA imfit aborts the whole process (C++ ArrayError) on an image without
-        # finite pixels, so look first
-        if not math.isfinite(_image_shape_and_stats(imagename, box)["max"]):
-            raise ExternalToolError(f"'{imagename}' has no finite pixel in box '{box}' "
-                                    "(the deconvolution produced NaN)")
-        result = run_task("imfit", imagename=str(imagename), box=box, region=region,
-                          stokes=stokes)
-        if not result or not result.get("converged", [False])[0]:
-            raise ExternalToolError(f"imfit did not converge on '{imagename}'")
-    except ExternalToolError as err:
-        if not fallback:
-            raise
-        error = err
+        box = centre_box(fallback_image if earlier else imagename, centre_half_width)
+    error = earlier
+    diverged = earlier is not None
+    stats = None
+    if error is None:
+        try:
+            # CASA imfit aborts the whole process (C++ ArrayError) on an image without
+            # finite pixels, so look first
+            stats = _image_shape_and_stats(imagename, "")
+            if not math.isfinite(_image_shape_and_stats(imagename, box)["max"]):
+                diverged = True
+                raise ExternalToolError(f"'{imagename}' has no finite pixel in box '{box}' "
+                                        "(the deconvolution produced NaN)")
+            result = run_task("imfit", log_dir=log_dir, imagename=str(imagename), box=box,
+                              region=region, stokes=stokes)
+            if not result or not result.get("converged", [False])[0]:
+                raise ExternalToolError(f"imfit did not converge on '{imagename}'")
+        except ExternalToolError as err:
+            if not fallback:
+                raise
+            error = err
     if error is None:
         comp = result["results"]["component0"]
         peak = comp["peak"]
@@ -288,6 +362,39 @@ def imfit(imagename: str, box: str = "", region: str = "", stokes: str = "I",
             if not fallback:
                 raise ExternalToolError(bad)
             error = bad
+            diverged = True
+    extra: Dict[str, object] = {}
+    if error is None and detection_snr > 0:
+        rms = stats["rms"] if stats else float("nan")
+        snr = out["peak"] / rms if rms > 0 else float("inf")
+        inside = _box_contains(box, out["x_pix"], out["y_pix"])
+        if snr < detection_snr or not inside:
+            why = (f"the fitted peak {out['peak']:.4f} Jy/beam is {snr:.1f} x the image rms "
+                   f"{rms:.4f} Jy/beam (< {detection_snr:g})" if snr < detection_snr else
+                   f"the fitted centre ({out['x_pix']:.0f}, {out['y_pix']:.0f}) lies outside "
+                   f"the fit box {box}")
+            log.warning("no source in %s: %s", imagename, why)
+            extra = {"brightest": out["peak"], "brightest_err": out["peak_err"], "rms": rms,
+                     "snr": snr, "x_pix": out["x_pix"], "y_pix": out["y_pix"],
+                     "reason": f"no source: {why}"}
+            out = {"method": "no-source", "peak": None, "peak_err": None}
+        else:
+            extra = {"rms": rms, "snr": snr}
+    if (error is not None and not diverged and detection_snr > 0 and stats
+            and stats["rms"] > 0):
+        # the fit did not converge on a finite image: a source would have been fitted
+        inbox = _image_shape_and_stats(imagename, box)
+        snr = inbox["max"] / stats["rms"]
+        if snr < detection_snr:
+            why = (f"imfit did not converge and the brightest pixel in the box, "
+                   f"{inbox['max']:.4f} Jy/beam, is {snr:.1f} x the image rms "
+                   f"{stats['rms']:.4f} Jy/beam (< {detection_snr:g})")
+            log.warning("no source in %s: %s", imagename, why)
+            extra = {"brightest": inbox["max"], "rms": stats["rms"], "snr": snr,
+                     "x_pix": inbox["maxpos"][0], "y_pix": inbox["maxpos"][1],
+                     "reason": f"no source: {why}"}
+            out = {"method": "no-source", "peak": None, "peak_err": None}
+            error = None
     if error is not None:
         source = fallback_image or imagename
         if not Path(source).exists():
@@ -300,13 +407,40 @@ def imfit(imagename: str, box: str = "", region: str = "", stokes: str = "I",
         # no flux/flux_err: they are undefined without a fit (and NaN is not JSON)
         out = {"method": "max-pixel", "peak": stats["max"], "peak_err": stats["rms"],
                "x_pix": stats["maxpos"][0], "y_pix": stats["maxpos"][1]}
-        extra = {"fallback_image": str(source), "reason": str(error)}
+        extra = {"fallback_image": str(source), "reason": str(error), "diverged": diverged}
+        if diverged and mark_diverged and earlier is None:
+            extra["renamed"] = _mark_diverged(imagename)
+        elif earlier is not None:
+            extra["renamed"] = [str(diverged_name(p)) for p in _wsclean_products(imagename)
+                                if diverged_name(p).exists()]
+    elif mark_diverged:
+        # a converged fit: images marked diverged by an earlier run are stale now
+        for product in _wsclean_products(imagename):
+            diverged_name(product).unlink(missing_ok=True)
+    if out["peak"] is None:
+        log.info("imfit %s: %s", imagename, extra["reason"])
     else:
-        extra = {}
-    log.info("imfit %s: peak %.5f +- %.5f Jy/beam (%s)", imagename, out["peak"],
-             out["peak_err"], out["method"])
+        log.info("imfit %s: peak %.5f +- %.5f Jy/beam (%s)", imagename, out["peak"],
+                 out["peak_err"], out["method"])
     if outfile:
         _write_json(outfile, {"label": label or Path(imagename).stem, "image": str(imagename),
                               "box": box, **out, **extra})
-        out["outfile"] = outfile
-    return out
+    # Stimela's outputs: plain floats, and none for a value that does not exist
+    ret = {k: v for k, v in out.items() if v is not None}
+    if outfile:
+        ret["outfile"] = outfile
+    return ret
+
+
+def _mark_diverged(imagename: str) -> List[str]:
+    """Rename a diverged CLEAN's restored, model and residual images (X-*.diverged.fits)."""
+    renamed = []
+    for product in _wsclean_products(imagename):
+        if product.exists():
+            target = diverged_name(product)
+            product.replace(target)
+            renamed.append(str(target))
+    if renamed:
+        log.warning("CLEAN diverged: %s renamed %s; the dirty image is the one to look at",
+                    imagename, ", ".join(Path(r).name for r in renamed))
+    return renamed

@@ -14,7 +14,9 @@ from ..errors import InputError, OutputExistsError
 
 log = logging.getLogger("hitops.compare")
 
-#: The FPT paper's simulation results (Results section; GUIDE.md section 2).
+#: The FPT paper's simulation results (Simelane, Kemball & Deane, "Frequency Phase
+#: Transfer for Future Millimetre Arrays with Arbitrary Frequency Ratios",
+#: arXiv:2606.27143, section Results).
 PAPER = {
     "recovery": {"pwc": (0.965, 0.0046), "ffsc": (0.868, 0.0045)},
     "coherence": {
@@ -62,6 +64,8 @@ def _read_fit(path: str) -> Dict:
         fit = json.loads(p.read_text())
     except json.JSONDecodeError as err:
         raise InputError(f"imfit result '{path}' is not JSON ({err})") from err
+    if fit.get("method") == "no-source":
+        return fit   # no peak, by design: the image holds no source above the noise
     for key in ("peak", "peak_err"):
         if not isinstance(fit.get(key), (int, float)) or not math.isfinite(fit[key]):
             raise InputError(f"imfit result '{path}' has no finite '{key}'")
@@ -77,15 +81,21 @@ def build_rows(fit_files: Sequence[str], labels: Sequence[str], input_peak: floa
     for i, path in enumerate(fit_files):
         fit = _read_fit(path)
         label = labels[i] if labels else str(fit.get("label") or Path(path).stem)
-        value, err = recovery(fit["peak"], fit["peak_err"], input_peak, input_peak_err)
+        if fit.get("method") == "no-source":
+            # no number for a fit to noise
+            recovery(1.0, 0.0, input_peak, input_peak_err)   # still check the input peak
+            value = err = peak = peak_err = None
+        else:
+            value, err = recovery(fit["peak"], fit["peak_err"], input_peak, input_peak_err)
+            peak, peak_err = float(fit["peak"]), float(fit["peak_err"])
         row = {
             "label": label,
             "method": METHOD_NAMES.get(label, label),
             "image": fit.get("image", ""),
             "fit": fit.get("method", "gaussian"),
             "note": _fallback_note(fit),
-            "peak_jy": float(fit["peak"]),
-            "peak_err_jy": float(fit["peak_err"]),
+            "peak_jy": peak,
+            "peak_err_jy": peak_err,
             "input_peak_jy": float(input_peak),
             "recovery": value,
             "recovery_err": err,
@@ -104,13 +114,25 @@ def build_rows(fit_files: Sequence[str], labels: Sequence[str], input_peak: floa
 
 def _fallback_note(fit: Dict) -> str:
     """Why a row is not a Gaussian fit (empty for a fit)."""
-    if fit.get("method", "gaussian") == "gaussian":
+    method = fit.get("method", "gaussian")
+    if method == "gaussian":
         return ""
+    if method == "no-source":
+        snr = fit.get("snr")
+        return ("no source: the best fit is only " + (f"{snr:.1f} x the image rms"
+                                                       if isinstance(snr, (int, float))
+                                                       else "at the noise level"))
     reason = str(fit.get("reason", ""))
     source = "dirty-image" if "dirty" in str(fit.get("fallback_image", "")) else "image"
-    if "diverged" in reason or "no finite" in reason:
+    if fit.get("diverged", "diverged" in reason or "no finite" in reason):
         return f"max-pixel: CLEAN diverged, brightest {source} pixel"
     return f"max-pixel: fit did not converge, brightest {source} pixel"
+
+
+def _pm(value, err, digits=4) -> str:
+    if value is None:
+        return "no source"
+    return f"{value:.{digits}f} ± {err:.{digits}f}"
 
 
 def _fmt(value, digits=4) -> str:
@@ -131,8 +153,8 @@ def markdown(rows: List[Dict], coherence: Optional[Dict], reference: str) -> str
     out.append("|" + "---|" * len(header))
     for r in rows:
         note = f" ({r['note']})" if r.get("note") else ""
-        cells = [r["method"] + note, f"{r['peak_jy']:.4f} ± {r['peak_err_jy']:.4f}",
-                 f"{r['recovery']:.4f} ± {r['recovery_err']:.4f}"]
+        cells = [r["method"] + note, _pm(r["peak_jy"], r["peak_err_jy"]),
+                 _pm(r["recovery"], r["recovery_err"])]
         if reference == "paper":
             cells.append(f"{r['paper_recovery']:.3f} ± {r['paper_recovery_err']:.4f}"
                          if r.get("paper_recovery") is not None else "-")
@@ -282,6 +304,72 @@ def compare(fits, labels=None, input_peak: float = 1.0, input_peak_err: float = 
         tmp.write_text(texts[ext])
         tmp.replace(path)
     for r in rows:
-        log.info("%-24s recovery %.4f +- %.4f", r["method"], r["recovery"], r["recovery_err"])
+        log.info("%-24s recovery %s%s", r["method"], _pm(r["recovery"], r["recovery_err"]),
+                 f" ({r['note']})" if r["note"] else "")
     log.info("wrote %s", ", ".join(str(p) for p in targets.values()))
     return payload
+
+
+#: Short names of the methods for the terminal
+SHORT_NAMES = {"raw": "raw", "ffsc": "FF+SC", "cfpt": "CFPT", "cwu": "CWU", "pwc": "PWC"}
+
+
+def text_summary(payload: Dict) -> str:
+    """The comparison for a terminal: recovery per image, coherence per baseline, statistics.
+
+    ``payload`` is what :func:`compare` returns (and writes as JSON).  About
+    20 lines for the demo's 10 baselines; the markdown file has the same numbers.
+    """
+    rows = payload.get("rows", [])
+    ref = payload.get("paper") is not None
+    peak = rows[0]["input_peak_jy"] if rows else 1.0
+    out = [f"Fractional peak-flux recovery (CASA imfit peak / the {peak:g} Jy/beam put in)"
+           + ("; paper's value in brackets" if ref else "") + ":"]
+    width = max((len(r["method"]) for r in rows), default=10)
+    for r in rows:
+        if r["recovery"] is None:
+            cell = "no source"
+        else:
+            cell = f"{r['recovery']:.3f} ± {r['recovery_err']:.3f}"
+        if ref and r.get("paper_recovery") is not None:
+            cell += f"  [{r['paper_recovery']:.3f}]"
+        note = r.get("note") or ""
+        if note.startswith("max-pixel: CLEAN diverged"):
+            note = "CLEAN diverged: brightest pixel of the dirty image"
+        elif note.startswith("max-pixel"):
+            note = "fit did not converge: brightest pixel of the dirty image"
+        elif note.startswith("no source"):
+            note = note[len("no source: "):] if note.startswith("no source: ") else ""
+        out.append(f"  {r['method']:<{width}}  {cell:<15}" + (f"  ({note})" if note else ""))
+    coh = payload.get("coherence")
+    if coh and coh.get("baselines"):
+        cols = coh["columns"]
+        interval = coh.get("interval_s")
+        title = f"Coherence C({interval:g} s)" if isinstance(interval, (int, float)) else "Coherence"
+        has_gain = any(b.get("pwc_over_ffsc_pct") is not None for b in coh["baselines"])
+        names = [SHORT_NAMES.get(c, c) for c in cols]
+        out += ["", f"{title} per baseline:",
+                "  " + f"{'baseline':<9}" + "".join(f"{n:>7}" for n in names)
+                + ("  PWC vs FF+SC" if has_gain else "")]
+        for bl in coh["baselines"]:
+            cells = "".join(f"{bl[c]:>7.3f}" if isinstance(bl.get(c), (int, float)) else f"{'-':>7}"
+                            for c in cols)
+            gain = bl.get("pwc_over_ffsc_pct")
+            out.append(f"  {bl['baseline']:<9}{cells}"
+                       + (f"  {gain:+11.1f}%" if gain is not None else ""))
+        st = coh.get("stats") or {}
+        if st:
+            n = st.get("n_baselines")
+            wins = ("on every baseline" if st.get("pwc_ge_ffsc_every_baseline")
+                    else "not on every baseline")
+            out.append(f"  PWC vs FF+SC: mean {st['pwc_over_ffsc_mean_pct']:+.1f}%, median "
+                       f"{st['pwc_over_ffsc_median_pct']:+.1f}%; PWC >= FF+SC {wins} ({n})")
+            if ref:
+                pc = PAPER["coherence"]
+                out.append(f"  ours:  FF+SC {st['ffsc_min']:.2f}-{st['ffsc_max']:.2f}, PWC "
+                           f"{st['pwc_min']:.2f}-{st['pwc_max']:.2f}")
+                out.append(f"  paper: FF+SC {pc['ffsc_range'][0]:.2f}-{pc['ffsc_range'][1]:.2f}, "
+                           f"PWC {pc['pwc_range'][0]:.2f}-{pc['pwc_range'][1]:.2f}; PWC vs FF+SC "
+                           f"mean +{pc['pwc_over_ffsc_mean_pct']:g}%, median "
+                           f"+{pc['pwc_over_ffsc_median_pct']:g}%")
+    return "\n".join(out) + "\n"

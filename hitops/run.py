@@ -1,0 +1,534 @@
+"""Run a Stimela recipe quietly and end with the answer.
+
+    python -m hitops.run recipes/fpt-demo.yml [-v] [-f] [name=value ...] [-- STIMELA-RUN-OPTIONS]
+
+What it adds to ``stimela run`` (which it calls):
+
+* **Parameters are checked** against the recipe's inputs before anything runs:
+  an unknown name is an error naming the closest valid one (Stimela 2.1.4
+  accepts ``fringefit_soltint=30s`` silently and ignores it), and a value that
+  is not of the input's type (int, float, bool) is refused.
+* **No stale results**: for every step it writes ``{dir}/params/STEP.json``,
+  the values of the recipe inputs the step uses and the step's definition
+  (with the sub-recipe's, for ``images``), rewritten only when they change.
+  The recipes list that file among each step's ``depends``, so a changed
+  parameter makes the step's outputs older than an input and Stimela's
+  ``skip_if_outputs: fresh`` reruns it, and everything downstream with it.
+* **Quiet**: one line per recipe step (step k of n, what it does, how long or
+  "up to date"); Stimela's whole output goes to ``{dir}/logs/run-DATE/output.txt``
+  beside its per-step logs and CASA's log (``casa.log``); ``{dir}/logs/latest``
+  points at the last run.  ``-v`` shows the full output as well.
+* **Nothing outside the output directory**: Stimela's own log-stimela.txt and
+  stimela.config.deps go to ``{dir}/logs/`` instead of the working directory.
+* **The answer at the end**: the peak-flux and coherence table of the
+  compare step, then the paths of the summary, the coherence table, the plots
+  and the images (a diverged CLEAN or a source-less image is said as such).
+
+Exit status: Stimela's (0 on success), 2 for a bad parameter.
+"""
+
+from __future__ import annotations
+
+import argparse
+import difflib
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, TextIO
+
+import yaml
+
+#: Top-level sections of a recipe file that are configuration, not recipes
+CONFIG_SECTIONS = {"_include", "_use", "opts", "lib", "cabs", "vars", "images", "run"}
+
+#: Recipe inputs that do not change what a step computes: where the outputs go
+#: (the parameter files live there already) and how many threads compute them
+NOT_DEFINING = {"dir", "threads"}
+
+_RECIPE_REF = re.compile(r"\brecipe\.([A-Za-z_]\w*)")
+_STEP_START = re.compile(r"STIMELA\.(?P<logger>[\w.-]+) INFO: processing step '(?P<step>[^']+)'")
+_SKIP_FRESH = "all required outputs are OK, skipping this step"
+_SKIP_COND = "skipping step based on conditonal settings"   # sic, Stimela 2.1.4
+_ERROR = re.compile(r"\b(ERROR|CRITICAL|[A-Za-z]*Error:)|CASA \w+ warned|^# hitops: |# hitops [a-z]+: ")
+
+
+class UsageError(Exception):
+    """A bad command line: printed as one line, exit status 2."""
+
+
+# ---------------------------------------------------------------------------
+# the recipe file
+
+@dataclass
+class RecipeFile:
+    path: Path
+    name: str
+    info: str
+    inputs: Dict[str, dict]
+    steps: Dict[str, dict]
+    libs: Dict[str, dict] = field(default_factory=dict)
+
+    def referenced_inputs(self, step: str) -> List[str]:
+        """The recipe inputs a step's definition refers to (recipe.NAME)."""
+        text = yaml.safe_dump(self.steps[step], sort_keys=True)
+        return sorted({m for m in _RECIPE_REF.findall(text) if m in self.inputs})
+
+
+def _load_yaml(path: Path) -> dict:
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except OSError as err:
+        raise UsageError(f"cannot read the recipe {path}: {err.strerror}") from err
+    except yaml.YAMLError as err:
+        raise UsageError(f"{path} is not valid YAML: {err}") from err
+    if not isinstance(doc, dict):
+        raise UsageError(f"{path} is not a Stimela recipe file (no sections)")
+    return doc
+
+
+def load_recipe(path: str | Path) -> RecipeFile:
+    """The recipe defined in ``path``, with the sub-recipes its includes define."""
+    path = Path(path)
+    doc = _load_yaml(path)
+    names = [k for k, v in doc.items() if k not in CONFIG_SECTIONS and isinstance(v, dict)
+             and "steps" in v]
+    if len(names) != 1:
+        raise UsageError(f"{path} defines {len(names)} recipes ({', '.join(names) or 'none'}); "
+                         "this runner takes a file with exactly one")
+    body = doc[names[0]]
+    libs: Dict[str, dict] = {}
+    for include in doc.get("_include") or []:
+        inc = (path.parent / str(include)) if not os.path.isabs(str(include)) else Path(include)
+        if inc.is_file():
+            libs.update(((_load_yaml(inc).get("lib") or {}).get("recipes") or {}))
+    libs.update(((doc.get("lib") or {}).get("recipes") or {}))
+    return RecipeFile(path=path, name=names[0], info=str(body.get("info", "")),
+                      inputs=dict(body.get("inputs") or {}), steps=dict(body.get("steps") or {}),
+                      libs=libs)
+
+
+# ---------------------------------------------------------------------------
+# parameters
+
+def _type_error(name: str, dtype: str, value) -> Optional[str]:
+    if dtype == "int" and (isinstance(value, bool) or not isinstance(value, int)):
+        return f"{name}={value!r}: an integer is needed"
+    if dtype == "float" and (isinstance(value, bool) or not isinstance(value, (int, float))):
+        return f"{name}={value!r}: a number is needed"
+    if dtype == "bool" and not isinstance(value, bool):
+        return f"{name}={value!r}: true or false is needed"
+    return None
+
+
+def parse_overrides(recipe: RecipeFile, args: Sequence[str]) -> Dict[str, object]:
+    """``name=value`` arguments checked against the recipe's inputs.
+
+    Values are read as YAML, as Stimela reads them.  Dotted names
+    (``steps.x.params.y=...``, ``opts.*``) are Stimela settings and pass unchecked.
+    """
+    values: Dict[str, object] = {}
+    valid = sorted(recipe.inputs)
+    for arg in args:
+        name, sep, raw = arg.partition("=")
+        name = name.strip()
+        if not sep or not name:
+            raise UsageError(f"'{arg}' is not name=value (recipe inputs: {', '.join(valid)})")
+        if "." in name:
+            values[name] = raw
+            continue
+        if name not in recipe.inputs:
+            close = difflib.get_close_matches(name, valid, n=1, cutoff=0.6)
+            hint = f"did you mean '{close[0]}'? " if close else ""
+            raise UsageError(f"unknown parameter '{name}' for recipe {recipe.name}: {hint}"
+                             f"(valid: {', '.join(valid)}; 'stimela doc {recipe.path}' "
+                             "explains each)")
+        try:
+            value = yaml.safe_load(raw) if raw != "" else ""
+        except yaml.YAMLError:
+            value = raw
+        problem = _type_error(name, str(recipe.inputs[name].get("dtype", "")), value)
+        if problem:
+            raise UsageError(problem)
+        values[name] = value
+    return values
+
+
+def effective_values(recipe: RecipeFile, overrides: Dict[str, object]) -> Dict[str, object]:
+    values = {name: schema.get("default") for name, schema in recipe.inputs.items()}
+    values.update({k: v for k, v in overrides.items() if "." not in k})
+    return values
+
+
+def _without_info(obj):
+    if isinstance(obj, dict):
+        return {k: _without_info(v) for k, v in obj.items() if k != "info"}
+    if isinstance(obj, list):
+        return [_without_info(v) for v in obj]
+    return obj
+
+
+def step_parameters(recipe: RecipeFile, step: str, values: Dict[str, object]) -> dict:
+    """What defines a step's outputs: the input values it uses and its definition."""
+    definition = recipe.steps[step]
+    payload = {
+        "recipe": recipe.name,
+        "step": step,
+        "inputs": {k: values.get(k) for k in recipe.referenced_inputs(step)
+                   if k not in NOT_DEFINING},
+        "definition": _without_info(definition),
+    }
+    sub = definition.get("recipe") if isinstance(definition, dict) else None
+    if isinstance(sub, str) and sub in recipe.libs:
+        payload["sub_recipe"] = _without_info(recipe.libs[sub])
+    return payload
+
+
+def write_parameter_files(recipe: RecipeFile, values: Dict[str, object],
+                          outdir: Path) -> List[str]:
+    """Write {outdir}/params/STEP.json for every step; return the steps whose file changed.
+
+    A file is rewritten only when its content changes, so its modification
+    time is the time the step's parameters last changed.
+    """
+    pdir = outdir / "params"
+    pdir.mkdir(parents=True, exist_ok=True)
+    changed = []
+    for step in recipe.steps:
+        text = json.dumps(step_parameters(recipe, step, values), indent=2, sort_keys=True,
+                          default=str) + "\n"
+        path = pdir / f"{step}.json"
+        if path.is_file() and path.read_text() == text:
+            continue
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        tmp.write_text(text)
+        tmp.replace(path)
+        changed.append(step)
+    return changed
+
+
+def substitute(value, values: Dict[str, object]):
+    """Evaluate the simple Stimela forms the recipes use: =recipe.X and {recipe.X}."""
+    if not isinstance(value, str):
+        return value
+    if value.startswith("=recipe.") and re.fullmatch(r"=recipe\.\w+", value):
+        return values.get(value[len("=recipe."):])
+    return re.sub(r"\{recipe\.(\w+)\}", lambda m: str(values.get(m.group(1), m.group(0))), value)
+
+
+# ---------------------------------------------------------------------------
+# progress
+
+def _seconds(s: float) -> str:
+    if s < 60:
+        return f"{s:.0f} s" if s >= 10 else f"{s:.1f} s"
+    return f"{int(s // 60)} min {s % 60:02.0f} s"
+
+
+class Progress:
+    """Turns Stimela's output into one line per top-level step."""
+
+    def __init__(self, recipe: RecipeFile, out: TextIO, enabled: bool = True):
+        self.recipe, self.out, self.enabled = recipe, out, enabled
+        self.names = list(recipe.steps)
+        self.current: Optional[str] = None
+        self.start = 0.0
+        self.skip_note = ""
+        self.inner_started = 0
+        self.inner_skipped = 0
+        self.tail: deque = deque(maxlen=400)   # the current step's output
+        self.results: Dict[str, str] = {}
+        self.width = max(60, min(shutil.get_terminal_size((100, 24)).columns, 120))
+
+    def feed(self, line: str) -> None:
+        top = f"STIMELA.{self.recipe.name}"
+        match = _STEP_START.search(line)
+        if match and match.group("logger") == self.recipe.name:
+            self.finish()
+            self.begin(match.group("step"))
+            return
+        self.tail.append(line)
+        if self.current is None:
+            return
+        if match and match.group("logger").startswith(f"{self.recipe.name}.{self.current}"):
+            self.inner_started += 1
+        elif f"{top} INFO: {_SKIP_FRESH}" in line:
+            self.skip_note = "up to date"
+        elif f"{top} INFO: {_SKIP_COND}" in line:
+            self.skip_note = "skipped (condition not met)"
+        elif _SKIP_FRESH in line or _SKIP_COND in line:
+            self.inner_skipped += 1
+
+    def begin(self, step: str) -> None:
+        self.current, self.start = step, time.monotonic()
+        self.skip_note, self.inner_started, self.inner_skipped = "", 0, 0
+        self.tail.clear()
+        if not self.enabled:
+            return
+        k = self.names.index(step) + 1 if step in self.names else 0
+        info = str(self.recipe.steps.get(step, {}).get("info", "")).strip()
+        head = f"[{k}/{len(self.names)}] {step:<10} "
+        room = self.width - len(head) - 22
+        if len(info) > room:
+            info = info[: max(room - 3, 0)].rstrip() + "..."
+        self.out.write(f"{head}{info}")
+        self.out.flush()
+
+    def finish(self, failed: bool = False) -> None:
+        if self.current is None:
+            return
+        took = time.monotonic() - self.start
+        if failed:
+            status = f"FAILED after {_seconds(took)}"
+        elif self.skip_note:
+            status = self.skip_note
+        elif self.inner_started and self.inner_skipped >= self.inner_started:
+            status = "up to date"
+        else:
+            status = _seconds(took)
+        self.results[self.current] = status
+        if self.enabled:
+            self.out.write(f" .. {status}\n")
+            self.out.flush()
+        self.current = None
+
+
+# ---------------------------------------------------------------------------
+# the answer
+
+def _rel(path: Path) -> str:
+    try:
+        return os.path.relpath(path)
+    except ValueError:
+        return str(path)
+
+
+def report(recipe: RecipeFile, values: Dict[str, object], logdir: Path, out: TextIO) -> None:
+    """The result table and where everything is, from the compare, diagnose and image steps."""
+    from .compare.table import text_summary
+
+    compares, diagnoses, image_dirs = [], [], []
+    for step, sdef in recipe.steps.items():
+        params = sdef.get("params") or {}
+        cab = sdef.get("cab")
+        if cab == "hitops.compare":
+            outdir = Path(str(substitute(params.get("outdir", "."), values)))
+            compares.append((step, outdir / f"{substitute(params.get('name', 'peak-flux'), values)}"))
+        elif cab == "hitops.diagnose":
+            diagnoses.append(Path(str(substitute(params.get("outdir", "."), values))))
+        elif sdef.get("recipe") and params.get("dir"):
+            image_dirs.append(Path(str(substitute(params["dir"], values))))
+    main = next((c for c in compares if c[0] == "compare"), compares[0] if compares else None)
+    lines: List[str] = []
+    if main and main[1].with_suffix(".json").is_file():
+        payload = json.loads(main[1].with_suffix(".json").read_text())
+        lines += ["", *text_summary(payload).rstrip("\n").splitlines(), ""]
+    for _, stem in compares:
+        if stem.with_suffix(".md").is_file():
+            lines.append(f"Summary:     {_rel(stem.with_suffix('.md'))} (also .csv, .json)")
+    for ddir in diagnoses:
+        if (ddir / "coherence-table.txt").is_file():
+            lines.append(f"Coherence:   {_rel(ddir / 'coherence-table.txt')}")
+        plots = sorted((ddir / "plots").glob("*.png"))
+        if plots:
+            kinds = sorted({p.name.split("-")[0] for p in plots})
+            lines.append(f"Plots:       {_rel(ddir / 'plots')}/ ({len(plots)} PNG: "
+                         f"{', '.join(k + '-*' for k in kinds)})")
+    for idir in image_dirs:
+        lines += image_lines(idir)
+    lines.append(f"Logs:        {_rel(logdir)}/ (output.txt, casa.log, one log per step)")
+    out.write("\n".join(lines) + "\n")
+
+
+def image_lines(idir: Path) -> List[str]:
+    fits = sorted(idir.glob("*-imfit.json"))
+    if not fits:
+        return []
+    good, notes = [], []
+    for path in fits:
+        try:
+            fit = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        label = str(fit.get("label") or path.name[: -len("-imfit.json")])
+        method = fit.get("method", "gaussian")
+        if method == "max-pixel" and fit.get("diverged", "diverged" in str(fit.get("reason", ""))):
+            notes.append(f"{label}: CLEAN diverged, look at the dirty image "
+                         f"{Path(str(fit.get('fallback_image', ''))).name}")
+        elif method == "max-pixel":
+            notes.append(f"{label}: fit did not converge (brightest dirty-image pixel reported)")
+        elif method == "no-source":
+            good.append(label)
+            notes.append(f"{label}: no source above the noise")
+        else:
+            good.append(label)
+    lines = []
+    if good:
+        names = good[0] if len(good) == 1 else "{" + ",".join(good) + "}"
+        lines.append(f"Images:      {_rel(idir)}/{names}-image.fits")
+    for note in notes:
+        lines.append(f"             {note}")
+    return lines
+
+
+# ---------------------------------------------------------------------------
+# running Stimela
+
+def failure_lines(tail: Sequence[str], limit: int = 15) -> List[str]:
+    """What a failed step said that matters: error lines (with their indented
+    continuation) and the CASA warning counts; else the step's last lines."""
+    picked: List[str] = []
+    follow = 0
+    for line in tail:
+        if _ERROR.search(line):
+            picked.append(line)
+            follow = 10
+        elif follow and line.startswith("#  "):
+            picked.append(line)
+            follow -= 1
+        else:
+            follow = 0
+    return (picked or list(tail))[-limit:]
+
+
+def _stimela() -> str:
+    here = Path(sys.executable).with_name("stimela")
+    found = str(here) if here.exists() else shutil.which("stimela")
+    if not found:
+        raise UsageError("stimela is not installed in this environment: run 'make setup'")
+    return found
+
+
+def stimela_command(recipe: RecipeFile, overrides: Sequence[str], logs_root: Path,
+                    logdir: Path, force: bool, extra: Sequence[str]) -> List[str]:
+    return [_stimela(), "-B", "-s", f"opts.log.dir={logs_root}", "run",
+            "-c", f"opts.log.dir={logdir}",
+            *(["-f"] if force else []), *extra, str(recipe.path), *overrides]
+
+
+def child_environment(logdir: Path) -> Dict[str, str]:
+    env = dict(os.environ)
+    bindir = str(Path(sys.executable).parent)
+    # the python-flavour cabs run `python`, the binary ones `hitops` and `wsclean`
+    env["PATH"] = f"{bindir}{os.pathsep}{env.get('PATH', '')}"
+    cache = Path(sys.prefix) / "numba-cache"
+    if "NUMBA_CACHE_DIR" not in env and cache.is_dir():
+        env["NUMBA_CACHE_DIR"] = str(cache)
+    env["HITOPS_CASA_LOG"] = str((logdir / "casa.log").resolve())
+    env["COLUMNS"] = "200"   # Stimela wraps its lines at the terminal width (80 in a pipe)
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def _point_latest(logs_root: Path, logdir: Path) -> None:
+    """{dir}/logs/latest -> the run's log directory."""
+    latest = logs_root / "latest"
+    try:
+        if latest.is_symlink():
+            latest.unlink()
+        if not latest.exists():
+            latest.symlink_to(logdir.name)
+    except OSError:
+        pass   # a file system without symlinks: the run's directory is printed anyway
+
+
+def run(recipe_path: str, args: Sequence[str], verbose: bool = False, force: bool = False,
+        extra: Sequence[str] = (), out: TextIO = sys.stdout) -> int:
+    recipe = load_recipe(recipe_path)
+    overrides = parse_overrides(recipe, args)
+    values = effective_values(recipe, overrides)
+    if not values.get("dir"):
+        raise UsageError(f"recipe {recipe.name} has no 'dir' input: this runner needs one")
+    outdir = Path(str(values["dir"]))
+    changed = write_parameter_files(recipe, values, outdir)
+    logs_root = outdir / "logs"
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    logdir = logs_root / f"run-{stamp}"
+    n = 1
+    while logdir.exists():
+        n += 1
+        logdir = logs_root / f"run-{stamp}-{n}"
+    logdir.mkdir(parents=True)
+    _point_latest(logs_root, logdir)
+    cmd = stimela_command(recipe, list(args), logs_root, logdir, force, extra)
+    progress = Progress(recipe, out, enabled=not verbose)
+    what = f"{recipe.name}: {recipe.info}" if recipe.info else recipe.name
+    out.write(f"{what}\n")
+    note = "" if not changed or len(changed) == len(recipe.steps) else \
+        f"; parameters changed for: {', '.join(changed)}"
+    out.write(f"output in {_rel(outdir)}/, full log in {_rel(logdir)}/output.txt{note}\n")
+    out.flush()
+    started = time.monotonic()
+    with open(logdir / "output.txt", "w") as full:
+        full.write("$ " + " ".join(cmd) + "\n")
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                errors="replace", env=child_environment(logdir), bufsize=1)
+        try:
+            for raw in proc.stdout:
+                line = raw.rstrip()
+                full.write(line + "\n")
+                if verbose:
+                    out.write(line + "\n")
+                progress.feed(line)
+            rc = proc.wait()
+        except KeyboardInterrupt:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+            progress.finish(failed=True)
+            out.write(f"interrupted; the steps done so far are kept (log {_rel(logdir)})\n")
+            return 130
+    if rc != 0:
+        failed_tail = list(progress.tail)
+        progress.finish(failed=True)
+        if not verbose:
+            out.write("\n".join(["", *failure_lines(failed_tail)]) + "\n")
+        out.write(f"\nthe run failed (stimela exit status {rc}); the full output is in "
+                  f"{_rel(logdir)}/output.txt\n")
+        return rc
+    progress.finish()
+    out.write(f"done in {_seconds(time.monotonic() - started)}\n")
+    report(recipe, values, logdir, out)
+    return 0
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra: List[str] = []
+    if "--" in argv:
+        cut = argv.index("--")
+        argv, extra = argv[:cut], argv[cut + 1:]
+    parser = argparse.ArgumentParser(
+        prog="python -m hitops.run",
+        description="Run a Stimela recipe quietly (one line per step; full logs under "
+                    "DIR/logs/), refusing unknown parameters and rerunning the steps whose "
+                    "parameters changed; ends with the result table and the paths of the "
+                    "outputs.",
+        epilog="Options after '--' go to 'stimela run' as they are (e.g. -- -s fringefit).")
+    parser.add_argument("recipe", help="recipe file, e.g. recipes/fpt-demo.yml")
+    parser.add_argument("params", nargs="*", metavar="name=value",
+                        help="recipe inputs ('stimela doc RECIPE' lists them)")
+    parser.add_argument("-v", "--verbose", action="store_true",
+                        help="show Stimela's, the tools' and WSClean's full output too")
+    parser.add_argument("-f", "--force", action="store_true",
+                        help="rerun every step, even those whose outputs are up to date")
+    opts = parser.parse_args(argv)
+    try:
+        return run(opts.recipe, opts.params, verbose=opts.verbose, force=opts.force, extra=extra)
+    except UsageError as err:
+        print(f"hitops run: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
