@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # HITOPS set-up, one step per argument (no argument: every step, in order):
 #
-#   venv         .venv with the Python packages (pip install -e '.[test]'), redone
+#   venv         .venv with the Python packages (pip install -e '.[test,ehtim]'), redone
 #                only when pyproject.toml is newer than .venv/.hitops-installed
 #   wsclean      WSClean from Debian when it is not on PATH (apt-get; through sudo
 #                when not root)
@@ -65,7 +65,8 @@ step_venv() {
     run_logged "creating the virtual environment $VENV (Debian needs the python3-venv package)" \
         "$PYTHON" -m venv "$VENV"
     run_logged "upgrading pip in $VENV" "$PY" -m pip install --progress-bar off --upgrade pip
-    run_logged "pip install -e '.[test]'" "$PY" -m pip install --progress-bar off -e '.[test]'
+    # ehtim: the eht-imaging client that reads our UVFITS in the tests (tests/test_interop_ehtim.py)
+    run_logged "pip install -e '.[test,ehtim]'" "$PY" -m pip install --progress-bar off -e '.[test,ehtim]'
     touch "$STAMP"
 }
 
