@@ -15,7 +15,7 @@ from typing import Any, Optional
 from .schema import load_schema
 
 _TYPES = {"str": str, "int": int, "float": float, "bool": bool, "MS": str, "File": str,
-          "Directory": str}
+          "Directory": str, "URI": str}
 
 
 @lru_cache(maxsize=None)

@@ -39,6 +39,8 @@ _CLICK_TYPES = {
     "MS": click.Path(),
     "File": click.Path(),
     "Directory": click.Path(),
+    # a file or a directory (a Measurement Set, or a UVFITS / FITS-IDI file)
+    "URI": click.Path(),
 }
 
 

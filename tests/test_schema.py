@@ -21,7 +21,8 @@ ROOT = Path(__file__).resolve().parent.parent
 CAB_FILE = ROOT / "cabs" / "hitops.yml"
 
 SAMPLES = {"str": "some-value", "int": 7, "float": 2.5, "bool": True,
-           "MS": "/data/x.ms", "File": "/data/x.json", "Directory": "/data/dir"}
+           "MS": "/data/x.ms", "File": "/data/x.json", "Directory": "/data/dir",
+           "URI": "/data/x.uvfits"}
 
 
 def test_cab_file_is_up_to_date():
