@@ -37,8 +37,9 @@ casa-config: $(STAMP) ## write CASA's offline data configuration into .venv/etc/
 numba-cache: ## create the numba kernel cache directory (.venv/numba-cache)
 	@$(SETUP) numba-cache
 
-run: setup ## set up, then run the demo recipe (outputs in out/demo/)
-	stimela run recipes/fpt-demo.yml
+# ARGS: recipe parameters and runner options, e.g. make run ARGS='seed=11 fringefit_solint=30s' or ARGS=-v
+run: setup ## set up, then run the demo recipe quietly: one line per step, then the result table (out/demo/; ARGS='-v seed=11')
+	@$(PY) -m hitops.run recipes/fpt-demo.yml $(ARGS)
 
 test: setup ## set up, then run all the tests
 	$(PY) -m pytest -q

@@ -11,6 +11,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -49,10 +50,11 @@ print("CABS-JSON:" + json.dumps(out, default=str))
 """
 
 
-def load_cabs(*files):
+def load_cabs(*files, cwd=None):
     env = dict(os.environ)
     env["PATH"] = f"{Path(sys.executable).parent}:{env.get('PATH', '')}"
-    done = subprocess.run([sys.executable, "-c", _LOADER, *map(str, files)], cwd=ROOT,
+    # never the repository: Stimela would leave its logs in the working directory
+    done = subprocess.run([sys.executable, "-c", _LOADER, *map(str, files)], cwd=cwd or tempfile.gettempdir(),
                           capture_output=True, text=True, env=env, timeout=120)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     line = next(l for l in done.stdout.splitlines() if l.startswith("CABS-JSON:"))
@@ -138,12 +140,13 @@ def test_generated_hitops_cabs_are_current():
         "cabs/hitops.yml is out of date: run `python -m hitops.cabgen`"
 
 
-def test_stimela_doc_accepts_every_cab_file():
+def test_stimela_doc_accepts_every_cab_file(tmp_path):
     env = dict(os.environ)
     env["PATH"] = f"{Path(sys.executable).parent}:{env.get('PATH', '')}"
     for path in ("casa.yml", "wsclean.yml", "hitops-pipeline.yml"):
+        # in a scratch directory: `stimela doc` writes log-stimela.txt where it runs
         done = subprocess.run([str(Path(sys.executable).parent / "stimela"), "doc",
-                               str(CABS / path)], cwd=ROOT, capture_output=True, text=True,
+                               str(CABS / path)], cwd=tmp_path, capture_output=True, text=True,
                               env=env, timeout=120)
         assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
 
@@ -152,6 +155,6 @@ def test_a_broken_cab_fails_to_load(tmp_path):
     bad = tmp_path / "bad.yml"
     bad.write_text("cabs:\n  bad:\n    command: x\n    inputs:\n      a: {dtype: NoSuchType}\n")
     env = dict(os.environ)
-    done = subprocess.run([sys.executable, "-c", _LOADER, str(bad)], cwd=ROOT,
+    done = subprocess.run([sys.executable, "-c", _LOADER, str(bad)], cwd=tmp_path,
                           capture_output=True, text=True, env=env, timeout=120)
     assert done.returncode != 0

@@ -90,6 +90,19 @@ def log_path(default_dir: Optional[str] = None) -> Path:
     return Path(default_dir or ".") / "casa.log"
 
 
+#: task arguments naming the task's output, then its input, in order of preference
+_PATH_ARGS = ("caltable", "outputvis", "outfile", "fitsfile", "vis", "imagename", "fitsimage")
+
+
+def _output_dir(kwargs: dict) -> Optional[str]:
+    """The directory of the first file a task's arguments name (its output if named)."""
+    for key in _PATH_ARGS:
+        value = kwargs.get(key)
+        if isinstance(value, (str, Path)) and str(value):
+            return str(Path(value).resolve().parent)
+    return None
+
+
 def _select_log(casalog, wanted: Path) -> Path:
     wanted.parent.mkdir(parents=True, exist_ok=True)
     if casalog.logfile() != str(wanted):
@@ -134,7 +147,8 @@ def run_task(name: str, *, log_dir: Optional[str] = None, **kwargs: Any) -> Any:
     """Call ``casatasks.<name>(**kwargs)``; raise on an exception or a SEVERE line.
 
     Returns whatever the task returned.  CASA's log goes to :func:`log_path`
-    (``log_dir``: the directory of the task's output); the lines the task
+    (``log_dir``: the directory of the task's output; by default that of the
+    first of caltable, outputvis, outfile, fitsfile, vis, imagename); the lines the task
     wrote are re-emitted at debug level, summarised (most frequent warnings)
     at info level and, on failure, quoted in the exception.
     """
@@ -144,7 +158,7 @@ def run_task(name: str, *, log_dir: Optional[str] = None, **kwargs: Any) -> Any:
     task = getattr(casatasks, name, None)
     if task is None:
         raise ExternalToolError(f"casatasks has no task '{name}'")
-    logfile = _select_log(casalog, log_path(log_dir))
+    logfile = _select_log(casalog, log_path(log_dir or _output_dir(kwargs)))
     start = logfile.stat().st_size if logfile.exists() else 0
     log.info("CASA %s(%s)", name, ", ".join(f"{k}={v!r}" for k, v in kwargs.items()))
     error = None
