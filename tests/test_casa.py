@@ -9,6 +9,7 @@ must raise instead of passing silently.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -271,3 +272,127 @@ def test_imfit_on_a_nan_image_falls_back_instead_of_aborting(casa, tmp_path):
     dirty = _gaussian_image(tmp_path / "dirty.im", peak=0.6, noise=0.005)
     fit = casa.imfit(nan_image, fallback=True, fallback_image=dirty)
     assert fit["method"] == "max-pixel" and fit["peak"] == pytest.approx(0.6, abs=0.03)
+
+
+# ---------------------------------------------------------------------------
+# issue 17: no number for a fit to noise, a diverged CLEAN marked, conforming
+# FITS headers, CASA's log beside the outputs and its console chatter in it
+
+def _fits_image(casa_mod, path, peak, noise, seed=3):
+    """A FITS file (as WSClean writes them) of a Gaussian of ``peak`` plus noise."""
+    from hitops.casa_env import ensure_casa_offline
+
+    ensure_casa_offline()
+    import casatools
+
+    image = _gaussian_image(path.with_suffix(".im"), peak=peak, noise=noise, seed=seed)
+    ia = casatools.image()
+    ia.open(image)
+    ia.tofits(str(path), overwrite=True, velocity=False)
+    ia.done()
+    return str(path)
+
+
+def test_imfit_reports_no_source_below_the_detection_limit(casa, tmp_path):
+    # a Gaussian of 0.02 in noise of 0.01: imfit converges on something, but it
+    # is 2 sigma: "no source", with the fitted value kept only as 'brightest'
+    image = _gaussian_image(tmp_path / "faint.im", peak=0.02, noise=0.01)
+    out = tmp_path / "faint.json"
+    fit = casa.imfit(image, centre_half_width=20, fallback=True, detection_snr=5.0,
+                     label="raw", outfile=str(out))
+    assert fit["method"] == "no-source" and "peak" not in fit
+    stored = json.loads(out.read_text())
+    assert stored["peak"] is None and stored["reason"].startswith("no source")
+    assert stored["snr"] < 5
+    # a bright source passes the same test, with its signal-to-noise ratio recorded
+    bright = _gaussian_image(tmp_path / "bright.im", peak=0.8, noise=0.005)
+    fit = casa.imfit(bright, centre_half_width=20, detection_snr=5.0,
+                     outfile=str(tmp_path / "bright.json"))
+    assert fit["method"] == "gaussian" and fit["peak"] == pytest.approx(0.8, abs=0.03)
+    assert json.loads((tmp_path / "bright.json").read_text())["snr"] > 50
+
+
+def test_imfit_marks_a_diverged_clean_and_keeps_the_dirty_image(casa, tmp_path):
+    images = tmp_path / "images"
+    images.mkdir()
+    restored = _fits_image(casa, images / "cfpt-image.fits", peak=3e21, noise=1e19)
+    for kind in ("model", "residual"):
+        (images / f"cfpt-{kind}.fits").write_bytes(Path(restored).read_bytes())
+    dirty = _fits_image(casa, images / "cfpt-dirty.fits", peak=0.3, noise=0.005, seed=4)
+    out = images / "cfpt-imfit.json"
+    kwargs = dict(centre_half_width=20, fallback=True, fallback_image=dirty, max_abs_peak=5.0,
+                  detection_snr=5.0, mark_diverged=True, label="cfpt", outfile=str(out))
+    fit = casa.imfit(restored, **kwargs)
+    assert fit["method"] == "max-pixel" and fit["peak"] == pytest.approx(0.3, abs=0.03)
+    names = sorted(p.name for p in images.iterdir() if p.suffix == ".fits")
+    assert names == ["cfpt-dirty.fits", "cfpt-image.diverged.fits", "cfpt-model.diverged.fits",
+                     "cfpt-residual.diverged.fits"]
+    stored = json.loads(out.read_text())
+    assert stored["diverged"] is True and stored["fallback_image"] == dirty
+    # a rerun of the fit alone (the image step skipped as fresh) says the same
+    again = casa.imfit(restored, **kwargs)
+    assert again["peak"] == fit["peak"]
+    assert "earlier run" in json.loads(out.read_text())["reason"]
+
+
+def test_fits_headers_are_made_conforming_in_place(tmp_path):
+    from hitops.casa.fits import conform_header
+
+    def card(text):
+        return text.ljust(80).encode("ascii")
+
+    header = b"".join([card("SIMPLE  =                    T"), card("BITPIX  =                  -32"),
+                       card("NAXIS   =                    0"),
+                       card("CDELT1  = -1.38888888888889E-09"),          # ends in column 31
+                       card("CRVAL1  =    -172.294083333333 / right ascension"),
+                       card("BUNIT   = 'JY/BEAM '"), card("END")])
+    path = tmp_path / "w.fits"
+    path.write_bytes(header.ljust(2880, b" "))
+    assert conform_header(path) == ["CDELT1"]
+    text = path.read_bytes().decode("ascii")
+    cards = [text[i:i + 80] for i in range(0, 2880, 80)]
+    cdelt = next(c for c in cards if c.startswith("CDELT1"))
+    assert len(cdelt[10:30].strip()) <= 20 and cdelt[29] != " " and cdelt[30:].strip() == ""
+    assert float(cdelt[10:30]) == pytest.approx(-1.38888888888889e-09, rel=1e-13)
+    assert next(c for c in cards if c.startswith("CRVAL1")).rstrip().endswith("/ right ascension")
+    assert len(path.read_bytes()) == 2880
+    mtime = path.stat().st_mtime_ns
+    assert conform_header(path) == [] and path.stat().st_mtime_ns == mtime   # untouched
+
+
+def test_casa_log_goes_beside_the_output_with_the_console_chatter(casa, tmp_path, capfd,
+                                                                  monkeypatch):
+    # gaincal with too few baselines prints "Insufficient unflagged antennas" for
+    # every interval straight to the console: that belongs in CASA's log
+    monkeypatch.delenv("HITOPS_CASA_LOG", raising=False)
+    vis, _ = build_ms(tmp_path / "t.ms", n_time=30)
+    out = tmp_path / "cal"
+    out.mkdir()
+    capfd.readouterr()
+    with pytest.raises(ExternalToolError, match="no calibration table"):
+        casa.gaincal(vis, str(out / "g.tbl"), solint="30s", refant="PV,PB")
+    console = capfd.readouterr()
+    assert "Insufficient unflagged antennas" not in console.out + console.err
+    assert "SEVERE" not in console.out + console.err
+    log = (out / "casa.log").read_text()
+    assert "Insufficient unflagged antennas" in log and "Begin Task: gaincal" in log
+    if "TAI_UTC" in log:   # casadata's leap-second table older than six months
+        assert "hitops: the SEVERE leap-second lines above are not an error" in log
+    # HITOPS_CASA_LOG (python -m hitops.run sets it) names one log for every task
+    monkeypatch.setenv("HITOPS_CASA_LOG", str(tmp_path / "run" / "casa.log"))
+    with pytest.raises(ExternalToolError):
+        casa.gaincal(vis, str(out / "g.tbl"), solint="30s", refant="PV,PB")
+    assert "Begin Task: gaincal" in (tmp_path / "run" / "casa.log").read_text()
+
+
+def test_warning_summary_counts_repeated_messages():
+    from hitops.casa.runner import warning_summary
+
+    lines = ["2026-11-24 04:11:06\tWARN\tCalibrater::solve\tSpectral window(s) 0, ",
+             "2026-11-24 04:11:06\tWARN\tCalibrater::solve+\t  could not be solved"]
+    for i in range(3):
+        lines += [" Insufficient unflagged antennas to proceed with this solve.",
+                  f"   (time=2023/04/10/02:00:{i:02d}.0 field=0 spw=0 chan=0)"]
+    summary = warning_summary(lines)
+    assert summary[0] == "3 x Insufficient unflagged antennas to proceed with this solve."
+    assert summary[1].startswith("1 x Spectral window(s) #")

@@ -102,3 +102,102 @@ def test_cli_runs_from_the_schema(tmp_path):
     assert rows[0]["recovery"] == pytest.approx(1.94)
     again = subprocess.run(cmd, capture_output=True, text=True)
     assert again.returncode == 2 and "--overwrite" in again.stderr
+
+
+# ---------------------------------------------------------------------------
+# issue 17: a source-less image and a diverged CLEAN are said as such
+
+def test_no_source_and_diverged_rows_are_not_presented_as_numbers(tmp_path):
+    from hitops.compare.table import text_summary
+
+    raw = tmp_path / "raw.json"
+    raw.write_text(json.dumps({"label": "raw", "method": "no-source", "peak": None,
+                               "peak_err": None, "brightest": 0.0209, "rms": 0.0096,
+                               "snr": 2.2, "reason": "no source: ..."}))
+    cfpt = tmp_path / "cfpt.json"
+    cfpt.write_text(json.dumps({"label": "cfpt", "method": "max-pixel", "peak": 0.12,
+                                "peak_err": 0.07, "diverged": True,
+                                "fallback_image": "images/cfpt-dirty.fits",
+                                "reason": "imfit peak -3.4e+21 Jy/beam ... diverged"}))
+    fits = [str(raw), write_fit(tmp_path / "ffsc.json", "ffsc", 0.914, 0.0012), str(cfpt),
+            write_fit(tmp_path / "pwc.json", "pwc", 0.995, 0.0012)]
+    payload = compare(",".join(fits), outdir=str(tmp_path / "out"))
+    rows = {r["label"]: r for r in payload["rows"]}
+    assert rows["raw"]["recovery"] is None and rows["raw"]["peak_jy"] is None
+    assert rows["raw"]["fit"] == "no-source"
+    assert "CLEAN diverged" in rows["cfpt"]["note"]
+    md = (tmp_path / "out" / "peak-flux.md").read_text()
+    raw_line = next(l for l in md.splitlines() if l.startswith("| raw"))
+    assert "no source" in raw_line and "0.0209" not in raw_line
+    with open(tmp_path / "out" / "peak-flux.csv") as fh:
+        assert next(r for r in csv.DictReader(fh) if r["label"] == "raw")["recovery"] == ""
+    text = text_summary(payload)
+    lines = text.splitlines()
+    assert "no source" in next(l for l in lines if "raw (DATA)" in l)
+    assert "CLEAN diverged" in next(l for l in lines if "CFPT" in l)
+    assert "0.995 ± 0.001" in next(l for l in lines if "PWC (PWC_DATA)" in l)
+
+
+def test_text_summary_has_the_coherence_table_and_the_paper(tmp_path):
+    from hitops.compare.table import text_summary
+
+    summary = tmp_path / "summary.json"
+    summary.write_text(json.dumps({"interval_s": 60.0, "baselines": [
+        {"baseline": "AP-PV", "columns": {"DATA": {"coherence_factor": 0.3},
+                                          "CORRECTED_DATA": {"coherence_factor": 0.9},
+                                          "PWC_DATA": {"coherence_factor": 0.99}}},
+        {"baseline": "PV-PB", "columns": {"DATA": {"coherence_factor": 0.2},
+                                          "CORRECTED_DATA": {"coherence_factor": 0.8},
+                                          "PWC_DATA": {"coherence_factor": 0.96}}}]}))
+    fit = write_fit(tmp_path / "pwc.json", "pwc", 0.95, 0.01)
+    payload = compare(fit, coherence=str(summary), reference="paper", outdir=str(tmp_path))
+    text = text_summary(payload)
+    assert "Coherence C(60 s) per baseline" in text
+    assert "PV-PB" in text and "+20.0%" in text
+    assert "[0.965]" in text and "paper:" in text
+    assert max(len(l) for l in text.splitlines()) <= 100
+
+
+def test_figures_scale_each_panel_and_show_a_diverged_clean_as_dirty(tmp_path):
+    import matplotlib.image as mpimg
+    import numpy as np
+
+    from hitops.casa_env import ensure_casa_offline
+    from hitops.compare.figures import image_panels, pick_image
+
+    ensure_casa_offline()   # before casatools is first imported
+    casatools = pytest.importorskip("casatools")
+
+    def fits(name, peak):
+        n = 64
+        x, y = np.mgrid[:n, :n]
+        pixels = peak * np.exp(-((x - 32) ** 2 + (y - 32) ** 2) / 18.0)
+        cs = casatools.coordsys()
+        csys = cs.newcoordsys(direction=True)
+        csys.setincrement([-1e-10, 1e-10], "direction")
+        ia = casatools.image()
+        ia.fromarray(outfile=str(tmp_path / f"{name}.im"), pixels=pixels,
+                     csys=csys.torecord(), overwrite=True)
+        ia.tofits(str(tmp_path / f"{name}.fits"), overwrite=True, velocity=False)
+        ia.done()
+        csys.done()
+        cs.done()
+
+    fits("ffsc-image", 0.9)
+    fits("cfpt-image", 3e21)      # diverged, still under its usual name
+    fits("cfpt-dirty", 0.12)
+    fits("raw-image.diverged", 1e20)  # renamed by the imfit step
+    fits("raw-dirty", 0.05)
+    assert pick_image(str(tmp_path), "ffsc") == (str(tmp_path / "ffsc-image.fits"), "restored")
+    assert pick_image(str(tmp_path), "cfpt")[1] == "dirty: CLEAN diverged"
+    assert pick_image(str(tmp_path), "raw") == (str(tmp_path / "raw-dirty.fits"),
+                                                "dirty: CLEAN diverged")
+    out = image_panels(str(tmp_path), str(tmp_path / "p.png"), ["raw", "ffsc", "cfpt"],
+                       half_width=16)
+    pixels = mpimg.imread(out)
+    # every panel scaled by itself: each has bright (yellow) pixels at its centre
+    width = pixels.shape[1]
+    for k in range(3):
+        panel = pixels[:, k * width // 3:(k + 1) * width // 3, :3]
+        bright = (panel[..., 0] > 0.9) & (panel[..., 1] > 0.8) & (panel[..., 2] < 0.6)
+        assert bright.sum() > 20, f"panel {k} has no bright pixels"
