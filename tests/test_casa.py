@@ -17,7 +17,7 @@ import pytest
 from hitops.errors import ExternalToolError, InputError, OutputExistsError
 from hitops.io.ms_create import ArrayLayout, Band, Field, create_ms
 
-# ITRF positions (m) of four of the paper's stations (GUIDE.md section 2)
+# ITRF positions (m) of four of the paper's stations (as in hitops/scenes/stations.yml)
 POSITIONS = {
     "AP": (2225039.5297, -5441197.6292, -2479303.3597),
     "PV": (5088967.74544, -301681.18586, 3825012.20561),
@@ -235,7 +235,7 @@ def test_imfit_divergence_check_and_fallback(casa, tmp_path):
 
 
 def test_single_refant_that_sets_mid_track_fails_and_leaves_no_table(casa, tmp_path):
-    # GUIDE.md section 3: a single refant that sets stops fringefit with
+    # a single refant that sets stops fringefit with
     # "No valid reference antenna supplied"; here PV is flagged for the second half
     from casacore import tables as pt
 
