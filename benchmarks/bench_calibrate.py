@@ -120,14 +120,79 @@ def measure_layout(workdir: Path, ref_ms: Path, target_ms: Path, repeats: int, e
             "command": command, "report": report}
 
 
+def measure_offset_step(workdir: Path, ref_ms: Path, target_ms: Path, repeats: int) -> str:
+    """What the n0 step against a model adds (issue 16): ``--tracker antenna`` without a step
+    and with ``--offset-model point``, whole processes interleaved, on the paper-size pair.
+
+    Returns the markdown written between ``<!-- bench:calibrate-offset-step -->`` markers
+    of docs/calibrate.md.
+    """
+    from ._report import ROOT
+
+    from hitops.schema import load_schema
+
+    hitops = str(Path(sys.executable).with_name("hitops"))
+    # without the verdict where calibrate has one (it reads both bands whole, the same in
+    # both runs, and would hide the step's share)
+    quiet = ["--no-verdict"] if "no_verdict" in load_schema("calibrate")["inputs"] else []
+    base = [hitops, "calibrate", str(ref_ms), str(target_ms), "--method", "pwc", "--tracker",
+            "antenna", "--overwrite"] + quiet + ["--report"]
+    commands = {"none": base + [str(workdir / "report-nostep.json")],
+                "point": base + [str(workdir / "report-point.json"), "--offset-model", "point"]}
+    for command in commands.values():   # numba caches warm, the column exists
+        run_process(command)
+    runs = {k: [] for k in commands}
+    load_before = os.getloadavg()[0]
+    for _ in range(repeats):
+        for key, command in commands.items():
+            runs[key].append(run_process(command)["wall_s"])
+    load_after = os.getloadavg()[0]
+    reports = {k: json.loads((workdir / f"report-{'nostep' if k == 'none' else 'point'}.json")
+                             .read_text()) for k in commands}
+    wall = {k: median(v) for k, v in runs.items()}
+    pairwise = median([p / n for p, n in zip(runs["point"], runs["none"])])
+    inside = {k: reports[k]["time_s"] for k in reports}
+    stage = reports["point"]["timings_s"]
+    markdown = f"""Machine: {machine_line()}; load average {load_before:.1f} before, {load_after:.1f}
+after.  Pair: benchmarks/bench_calibrate.py's paper-size scene ({N_ANT} stations, {N_TIME} times
+of 1 s, {len(CORRS)} correlations, {28 * N_TIME} rows per band, one chunk), `hitops calibrate
+--method pwc --tracker antenna{" --no-verdict" if quiet else ""}`, whole processes, warm numba
+cache, the two runs interleaved {repeats} times.
+
+| run | wall, median (s) | runs (s) | inside `calibrate()`, last run (s) |
+|---|---|---|---|
+| no offset step | {wall["none"]:.2f} | {", ".join(f"{x:.2f}" for x in runs["none"])} | {inside["none"]:.2f} |
+| `--offset-model point` | {wall["point"]:.2f} | {", ".join(f"{x:.2f}" for x in runs["point"])} | {inside["point"]:.2f} |
+
+The step adds {100 * (pairwise - 1):.1f} % (median of the run-by-run ratios; target <= 20 %:
+{"met" if pairwise <= 1.2 else "NOT met"}).  Its own stages in the last run: the lattice solves
+and the per-baseline choices (cross hands) {stage.get("offset_solve", float("nan")):.3f} s, the
+shift of the kept output {stage.get("offset_apply", float("nan")):.3f} s; the rest is the sums of
+output against model per baseline segment (one numba pass over the rows) and the larger
+report.  With one chunk the first pass's output is kept and shifted by 2 pi eps k per
+segment (no second transfer); with several chunks (`--chunk-rows`) the whole transfer, tracking included, runs
+twice, as the per-baseline step against `--offset-reference-column` always did.
+
+Run: `python -m benchmarks.bench_calibrate --offset-step [--workdir DIR] [--repeats N]`."""
+    replace_section("calibrate-offset-step", markdown, ROOT / "docs" / "calibrate.md")
+    return markdown
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workdir", default=None, help="where to build (and reuse) the pair")
     parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--offset-step", action="store_true",
+                        help="only measure what --offset-model point adds (docs/calibrate.md)")
     args = parser.parse_args(argv if argv is not None else [])
     workdir = Path(args.workdir or tempfile.mkdtemp(prefix="bench-calibrate-"))
     workdir.mkdir(parents=True, exist_ok=True)
     ref_ms, target_ms = build(workdir)
+    if args.offset_step:
+        print(measure_offset_step(workdir, ref_ms, target_ms, args.repeats))
+        if not args.workdir:
+            shutil.rmtree(workdir, ignore_errors=True)
+        return
     ref_time, target_time = build(workdir / "time-ordered", time_order=True)
 
     cold_cache = Path(tempfile.mkdtemp(prefix="numba-cold-"))

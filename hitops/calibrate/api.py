@@ -155,8 +155,8 @@ def _chunk_bounds(per_time: np.ndarray, chunk_rows: int):
 
 
 def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column="DATA",
-              ref_model_column=None, offset_reference_column=None, max_offset_wraps=50,
-              offset_ambiguity_deg=2.0, ratio=None, antenna_map=None, output_column=None,
+              ref_model_column=None, offset_reference_column=None, offset_model=None,
+              max_offset_wraps=50, offset_ambiguity_deg=2.0, ratio=None, antenna_map=None, output_column=None,
               overwrite=False, average_channels=False, time_tolerance=None, tracker="count",
               workdir=None, export_uvfits=None,
               half_window=0, coherence_time=20.0, snr=0.0, max_gap=-1, jump_threshold=-1.0,
@@ -259,12 +259,21 @@ def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
         log.info("--overwrite: starting from %s (the flags before hitops first ran), not "
                  "from FLAG, so this run's flags replace the earlier run's", FLAG_BACKUP)
     ref_cols = [ref_column, "FLAG"] + ([ref_model_column] if ref_model_column else [])
-    tgt_cols = [target_column, flag_column] + ([offset_reference_column] if offset_reference_column else [])
+    # --offset-model: 'point' or a model column of TARGET_MS (hitops/calibrate/offsets.py)
+    offset_model = opts.offset_model or None
+    if offset_model and offset_reference_column:
+        raise InputError(f"--offset-model {offset_model} and --offset-reference-column "
+                         f"{offset_reference_column} both set the n0 offset step; give one")
+    from .offsets import is_point_model
+    model_column = offset_model if offset_model and not is_point_model(offset_model) else None
+    tgt_cols = [target_column, flag_column] + ([offset_reference_column] if offset_reference_column else []) \
+        + ([model_column] if model_column else [])
     msio.require_columns(ref_ms, ref_cols + META_COLUMNS, "reference-band Measurement Set",
                          "check --ref-column / --ref-model-column")
     msio.require_columns(target_ms, tgt_cols + META_COLUMNS, "target-band Measurement Set",
-                         "check --target-column / --offset-reference-column")
-    protected = {target_column, "FLAG", FLAG_BACKUP, "DATA", offset_reference_column} - {None}
+                         "check --target-column / --offset-reference-column / --offset-model")
+    protected = {target_column, "FLAG", FLAG_BACKUP, "DATA", offset_reference_column,
+                 model_column} - {None}
     for m, col in outputs.items():
         if col.startswith(STAGING_PREFIX):
             raise InputError(f"output column {col}: names starting with {STAGING_PREFIX} are "
@@ -456,7 +465,9 @@ def _run(ctx: Dict, started: float) -> Dict:
                                 sin_elevation=getattr(setup, "sin_elevation", None))
 
     tracker = new_tracker()   # for the chunk extents; each pass tracks afresh
-    off_col = g["offset_reference_column"]
+    # what the n0 offset step compares the output with: a reference calibration's column,
+    # a model column, or 'point' (no column: phase 0)
+    off_col = g["offset_reference_column"] or g["offset_model"]
     cache = {}
 
     two_pass = bool(off_col) and g["eps"] != 0.0 and (fpt.PWC in codes or fpt.CWU in codes)
@@ -533,7 +544,10 @@ def _run(ctx: Dict, started: float) -> Dict:
             r_idx = ChunkRows(rows=ref_rows, bl=r_idx.bl[inner], time=r_idx.time[inner],
                               swapped=r_idx.swapped[inner], flag_row=None, scan=None)
         ovis = ook = None
-        if off_col:
+        if off_col and off_col == g["offset_model"] and g["model_column"] is None:
+            ovis = np.ones(tvis.shape, np.complex64)          # --offset-model point
+            ook = np.ones(tvis.shape, bool)
+        elif off_col:
             ovis, ook = _average(tgt[off_col], tgt["FLAG"], tgt_flag_row)
         n_t = t1 - t0
         tgt_grid = np.full((match.n_bl, n_t), -1, dtype=np.int64)
@@ -548,6 +562,11 @@ def _run(ctx: Dict, started: float) -> Dict:
             cache[i] = chunk
         timings["read"] += time.perf_counter() - stage
         return chunk
+
+    # one chunk with the offset step and a robust tracker: the first pass keeps its output,
+    # and the step shifts it by 2 pi eps k per segment before writing (no second pass; the
+    # same as one to complex64 rounding)
+    kept = {} if (n_chunks == 1 and two_pass and setup is not None) else None
 
     def run_pass(offsets, write, segment_k=None):
         nonlocal tracker
@@ -571,11 +590,14 @@ def _run(ctx: Dict, started: float) -> Dict:
                     t_lo, ch["t0"], ch["t1"], t_hi, ext_vis, ext_valid, ext_sigma)
                 ref_wraps = apply_segment_offsets(ref_wraps, seg_keys, segment_k)
             tasks = []
+            # the first pass of a kept chunk sums the offsets here, from the rows (the groups
+            # then need neither the target phases nor the reference/model column)
+            in_groups = offsets is None and kept is None
             for bls in groups:
                 gi = group_inputs(bls, ch["tgt_grid"], ch["ref_grid"], ch["tgt_vis"],
                                   ch["tgt_ok"], ch["ref_vis"], ch["ref_ok"], ch["ref_swapped"],
-                                  ch["off_vis"] if offsets is None else None,
-                                  ch["off_ok"] if offsets is None else None,
+                                  ch["off_vis"] if in_groups else None,
+                                  ch["off_ok"] if in_groups else None,
                                   local=client is not None)
                 picked = gi.pop("tgt_picked")
                 local_grid = gi["tgt_rows"]
@@ -630,6 +652,17 @@ def _run(ctx: Dict, started: float) -> Dict:
                 _merge_carry(tgt_carry, bls, res["tgt_carry"])
             ref_carry.last_scan = int(scan_local[-1])
             tgt_carry.last_scan = int(scan_local[-1])
+            if not write and kept is not None:
+                kept[i] = (phasor_rows, calibrated, seg_keys)
+                if offsets is None and off_col:
+                    from .lattice import segment_row_sums
+                    method = fpt.PWC if fpt.PWC in codes else fpt.CWU
+                    for (b, c, key), z, n in zip(*segment_row_sums(
+                            ch["tgt_grid"], seg_keys, ch["tgt_vis"], phasor_rows[method],
+                            calibrated, ch["off_vis"], ch["off_ok"])):
+                        entry = seg_sums.setdefault((int(b), int(c), int(key)), [0j, 0])
+                        entry[0] += z
+                        entry[1] += int(n)
             timings["transfer"] += time.perf_counter() - stage
             if write:
                 stage = time.perf_counter()
@@ -638,9 +671,27 @@ def _run(ctx: Dict, started: float) -> Dict:
         if tracker is not None:
             wrap_events = tracker.stats.per_series["wrap_events"].copy()
             totals["jump_flagged"] = int(tracker.stats.per_series["jump_flagged"].sum())
+        if not write and kept is not None:
+            kept["result"] = (totals, wrap_events)
         if tracker is not None and offsets is None and off_col:
             return totals, wrap_events, seg_sums, None
         return totals, wrap_events, sums, counts
+
+    def write_kept(segment_k):
+        """The writing pass from the first pass's kept output, shifted by the step's k."""
+        from .offsets import offset_shift_rows
+        totals, wrap_events = kept.pop("result")
+        for i in range(n_chunks):
+            ch = load(i)
+            phasor_rows, calibrated, seg_keys = kept.pop(i)
+            stage = time.perf_counter()
+            offset_shift_rows(ch["tgt_grid"], eps, segment_k, seg_keys,
+                              [phasor_rows[c] for c in codes if c in (fpt.PWC, fpt.CWU)])
+            timings["offset_apply"] = timings.get("offset_apply", 0.0) + time.perf_counter() - stage
+            stage = time.perf_counter()
+            _write_chunk(g, ch, phasor_rows, calibrated, codes, staging, io_scheduler)
+            timings["write"] += time.perf_counter() - stage
+        return totals, wrap_events, None, None
 
     state = {"created": [], "backup_created": False}
     g["_state"] = state
@@ -660,7 +711,11 @@ def _run(ctx: Dict, started: float) -> Dict:
         raise
     try:
         # robust trackers: offsets stays zero, the per-segment k goes into the counts
-        totals, wrap_events, _, _ = run_pass(offsets, write=True, segment_k=g.get("_segment_k"))
+        if kept:   # one chunk, robust tracker: the first pass's output, shifted
+            totals, wrap_events, _, _ = write_kept(g.get("_segment_k"))
+        else:
+            totals, wrap_events, _, _ = run_pass(offsets, write=True,
+                                                 segment_k=g.get("_segment_k"))
         if client is not None:
             _release_cluster_tables(client)
         _commit_columns(g, staging, outputs)
@@ -732,26 +787,53 @@ def _like_dminfo(dminfo: Dict, name: str) -> Dict:
 
 
 def _offset_pass(g, run_pass, codes, n_corr, n_scan):
-    """The n0 offset step's first pass (``--offset-reference-column``); (offsets, report)."""
+    """The n0 offset step's first pass; (offsets, report).
+
+    Compared with ``--offset-reference-column`` (a reference calibration) or
+    ``--offset-model`` (``point`` or a model column).  Per baseline the lattice
+    point nearest the circular mean (:func:`hitops.calibrate.offsets.choose_offset`;
+    per scan with ``count``, per segment with the robust trackers); with
+    ``--tracker antenna`` and ``--offset-model`` the parallel hands get integers per
+    antenna and segment from one lattice solve over every baseline
+    (:func:`hitops.calibrate.offsets.antenna_offsets`), so closure phases are kept.
+    """
     from ..kernels import fpt
-    from .offsets import choose_offset
+    from .offsets import antenna_offsets, choose_offset
     from .robust import SEGMENT_KEY
 
-    match, eps, off_col, setup = g["match"], g["eps"], g["offset_reference_column"], g["tracking_setup"]
+    match, eps, setup = g["match"], g["eps"], g["tracking_setup"]
+    off_col = g["offset_reference_column"] or g["offset_model"]
+    option = "--offset-model" if g["offset_model"] else "--offset-reference-column"
     offsets = None
     offset_report = []
     if off_col and fpt.PWC not in codes and fpt.CWU not in codes:
-        log.warning("--offset-reference-column applies to pwc and cwu only; ignored for cfpt")
+        log.warning("%s applies to pwc and cwu only; ignored for cfpt", option)
     elif off_col:
         if eps == 0.0:
             log.info("integer R: PWC has no n0 offset; the offset step is skipped")
         else:
             _, _, sums, counts = run_pass(None, write=False)
+            stage = time.perf_counter()
             offsets = np.zeros((match.n_bl, n_corr, n_scan))
             if setup is not None:
                 # robust trackers: the n0 step per segment (every scan starts one; long gaps
                 # and jumps start more); k is added to the segment's wrap count
                 segment_k = {}
+                if g["offset_model"] and setup.tracker == "antenna":
+                    # antenna mode against a model: integers per antenna and segment, solved
+                    # on the lattice with every baseline at once (parallel hands)
+                    antenna_corrs = {c for c, name in enumerate(match.corr_names)
+                                     if len(name) == 2 and name[0] == name[1]}
+                    seg_k, antennas, solves, series = antenna_offsets(
+                        sums, antenna_corrs, match.ant1, match.ant2, list(g["tgt_names"]),
+                        match.baseline_names, match.corr_names, match.scans, eps,
+                        int(g["max_offset_wraps"]), float(g["offset_ambiguity_deg"]),
+                        refants=setup.refants, segment_key=int(SEGMENT_KEY))
+                    segment_k.update(seg_k)
+                    offset_report.extend(series)
+                    g["_offset_antennas"], g["_offset_solves"] = antennas, solves
+                    _log_antenna_offsets(antennas, solves)
+                    sums = {key: v for key, v in sums.items() if key[1] not in antenna_corrs}
                 for (b, c, key), (z, n) in sorted(sums.items()):
                     choice = choose_offset(complex(z), int(n), eps, int(g["max_offset_wraps"]),
                                            float(g["offset_ambiguity_deg"]))
@@ -795,14 +877,43 @@ def _offset_pass(g, run_pass, codes, n_corr, n_scan):
                                     choice.k, choice.residual_deg, choice.runner_up_k,
                                     choice.runner_up_residual_deg)
                         offset_report.append(entry)
-            chosen = [e for e in offset_report if e.get("samples")]
-            log.info("offset step: n0 chosen for %d series (|k| <= %d); %d ambiguous; "
-                     "k values: %s", len(chosen), int(g["max_offset_wraps"]),
-                     sum(bool(e.get("ambiguous")) for e in chosen),
-                     ", ".join(f"{e['baseline']} {e['correlation']} s{e['scan']}"
-                               + (f"/{e['segment']}" if "segment" in e else "") + f": {e['k']}"
-                               for e in chosen[:12]) + (" ..." if len(chosen) > 12 else ""))
+            chosen = [e for e in offset_report if e.get("samples") and e.get("solve") != "antenna"]
+            if chosen or g.get("_offset_solves") is None:
+                log.info("offset step: n0 chosen per baseline for %d series (|k| <= %d); %d "
+                         "ambiguous; k values: %s", len(chosen), int(g["max_offset_wraps"]),
+                         sum(bool(e.get("ambiguous")) for e in chosen),
+                         ", ".join(f"{e['baseline']} {e['correlation']} s{e['scan']}"
+                                   + (f"/{e['segment']}" if "segment" in e else "")
+                                   + f": {e['k']}" for e in chosen[:12])
+                         + (" ..." if len(chosen) > 12 else ""))
+            g["timings"]["offset_solve"] = time.perf_counter() - stage
     return offsets, offset_report
+
+
+def _log_antenna_offsets(antennas, solves) -> None:
+    """One line per lattice solve (correlation, scan), warnings for ambiguous antennas."""
+    for sv in solves:
+        members = [e for e in antennas if e["correlation"] == sv["correlation"]
+                   and e["scan"] == sv["scan"]]
+        log.info("offset step %s scan %d (antenna lattice, %s, reference %s): %s; coherence "
+                 "%.4f, baseline mismatch rms %.2f deg, worst %s %.2f deg",
+                 sv["correlation"], sv["scan"], sv["method"], sv["reference"],
+                 ", ".join(f"{e['antenna']}/{e['segment']} k={e['k']}"
+                           + (f" (margin {e['margin_deg']:.1f} deg)"
+                              if e.get("margin_deg") is not None else "") for e in members[:16])
+                 + (" ..." if len(members) > 16 else ""),
+                 sv["coherence"], sv["residual_rms_deg"] or 0.0, sv["worst_baseline"],
+                 sv["worst_residual_deg"] or 0.0)
+    for e in antennas:
+        if e.get("ambiguous"):
+            log.warning("offset step %s %s scan %d segment %d ambiguous: k = %d (residual "
+                        "%.2f deg) vs k = %d (%.2f deg); margin %.2f deg < "
+                        "--offset-ambiguity-deg", e["antenna"], e["correlation"], e["scan"],
+                        e["segment"], e["k"], e["residual_deg"], e["runner_up_k"],
+                        e["runner_up_residual_deg"], e["margin_deg"])
+    log.info("offset step: %d antenna segments solved on the 2 pi eps k lattice in %d solves; "
+             "%d ambiguous", len(antennas), len(solves),
+             sum(bool(e.get("ambiguous")) for e in antennas))
 
 
 def _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, state, started,
@@ -829,7 +940,10 @@ def _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, stat
         tracking_report = tracker.report(match.times)
         resolved = g.get("_segment_k") is not None
         tracking_report["segment_offsets"] = (
-            "offset step per segment (--offset-reference-column)" if resolved else
+            "offset step per antenna and segment, solved on the lattice against the model "
+            "(--offset-model)" if g.get("_offset_solves") is not None else
+            f"offset step per segment ({'--offset-model' if g['offset_model'] else '--offset-reference-column'})"
+            if resolved else
             "per antenna (antenna mode)" if setup.tracker == "antenna" else "best guess")
         _log_tracking(tracking_report, setup, resolved)
     report = {
@@ -861,6 +975,12 @@ def _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, stat
         "offset_step": {"column": off_col, "max_offset_wraps": int(g["max_offset_wraps"]),
                         "applied_to": [m for m in methods if m in ("pwc", "cwu")] if offsets is not None else [],
                         "per": "segment" if g.get("_segment_k") is not None else "scan",
+                        "model": g["offset_model"],
+                        "solve": ("antenna lattice" if g.get("_offset_solves") is not None
+                                  else "baseline" if offsets is not None else None),
+                        "antennas": g.get("_offset_antennas", []),
+                        "solves": g.get("_offset_solves", []),
+                        "warning": _no_offset_step(g, offsets, setup),
                         "series": offset_report},
         "time_s": elapsed,
         "timings_s": {k: round(v, 4) for k, v in timings.items()},
@@ -874,8 +994,24 @@ def _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, stat
     # ---- end issue 13
     log.info("wrote %s to %s; report %s; %.2f s (%s)", ", ".join(outputs.values()), target_ms,
              report_path, elapsed, ", ".join(f"{k} {v:.2f}" for k, v in timings.items()))
+    if report["offset_step"]["warning"]:
+        log.warning(report["offset_step"]["warning"])
     report["report_path"] = str(report_path)
     return report
+
+
+def _no_offset_step(g, offsets, setup):
+    """The warning of a run that wrote PWC/CWU without the n0 step (None otherwise)."""
+    written = [g["outputs"][m] for m in ("pwc", "cwu") if m in g["outputs"]]
+    if not written or g["eps"] == 0.0 or offsets is not None:
+        return None
+    per = ("antenna (closure phases are right, the phases themselves are not)"
+           if setup is not None and setup.tracker == "antenna" else "baseline")
+    return (f"{' and '.join(written)} carr{'y' if len(written) > 1 else 'ies'} a constant "
+            f"2 pi eps n0 per {per} and scan (or tracking segment): no n0 offset step ran. Before "
+            "imaging, run the offset step (--offset-model point, or a model column; "
+            "--offset-reference-column) or self-calibrate; imaged as it is, CLEAN can diverge "
+            "(docs/calibrate.md, 'The n0 offset step')")
 
 
 def _log_tracking(rep: Dict, setup, resolved: bool = False) -> None:

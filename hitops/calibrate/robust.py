@@ -976,34 +976,37 @@ def segment_offset_sums(keys, tgt_phase, phasor, calibrated, off_phase, off_vali
 
     The per-segment form of the paper's n0 step (``fpt.offset_sums`` works per
     scan): keys (n_bl, n_corr, n_time) from :meth:`ReferenceTracker.track`,
-    phasor/calibrated (n_bl, n_time, n_corr), the phases (n_bl, n_corr, n_time).
-    Returns (index (m, 3) int64 rows of (baseline, correlation, key), sums
-    complex128 (m,), counts int64 (m,)).
+    phasor/calibrated (n_bl, n_time, n_corr), the phases (n_bl, n_corr, n_time);
+    Phi_ref is the offset reference's or the model's phase (``--offset-model``).
+    Returns (index (m, 3) int64 rows of (baseline, correlation, key), sorted,
+    sums complex128 (m,), counts int64 (m,)).  One numba pass over runs of equal
+    key (:func:`hitops.calibrate.lattice.segment_run_sums`).
     """
-    keys_t = keys.transpose(0, 2, 1)
-    ok = calibrated & off_valid.transpose(0, 2, 1) & (keys_t >= 0)
-    b, t, c = np.nonzero(ok)
-    if b.size == 0:
-        return np.zeros((0, 3), np.int64), np.zeros(0, np.complex128), np.zeros(0, np.int64)
-    out_phase = tgt_phase[b, c, t] + np.angle(phasor[b, t, c])
-    z = np.exp(1j * (off_phase[b, c, t] - out_phase))
-    index, inverse = np.unique(np.stack([b, c, keys_t[b, t, c]], axis=1), axis=0,
-                               return_inverse=True)
-    inverse = inverse.ravel()
-    sums = np.bincount(inverse, z.real) + 1j * np.bincount(inverse, z.imag)
-    return index.astype(np.int64), sums, np.bincount(inverse).astype(np.int64)
+    from .lattice import segment_run_sums
+    return segment_run_sums(keys, tgt_phase, phasor, calibrated, off_phase, off_valid)
 
 
 def apply_segment_offsets(counts, keys, offsets: Dict[tuple, int]):
     """Counts with k added in every (baseline, correlation, segment) of ``offsets``.
 
     Adding k to the wrap count of a segment adds 2 pi eps k to its PWC output
-    (and R 2 pi k = 2 pi eps k mod 2 pi to CWU): the per-segment n0 step.
+    (and R 2 pi k = 2 pi eps k mod 2 pi to CWU): the per-segment n0 step.  One
+    sorted look-up per series, whatever the number of segments.
     """
     if not offsets:
         return counts
-    out = counts.copy()
+    per_series: Dict[tuple, list] = {}
     for (b, c, key), k in offsets.items():
         if k:
-            out[b, c] += np.where(keys[b, c] == key, k, 0)
+            per_series.setdefault((int(b), int(c)), []).append((int(key), int(k)))
+    if not per_series:
+        return counts
+    out = counts.copy()
+    for (b, c), items in per_series.items():
+        items.sort()
+        table = np.array([key for key, _ in items], np.int64)
+        values = np.array([k for _, k in items], np.int64)
+        series = keys[b, c]
+        pos = np.minimum(np.searchsorted(table, series), table.size - 1)
+        out[b, c] += np.where(table[pos] == series, values[pos], 0)
     return out

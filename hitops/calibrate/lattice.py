@@ -1,0 +1,502 @@
+"""Antenna-based n0 offsets solved on the 2*pi*eps*k lattice (issue 16).
+
+With the antenna tracker a count error k_p of antenna p enters baseline p-q as
+2*pi*eps*(k_p - k_q), constant over the samples where p and q stay in the same
+tracking segments.  Given, per baseline and pair of antenna segments (an *edge*
+between two *nodes*, a node being one antenna segment), the sum
+
+    z_e = sum over samples of exp(i (Phi_model - Phi_out)),
+
+adding the integer j_a to node a and j_b to node b turns the edge into
+z_e * exp(-i 2 pi eps (j_a - j_b)).  :func:`solve_lattice` picks the integers
+(|j| <= max_k, one *gauge* node per connected component fixed at 0, since a
+common integer on every antenna changes no baseline) that maximise
+
+    S(j) = sum_e Re(z_e exp(-i 2 pi eps (j_a - j_b))),
+
+i.e. the calibrated phases best match the model on every baseline at once (the
+sum of cos(mismatch) over samples, the circular-mean criterion of the paper's
+n0 step summed over baselines).  Given the others, node v's best integer is the
+lattice point 2 pi eps j nearest Arg(W_v) with
+
+    W_v = sum_{e: a_e = v} z_e P_{b_e} + sum_{e: b_e = v} conj(z_e) P_{a_e},
+    P_w = exp(i 2 pi eps j_w),
+
+which is what :func:`node_sums` returns and what the report describes per node
+(measured offset, residual, runner-up, margin).
+
+Search: the lattice values are dense modulo 2 pi (8.37 deg apart for
+eps = 29/43), so the candidates are |k| <= max_k with equivalent values (k and
+k + 43 for eps = 29/43) merged onto the smallest |k|.  When the candidates of
+the free nodes number at most ``exhaustive_limit`` combinations the search is
+exhaustive (the global optimum); otherwise coordinate descent from two starts
+(a maximum spanning tree of the edges grown from the gauge, and the rounded
+leading eigenvector of the Hermitian edge matrix, the continuous phase
+synchronisation) and the better end point is kept.  The kernels are numba.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import numba
+import numpy as np
+
+TWO_PI = 2.0 * math.pi
+#: free-node candidate combinations searched exhaustively (43^3 = 79 507 for eps = 29/43)
+EXHAUSTIVE_LIMIT = 250_000
+#: two candidates whose lattice values differ by less than this (rad) are the same point
+SAME_POINT = 1e-9
+
+
+def _wrap(x):
+    return (np.asarray(x) + math.pi) % TWO_PI - math.pi
+
+
+def candidates(eps: float, max_k: int):
+    """Distinct lattice points: (k int64, phasor complex128), smallest |k| first.
+
+    k runs 0, -1, 1, -2, 2, ... up to |k| = max_k; a k whose 2 pi eps k equals an
+    earlier one's modulo 2 pi (to 1e-9 rad) is dropped.
+    """
+    max_k = int(max_k)
+    ks = [0]
+    for m in range(1, max_k + 1):
+        ks += [-m, m]
+    ks = np.asarray(ks, np.int64)
+    phase = _wrap(TWO_PI * float(eps) * ks)
+    keep = []
+    for i in range(ks.size):
+        if all(abs(float(_wrap(phase[i] - phase[j]))) > SAME_POINT for j in keep):
+            keep.append(i)
+    keep = np.asarray(keep, np.int64)
+    return ks[keep], np.exp(1j * phase[keep])
+
+
+@numba.njit(cache=True, nogil=True)
+def _score(a, b, z, phasor, u):
+    s = 0.0
+    for e in range(a.size):
+        s += (z[e] * np.conj(phasor[u[a[e]]]) * phasor[u[b[e]]]).real
+    return s
+
+
+@numba.njit(cache=True, nogil=True)
+def _node_sum(v, a, b, z, phasor, u):
+    w = 0j
+    for e in range(a.size):
+        if a[e] == v:
+            w += z[e] * phasor[u[b[e]]]
+        elif b[e] == v:
+            w += np.conj(z[e]) * phasor[u[a[e]]]
+    return w
+
+
+@numba.njit(cache=True, nogil=True)
+def _best_candidate(w, phasor):
+    """Index of the candidate maximising Re(conj(P) w); ties to the earlier (smaller |k|)."""
+    best = 0
+    best_s = (np.conj(phasor[0]) * w).real
+    for i in range(1, phasor.size):
+        s = (np.conj(phasor[i]) * w).real
+        if s > best_s + 1e-12 * (1.0 + abs(best_s)):
+            best_s = s
+            best = i
+    return best
+
+
+@numba.njit(cache=True, nogil=True)
+def _descent(a, b, z, phasor, u0, fixed, max_sweeps):
+    """Coordinate descent over the free nodes from ``u0``; returns (u, sweeps)."""
+    u = u0.copy()
+    n = u.size
+    for sweep in range(max_sweeps):
+        changed = False
+        for v in range(n):
+            if fixed[v]:
+                continue
+            w = _node_sum(v, a, b, z, phasor, u)
+            if w == 0:
+                continue
+            best = _best_candidate(w, phasor)
+            if best != u[v]:
+                # move only on a strict gain (no cycling between equal points)
+                old = (np.conj(phasor[u[v]]) * w).real
+                new = (np.conj(phasor[best]) * w).real
+                if new > old + 1e-12 * (1.0 + abs(old)):
+                    u[v] = best
+                    changed = True
+        if not changed:
+            return u, sweep + 1
+    return u, max_sweeps
+
+
+@numba.njit(cache=True, nogil=True)
+def _exhaustive(a, b, z, phasor, u0, free):
+    """Every combination of candidates on the ``free`` nodes; the best (first on ties)."""
+    u = u0.copy()
+    m = phasor.size
+    f = free.size
+    digits = np.zeros(f, np.int64)
+    for i in range(f):
+        u[free[i]] = 0
+    best_u = u.copy()
+    best_s = _score(a, b, z, phasor, u)
+    while True:
+        i = 0
+        while i < f:
+            digits[i] += 1
+            if digits[i] < m:
+                break
+            digits[i] = 0
+            i += 1
+        if i == f:
+            break
+        for k in range(f):
+            u[free[k]] = digits[k]
+        s = _score(a, b, z, phasor, u)
+        if s > best_s + 1e-12 * (1.0 + abs(best_s)):
+            best_s = s
+            best_u[:] = u
+    return best_u
+
+
+@dataclass
+class LatticeSolution:
+    """The integers per node and what the report needs about them."""
+
+    k: np.ndarray            # (n_nodes,) int64 integer added to each node's wrap count
+    node_sum: np.ndarray     # (n_nodes,) complex128 W_v at the solution
+    node_count: np.ndarray   # (n_nodes,) int64 samples on the node's edges
+    edge_sum: np.ndarray     # (n_edges,) complex128 z_e after the solution
+    component: np.ndarray    # (n_nodes,) int64 connected component of each node
+    gauge: np.ndarray        # (n_components,) int64 node fixed at k = 0 in each component
+    score: float             # sum_e Re(edge_sum): samples times the mean cos(mismatch)
+    samples: int             # sum of the edge counts
+    method: str              # 'exhaustive', 'descent' or 'trivial'
+
+
+def _components(n_nodes, a, b):
+    parent = list(range(n_nodes))
+
+    def find(x):
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    for p, q in zip(a.tolist(), b.tolist()):
+        rp, rq = find(p), find(q)
+        if rp != rq:
+            parent[max(rp, rq)] = min(rp, rq)
+    roots = np.array([find(v) for v in range(n_nodes)], np.int64)
+    _, comp = np.unique(roots, return_inverse=True)
+    return comp.ravel().astype(np.int64)
+
+
+def _tree_start(n_nodes, a, b, z, phasor, gauges):
+    """Maximum spanning tree from the gauges (strongest |z_e| first), each node set by its
+    tree edge alone: the per-baseline estimate propagated outward."""
+    u = np.zeros(n_nodes, np.int64)
+    done = np.zeros(n_nodes, bool)
+    done[gauges] = True
+    order = np.argsort(-np.abs(z), kind="stable")
+    progress = True
+    while progress:
+        progress = False
+        for e in order:
+            p, q = int(a[e]), int(b[e])
+            if done[p] == done[q]:
+                continue
+            if done[p]:     # set q: maximise Re(z conj(P_p) P_q) -> P_q near arg(conj(z) P_p)
+                u[q] = _best_candidate(np.conj(z[e]) * phasor[u[p]], phasor)
+                done[q] = True
+            else:           # set p: P_p near arg(z P_q)
+                u[p] = _best_candidate(z[e] * phasor[u[q]], phasor)
+                done[p] = True
+            progress = True
+            break
+    return u
+
+
+def _eigen_start(n_nodes, a, b, z, phasor, comp, gauges):
+    """Leading eigenvector of H (H_ab = z_e / 2 + conj for the transpose), per component
+    phase-referenced to its gauge and rounded to the nearest lattice point."""
+    h = np.zeros((n_nodes, n_nodes), np.complex128)
+    for e in range(a.size):
+        # S = Re(sum_e z_e conj(x_a) x_b) = x^H H x with H Hermitian
+        h[a[e], b[e]] += 0.5 * z[e]
+        h[b[e], a[e]] += 0.5 * np.conj(z[e])
+    u = np.zeros(n_nodes, np.int64)
+    for c, g in enumerate(gauges):
+        nodes = np.flatnonzero(comp == c)
+        if nodes.size < 2:
+            continue
+        _, vecs = np.linalg.eigh(h[np.ix_(nodes, nodes)])
+        x = vecs[:, -1]
+        ref = x[nodes.tolist().index(int(g))]
+        if ref == 0:
+            continue
+        x = x * np.conj(ref) / abs(ref)
+        for i, v in enumerate(nodes):
+            if x[i] != 0:
+                u[v] = _best_candidate(x[i] / abs(x[i]), phasor)
+    return u
+
+
+def _descent_with_gauge_moves(a, b, z, ks, phasor, u0, fixed, comp, gauges, eps, max_sweeps):
+    """Coordinate descent in which a gauge may move too.
+
+    Moving the gauge alone is the same as moving every other node of its component the
+    opposite way, which single-node descent cannot do: a gauge whose own measurement
+    sits off its lattice point would otherwise hold the whole component on the wrong
+    side.  When the gauge's best point is not its own, every other node of the
+    component is shifted by minus that integer (if each shifted value is a candidate)
+    and the descent goes on; the gauge stays at 0.
+    """
+    phase = np.angle(phasor)
+    u = u0.copy()
+    for _ in range(max_sweeps):
+        u, _ = _descent(a, b, z, phasor, u, fixed, max_sweeps)
+        moved = False
+        for c, g in enumerate(gauges):
+            w = _node_sum(int(g), a, b, z, phasor, u)
+            if w == 0:
+                continue
+            best = _best_candidate(w, phasor)
+            if best == u[g] or not ((np.conj(phasor[best]) * w).real
+                                    > (np.conj(phasor[u[g]]) * w).real * (1 + 1e-12) + 1e-12):
+                continue
+            shift = int(ks[best] - ks[u[g]])
+            members = np.flatnonzero((comp == c) & (np.arange(u.size) != g))
+            new = u.copy()
+            ok = True
+            for v in members:
+                target = float(_wrap(TWO_PI * eps * (ks[u[v]] - shift)))
+                hit = np.flatnonzero(np.abs(_wrap(phase - target)) < 1e-7)
+                if not hit.size:
+                    ok = False
+                    break
+                new[v] = hit[0]
+            if ok:
+                u = new
+                moved = True
+        if not moved:
+            break
+    return u
+
+
+def node_sums(a, b, z, phasor_of_node):
+    """W_v of every node for node phasors ``phasor_of_node`` (exp(i 2 pi eps j_v))."""
+    n = phasor_of_node.size
+    w = np.zeros(n, np.complex128)
+    np.add.at(w, a, z * phasor_of_node[b])
+    np.add.at(w, b, np.conj(z) * phasor_of_node[a])
+    return w
+
+
+def solve_lattice(n_nodes: int, edge_a, edge_b, edge_sum, edge_count, eps: float, max_k: int,
+                  gauge_order: Optional[Sequence[int]] = None,
+                  exhaustive_limit: int = EXHAUSTIVE_LIMIT, max_sweeps: int = 200) -> LatticeSolution:
+    """Integers j (|j| <= max_k) per node maximising sum_e Re(z_e exp(-i 2 pi eps (j_a - j_b))).
+
+    ``edge_a``/``edge_b``: node indices of each edge (baseline p-q: a = p's segment,
+    b = q's); ``edge_sum``: z_e = sum of exp(i (Phi_model - Phi_out)) over its
+    samples; ``edge_count``: its samples.  ``gauge_order``: nodes preferred as the
+    gauge (k = 0) of their component (the reference antenna's); otherwise the node
+    with the most samples.  Pure: no input is changed.
+    """
+    a = np.asarray(edge_a, np.int64)
+    b = np.asarray(edge_b, np.int64)
+    z = np.asarray(edge_sum, np.complex128)
+    cnt = np.asarray(edge_count, np.int64)
+    if np.any(a == b):
+        raise ValueError("an edge joins a node to itself")
+    use = (cnt > 0) & (z != 0)
+    a, b, z_used = a[use], b[use], z[use]
+    node_count = np.zeros(n_nodes, np.int64)
+    np.add.at(node_count, np.asarray(edge_a, np.int64), cnt)
+    np.add.at(node_count, np.asarray(edge_b, np.int64), cnt)
+    comp = _components(n_nodes, a, b)
+    n_comp = int(comp.max()) + 1 if n_nodes else 0
+    preferred = {int(v): i for i, v in enumerate(gauge_order or [])}
+    gauges = np.zeros(n_comp, np.int64)
+    for c in range(n_comp):
+        nodes = np.flatnonzero(comp == c)
+        ranked = sorted(nodes.tolist(), key=lambda v: (preferred.get(v, len(preferred)),
+                                                        -node_count[v], v))
+        gauges[c] = ranked[0]
+    ks, phasor = candidates(eps, max_k)
+    fixed = np.zeros(n_nodes, bool)
+    fixed[gauges] = True
+    free = np.flatnonzero(~fixed)
+    # u: candidate index per node (0 is k = 0)
+    if free.size == 0 or a.size == 0 or ks.size == 1:
+        u = np.zeros(n_nodes, np.int64)
+        method = "trivial"
+    elif float(ks.size) ** free.size <= exhaustive_limit:
+        u = _exhaustive(a, b, z_used, phasor, np.zeros(n_nodes, np.int64), free)
+        method = "exhaustive"
+    else:
+        best = None
+        for start in (_tree_start(n_nodes, a, b, z_used, phasor, gauges),
+                      _eigen_start(n_nodes, a, b, z_used, phasor, comp, gauges)):
+            cand = _descent_with_gauge_moves(a, b, z_used, ks, phasor, start, fixed, comp,
+                                             gauges, eps, max_sweeps)
+            s = _score(a, b, z_used, phasor, cand)
+            if best is None or s > best[0] + 1e-12 * (1.0 + abs(best[0])):
+                best = (s, cand)
+        u = best[1]
+        method = "descent"
+    k = ks[u]
+    node_ph = phasor[u]
+    ea = np.asarray(edge_a, np.int64)
+    eb = np.asarray(edge_b, np.int64)
+    after = z * np.conj(node_ph[ea]) * node_ph[eb]
+    return LatticeSolution(k=k.astype(np.int64), node_sum=node_sums(ea, eb, z, node_ph),
+                           node_count=node_count, edge_sum=after, component=comp, gauge=gauges,
+                           score=float(after.real.sum()), samples=int(cnt.sum()), method=method)
+
+
+@numba.njit(cache=True, nogil=True)
+def _segment_runs(keys, tgt_phase, phasor, calibrated, off_phase, off_valid, fill):
+    """Sums of exp(i (Phi_ref - Phi_out)) over runs of equal segment key in time.
+
+    keys/tgt_phase/off_phase/off_valid (n_bl, n_corr, n_time), phasor/calibrated
+    (n_bl, n_time, n_corr).  With ``fill`` False only the number of runs is
+    counted; otherwise returns the runs (baseline, correlation, key), sums, counts.
+    """
+    n_bl, n_corr, n_time = keys.shape
+    n_runs = 0
+    for b in range(n_bl):
+        for c in range(n_corr):
+            cur = -1
+            for t in range(n_time):
+                key = keys[b, c, t]
+                if key < 0 or not (calibrated[b, t, c] and off_valid[b, c, t]):
+                    continue
+                if key != cur:
+                    n_runs += 1
+                    cur = key
+    index = np.zeros((n_runs if fill else 0, 3), np.int64)
+    sums = np.zeros(n_runs if fill else 0, np.complex128)
+    counts = np.zeros(n_runs if fill else 0, np.int64)
+    if not fill:
+        return index, sums, counts
+    r = -1
+    for b in range(n_bl):
+        for c in range(n_corr):
+            cur = -1
+            for t in range(n_time):
+                key = keys[b, c, t]
+                if key < 0 or not (calibrated[b, t, c] and off_valid[b, c, t]):
+                    continue
+                if key != cur:
+                    r += 1
+                    cur = key
+                    index[r, 0] = b
+                    index[r, 1] = c
+                    index[r, 2] = key
+                p = phasor[b, t, c]
+                d = off_phase[b, c, t] - (tgt_phase[b, c, t] + math.atan2(p.imag, p.real))
+                sums[r] += complex(math.cos(d), math.sin(d))
+                counts[r] += 1
+    return index, sums, counts
+
+
+def segment_run_sums(keys, tgt_phase, phasor, calibrated, off_phase, off_valid):
+    """(index (m, 3), sums, counts) per distinct (baseline, correlation, key), sorted."""
+    args = (np.ascontiguousarray(keys, np.int64), np.ascontiguousarray(tgt_phase, np.float64),
+            np.ascontiguousarray(phasor), np.ascontiguousarray(calibrated),
+            np.ascontiguousarray(off_phase, np.float64), np.ascontiguousarray(off_valid))
+    index, sums, counts = _segment_runs(*args, True)
+    if index.shape[0] == 0:
+        return index, sums, counts
+    uniq, inverse = np.unique(index, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    out_sums = np.bincount(inverse, sums.real, uniq.shape[0]) \
+        + 1j * np.bincount(inverse, sums.imag, uniq.shape[0])
+    return uniq.astype(np.int64), out_sums, np.bincount(inverse, counts, uniq.shape[0]).astype(np.int64)
+
+
+@numba.njit(cache=True, nogil=True)
+def shift_rows(tgt_rows, k, table, k_min, out):
+    """out[row, c] *= table[k[b, c, t] - k_min] for every cell with a row and k != 0.
+
+    tgt_rows (n_bl, n_time) row index or -1; k (n_bl, n_corr, n_time) integers added to
+    the wrap counts; table complex64 exp(i 2 pi eps k) for k_min..; out (n_row, n_corr)
+    the phasors of one method, changed in place.
+    """
+    n_bl, n_corr, n_time = k.shape
+    for b in range(n_bl):
+        for t in range(n_time):
+            row = tgt_rows[b, t]
+            if row < 0:
+                continue
+            for c in range(n_corr):
+                kk = k[b, c, t]
+                if kk != 0:
+                    out[row, c] = out[row, c] * table[kk - k_min]
+
+
+@numba.njit(cache=True, nogil=True)
+def _segment_row_runs(tgt_rows, keys, tgt_vis, phasor, calibrated, off_vis, off_ok, fill):
+    """:func:`_segment_runs` reading row-ordered arrays through the chunk's row grid."""
+    n_bl, n_corr, n_time = keys.shape
+    n_runs = 0
+    r = -1
+    index = np.zeros((0, 3), np.int64)
+    sums = np.zeros(0, np.complex128)
+    counts = np.zeros(0, np.int64)
+    for sweep in range(2 if fill else 1):
+        if sweep == 1:
+            index = np.zeros((n_runs, 3), np.int64)
+            sums = np.zeros(n_runs, np.complex128)
+            counts = np.zeros(n_runs, np.int64)
+        for b in range(n_bl):
+            for c in range(n_corr):
+                cur = -1
+                for t in range(n_time):
+                    row = tgt_rows[b, t]
+                    key = keys[b, c, t]
+                    if row < 0 or key < 0 or not (calibrated[row, c] and off_ok[row, c]):
+                        continue
+                    o = off_vis[row, c]
+                    if not (math.isfinite(o.real) and math.isfinite(o.imag)) or (o.real == 0 and o.imag == 0):
+                        continue
+                    if key != cur:
+                        cur = key
+                        if sweep == 0:
+                            n_runs += 1
+                            continue
+                        r += 1
+                        index[r, 0] = b
+                        index[r, 1] = c
+                        index[r, 2] = key
+                    elif sweep == 0:
+                        continue
+                    v = tgt_vis[row, c] * phasor[row, c]
+                    d = math.atan2(o.imag, o.real) - math.atan2(v.imag, v.real)
+                    sums[r] += complex(math.cos(d), math.sin(d))
+                    counts[r] += 1
+    return index, sums, counts
+
+
+def segment_row_sums(tgt_rows, keys, tgt_vis, phasor, calibrated, off_vis, off_ok):
+    """Sums of exp(i (Phi_ref - Phi_out)) per (baseline, correlation, segment key), sorted,
+    from the chunk's row-ordered target visibilities, output phasors and reference (or
+    model) visibilities; the driver's form of :func:`segment_run_sums` (no phase grids)."""
+    index, sums, counts = _segment_row_runs(
+        np.ascontiguousarray(tgt_rows), np.ascontiguousarray(keys, np.int64),
+        np.ascontiguousarray(tgt_vis), np.ascontiguousarray(phasor),
+        np.ascontiguousarray(calibrated), np.ascontiguousarray(off_vis),
+        np.ascontiguousarray(off_ok), True)
+    if index.shape[0] == 0:
+        return index, sums, counts
+    uniq, inverse = np.unique(index, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    out_sums = np.bincount(inverse, sums.real, uniq.shape[0]) \
+        + 1j * np.bincount(inverse, sums.imag, uniq.shape[0])
+    return uniq.astype(np.int64), out_sums, np.bincount(inverse, counts, uniq.shape[0]).astype(np.int64)
