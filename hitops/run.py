@@ -58,7 +58,7 @@ _RECIPE_REF = re.compile(r"\brecipe\.([A-Za-z_]\w*)")
 _STEP_START = re.compile(r"STIMELA\.(?P<logger>[\w.-]+) INFO: processing step '(?P<step>[^']+)'")
 _SKIP_FRESH = "all required outputs are OK, skipping this step"
 _SKIP_COND = "skipping step based on conditonal settings"   # sic, Stimela 2.1.4
-_ERROR = re.compile(r"\b(ERROR|CRITICAL|[A-Za-z]*Error:)|CASA \w+ warned|^# hitops: |# hitops [a-z]+: ")
+_ERROR = re.compile(r"\b(ERROR|CRITICAL|[A-Za-z]*Error:)|CASA \w+: \d+ x |^# hitops: |# hitops [a-z]+: ")
 
 
 class UsageError(Exception):

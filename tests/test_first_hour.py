@@ -275,3 +275,22 @@ def test_two_environments_keep_their_own_casa_configuration(tmp_path):
     # nothing per user: no ~/.casa, no ~/.cache/hitops; CASA's log beside the image
     assert not (home / ".casa").exists() and not (home / ".cache" / "hitops").exists()
     assert "Begin Task: imhead" in (tmp_path / "casa.log").read_text()
+
+
+def test_a_failed_step_shows_its_error_and_casa_counts_not_its_whole_output():
+    from hitops.run import failure_lines
+
+    tail = ["### preparing function call:", "# 04:11:53 INFO    CASA gaincal(vis='x.ms')",
+            "# 04:11:53 INFO    CASA gaincal: 328 x Insufficient unflagged antennas to proceed "
+            "with this solve. (log out/demo/logs/run-1/casa.log)",
+            "# Traceback (most recent call last):", '#   File "x.py", line 1, in <module>',
+            "# hitops.errors.ExternalToolError: CASA task gaincal failed (SEVERE error(s)):",
+            "#   2026-11-24 SEVERE gaincal No valid reference antenna",
+            "2026-11-24 04:11:53 STIMELA.fpt-demo.gaincal ERROR: step 'fpt-demo.gaincal' has "
+            "failed, aborting the recipe"] + [f"line {i}" for i in range(100)]
+    picked = failure_lines(tail)
+    assert picked[0].endswith("(log out/demo/logs/run-1/casa.log)")
+    assert any("ExternalToolError" in l for l in picked)
+    assert any("No valid reference antenna" in l for l in picked)   # the quoted SEVERE line
+    assert not any(l.startswith("line ") or "Traceback" in l for l in picked)
+    assert failure_lines(["a", "b"]) == ["a", "b"]   # no error line: the step's last lines

@@ -36,9 +36,12 @@ LEAP_SECOND_NOTE = ("CASA logged its leap-second message (SEVERE 'Leap second ta
 _SEVERE = re.compile(r"\bSEVERE\b")
 # date, priority, origin, message; a continued message has an origin ending in "+"
 _WARN = re.compile(r"\tWARN\t([^\t]*)\t(.*)$")
-_CASA_LINE = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\t")
-# what CASA's solvers print straight to the console, one per failed interval
-_CONSOLE = re.compile(r"^\s*(Insufficient unflagged antennas.*|Found no unflagged data.*)$")
+_CASA_LINE = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\s")
+# what CASA's solvers print straight to the console (captured into the log by
+# run_task), one line per interval: "Insufficient unflagged antennas to proceed
+# with this solve.", "8 of 16 solutions flagged due to SNR < 3 in spw=0 at ...";
+# an indented "(time=...)" line continues the one before
+_CONSOLE = re.compile(r"^\s*([^\s(].*)$")
 
 
 def severe_lines(lines: Iterable[str]) -> List[str]:
@@ -52,10 +55,12 @@ def severe_lines(lines: Iterable[str]) -> List[str]:
 
 
 def warning_summary(lines: Iterable[str], top: int = 3) -> List[str]:
-    """The most frequent WARN messages of a CASA log excerpt, with their counts.
+    """The most frequent WARN and console messages of a CASA log excerpt, with counts.
 
-    gaincal on the paper scene warns "Insufficient unflagged antennas" for
-    thousands of intervals; one line with the count says the same.
+    CASA's solvers print a line for every interval they flag or cannot solve
+    (3,393 "N of M solutions flagged due to SNR < 3" on the paper scene; with
+    too few stations "Insufficient unflagged antennas" in every interval); one
+    line with the count says the same.  Numbers are replaced by '#'.
     """
     counts: Counter = Counter()
     for line in lines:
@@ -183,7 +188,7 @@ def run_task(name: str, *, log_dir: Optional[str] = None, **kwargs: Any) -> Any:
                      "INFO", "hitops")
         log.debug(LEAP_SECOND_NOTE)
     for summary in warning_summary(lines):
-        log.info("CASA %s warned %s (log %s)", name, summary, logfile)
+        log.info("CASA %s: %s (log %s)", name, summary, logfile)
     severe = severe_lines(lines)
     if error is not None or severe:
         detail = "\n  ".join(severe[-10:]) if severe else ""
