@@ -74,7 +74,8 @@ def test_demo_pwc_coherence_at_least_ffsc_on_every_baseline(demo_run):
 def test_demo_pwc_peak_flux_recovery(demo_run):
     _, out, _ = demo_run
     rows = {r["label"]: r for r in json.loads((out / "peak-flux.json").read_text())["rows"]}
-    assert set(rows) == {"raw", "ffsc", "cfpt", "pwc"}
+    # at least these four (a recipe may add more methods, e.g. PWC with no control)
+    assert {"raw", "ffsc", "cfpt", "pwc"} <= set(rows)
     pwc, ffsc = rows["pwc"], rows["ffsc"]
     assert pwc["fit"] == "gaussian" and ffsc["fit"] == "gaussian"
     assert pwc["recovery"] >= 0.9
