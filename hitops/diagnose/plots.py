@@ -10,7 +10,8 @@
   later column's C(T) to the first column's, one panel per later column.
 
 Every method has one colour in every plot (:data:`METHOD_COLOURS`: raw DATA,
-FF+SC CORRECTED_DATA, CFPT, CWU, PWC), whatever the order of ``--columns``;
+FF+SC CORRECTED_DATA, CFPT, CWU, PWC, PWC with no control PWC_NC_DATA),
+whatever the order of ``--columns``;
 other columns get the next free colours.  A series identical to one drawn
 before it (CWU and PWC agree wherever no wrap was missed) is drawn on top with
 open markers and a dashed line, and its legend entry says which it equals, so
@@ -38,14 +39,16 @@ C_LIGHT = 299_792_458.0
 
 #: The colour of each method, the same in every plot and every run
 METHOD_COLOURS = {"raw": "tab:green", "ffsc": "tab:blue", "cfpt": "tab:orange",
-                  "cwu": "tab:purple", "pwc": "tab:red"}
+                  "cwu": "tab:purple", "pwc": "tab:red", "pwcnc": "tab:brown"}
 #: Column names of the methods (hitops calibrate's outputs and CASA's FF+SC column)
 COLUMN_METHODS = {"DATA": "raw", "CORRECTED_DATA": "ffsc", "CFPT_DATA": "cfpt",
-                  "CWU_DATA": "cwu", "PWC_DATA": "pwc"}
+                  "CWU_DATA": "cwu", "PWC_DATA": "pwc", "PWC_NC_DATA": "pwcnc"}
 #: Colours of other columns (e.g. PWC230_DATA), in the order they appear
-OTHER_COLOURS = ["tab:brown", "tab:pink", "tab:olive", "tab:cyan", "tab:gray", "black"]
-#: Every colour a plot uses: the methods' (raw, CFPT, PWC, FF+SC, CWU), then the others
-COLOURS = [METHOD_COLOURS[m] for m in ("raw", "cfpt", "pwc", "ffsc", "cwu")] + OTHER_COLOURS
+OTHER_COLOURS = ["tab:pink", "tab:olive", "tab:cyan", "tab:gray", "black"]
+#: Every colour a plot uses: the methods' (raw, CFPT, PWC, FF+SC, CWU, PWC with no
+#: control), then the others
+COLOURS = [METHOD_COLOURS[m] for m in ("raw", "cfpt", "pwc", "ffsc", "cwu", "pwcnc")] \
+    + OTHER_COLOURS
 
 
 def column_colours(columns: Sequence[str]) -> Dict[str, str]:
