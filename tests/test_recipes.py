@@ -99,6 +99,29 @@ def test_demo_pwc_peak_flux_recovery(demo_run):
 
 
 @pytest.mark.slow
+def test_demo_pwc_with_no_control_calibration(demo_run):
+    """PWC_NC_DATA: antenna tracker, n0 per antenna and scan solved against a point source,
+    no FF+SC anywhere (issue 16): its own row, >= 0.98 of the peak, and a whole-track
+    coherence of at least 0.99 on every baseline and parallel hand."""
+    from casacore import tables as pt
+
+    _, out, _ = demo_run
+    rows = {r["label"]: r for r in json.loads((out / "peak-flux.json").read_text())["rows"]}
+    nc = rows["pwcnc"]
+    assert nc["method"] == "PWC, no control (PWC_NC_DATA)" and nc["fit"] == "gaussian"
+    assert 0.98 <= nc["recovery"] <= 1.05
+    with pt.table(str(out / "sim-230.ms"), ack=False) as tab:
+        a1, a2 = tab.getcol("ANTENNA1"), tab.getcol("ANTENNA2")
+        flag = tab.getcol("FLAG")[:, 0, :]
+        vis = tab.getcol("PWC_NC_DATA")[:, 0, :]
+    for p, q in set(zip(a1.tolist(), a2.tolist())):
+        sel = (a1 == p) & (a2 == q)
+        for c in range(vis.shape[1]):
+            x = vis[sel, c][~flag[sel, c]]
+            assert abs(np.mean(x / np.abs(x))) >= 0.99, (p, q, c)
+
+
+@pytest.mark.slow
 def test_demo_cfpt_residuals_jump_where_pwc_does_not(demo_run):
     from casacore import tables as pt
 

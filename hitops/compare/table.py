@@ -31,7 +31,8 @@ PAPER = {
 
 #: Display names of the usual labels.
 METHOD_NAMES = {"raw": "raw (DATA)", "ffsc": "FF+SC (CORRECTED_DATA)",
-                "cfpt": "CFPT (CFPT_DATA)", "pwc": "PWC (PWC_DATA)"}
+                "cfpt": "CFPT (CFPT_DATA)", "pwc": "PWC (PWC_DATA)",
+                "pwcnc": "PWC, no control (PWC_NC_DATA)"}
 
 
 def recovery(peak: float, peak_err: float, input_peak: float,
@@ -241,6 +242,7 @@ _ALIASES = {
     "ffsc": "ffsc", "ff+sc": "ffsc", "corrected": "ffsc", "corrected_data": "ffsc",
     "cfpt": "cfpt", "cfpt_data": "cfpt",
     "pwc": "pwc", "pwc_data": "pwc",
+    "pwcnc": "pwcnc", "pwc_nc_data": "pwcnc",
 }
 
 
@@ -311,7 +313,8 @@ def compare(fits, labels=None, input_peak: float = 1.0, input_peak_err: float = 
 
 
 #: Short names of the methods for the terminal
-SHORT_NAMES = {"raw": "raw", "ffsc": "FF+SC", "cfpt": "CFPT", "cwu": "CWU", "pwc": "PWC"}
+SHORT_NAMES = {"raw": "raw", "ffsc": "FF+SC", "cfpt": "CFPT", "cwu": "CWU", "pwc": "PWC",
+               "pwcnc": "PWC-NC"}
 
 
 def text_summary(payload: Dict) -> str:
