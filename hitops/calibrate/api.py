@@ -35,7 +35,8 @@ from typing import Dict, List
 
 import numpy as np
 
-from ..errors import InputError, MeasurementSetError, OutputExistsError, RollbackError
+from ..errors import (HitopsError, InputError, MeasurementSetError, OutputExistsError,
+                      RollbackError)
 from ..io import access
 from ..io import read as msio
 from ..io.match import parse_antenna_map
@@ -162,7 +163,7 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
               half_window=0, coherence_time=20.0, snr=0.0, max_gap=-1, jump_threshold=-1.0,
               jump_window=0, jump_action="segment", refant=None, solve_half_window=-1,
               no_elevation_scaling=False, chunk_rows=2_000_000, report=None, scheduler=None,
-              lock_timeout=60.0) -> Dict:
+              lock_timeout=60.0, no_verdict=False, verdict_interval=60.0, caltable=None) -> Dict:
     """Frequency phase transfer from ``ref_ms`` (reference band) to ``target_ms``.
 
     Writes one column per method into ``target_ms`` (PWC_DATA, CFPT_DATA,
@@ -181,7 +182,8 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
     # ---- issue 13 (hitops/io/convert.py): --export-uvfits checked, UVFITS / FITS-IDI inputs
     # converted once into Measurement Sets in --workdir, before anything is written
     from ..io.convert import prepare_inputs
-    ref_ms, target_ms = prepare_inputs(ref_ms, target_ms, workdir, export_uvfits, overwrite)
+    ref_ms, target_ms = prepare_inputs(ref_ms, target_ms, workdir, export_uvfits, overwrite,
+                                       caltable=caltable, tracker=tracker)
     # ---- end issue 13
     ref_ms = msio.check_ms(ref_ms, "reference-band Measurement Set")
     target_ms = msio.check_ms(target_ms, "target-band Measurement Set")
@@ -190,6 +192,9 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
                          "reference-band and the target-band Measurement Sets")
     if not float(lock_timeout) >= 0:
         raise InputError(f"--lock-timeout {lock_timeout} must be >= 0 seconds")
+    if not float(verdict_interval) > 0:
+        raise InputError(f"--verdict-interval {verdict_interval} must be a positive number of "
+                         "seconds (e.g. 60)")
     access.require_subtables(ref_ms, "reference-band Measurement Set")
     access.require_subtables(target_ms, "target-band Measurement Set")
     access.require_writable(target_ms, "target-band Measurement Set")
@@ -347,6 +352,15 @@ def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
             **({"ref": ROW_COLUMNS + ref_cols} if tracker == "count" else {})})
     # every chunk's cells are checked (duplicates, matches, scans) before anything is written
     first_chunk = match.check(bounds)
+    # no wrap is counted across a stretch without data, whatever SCAN_NUMBER says
+    steps = np.diff(match.times)
+    min_gap = max(5.0 * float(np.median(steps)) if steps.size else 0.0, float(coherence_time))
+    splits = match.split_at_gaps(min_gap)
+    if splits:
+        log.info("%d time gap(s) longer than %.0f s inside scans start new tracking scans "
+                 "(SCAN_NUMBER %s)", len(splits), min_gap,
+                 ", ".join(f"{n} at +{t - match.times[0]:.0f} s after {g:.0f} s"
+                           for n, t, g in splits[:6]) + (" ..." if len(splits) > 6 else ""))
     timings["match"] = time.perf_counter() - stage
     n_target_rows = tgt_index.n_row
     tracking_setup = _tracking_setup(locals())
@@ -985,9 +999,20 @@ def _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, stat
         "time_s": elapsed,
         "timings_s": {k: round(v, 4) for k, v in timings.items()},
     }
+    if not g["opts"].no_verdict and n_chunks == 1:
+        report["verdict"] = _verdict(g)
+    elif not g["opts"].no_verdict:
+        # the verdict reads both bands whole (hitops/calibrate/verdict.py): not in a run whose
+        # memory is bounded by --chunk-rows
+        log.info("no verdict: the sets are larger than --chunk-rows (%d chunks) and the verdict "
+                 "reads each band whole; raise --chunk-rows to get one", n_chunks)
+        report["verdict"] = {"skipped": f"{n_chunks} chunks"}
     report_path = Path(g["report"]) if g["report"] else Path(target_ms + ".hitops-calibrate.json")
     report_path.write_text(json.dumps(report, indent=1))
     # ---- issue 13 (hitops/io/convert.py): the input conversions in the report, --export-uvfits
+    if g["opts"].caltable:
+        report["caltable"] = _write_caltable(g, tracker)
+        report_path.write_text(json.dumps(report, indent=1))
     from ..io.convert import finish_report
     if finish_report(report, g["opts"], ref_ms, target_ms, outputs, methods):
         report_path.write_text(json.dumps(report, indent=1))
@@ -1012,6 +1037,44 @@ def _no_offset_step(g, offsets, setup):
             "imaging, run the offset step (--offset-model point, or a model column; "
             "--offset-reference-column) or self-calibrate; imaged as it is, CLEAN can diverge "
             "(docs/calibrate.md, 'The n0 offset step')")
+
+
+def _write_caltable(g: Dict, tracker) -> Dict:
+    """--caltable: the antenna tracker's gains as a CASA G Jones table (hitops/calibrate/gains.py)."""
+    from ..io.caltable import write_gain_table
+    from .gains import antenna_gain_phases
+
+    match = g["match"]
+    phase, valid = antenna_gain_phases(tracker.antenna_phase, tracker.antenna_segment,
+                                       match.scan_of_time, g["ratio"], g["eps"],
+                                       offsets=g.get("_offset_antennas"))
+    # the cross hands of the column are transferred per baseline: the table holds the
+    # parallel hands' antenna gains, from which CASA forms every correlation
+    path = write_gain_table(g["opts"].caltable, g["target_ms"], match.times, phase, valid,
+                            match.corr_names, overwrite=bool(g["opts"].overwrite))
+    n_valid = int(valid.sum())
+    log.info("wrote the antenna gains to %s (CASA G Jones, %d times x %d antennas; %d "
+             "solutions, %d flagged)", path, phase.shape[0], phase.shape[1], n_valid,
+             int(valid.size - n_valid))
+    return {"path": str(path), "solutions": n_valid, "flagged": int(valid.size - n_valid)}
+
+
+def _verdict(g: Dict) -> Dict:
+    """Will FPT help here?  The prediction per baseline (hitops/calibrate/verdict.py)."""
+    from .verdict import log_verdict, predict, summary
+
+    opts = g["opts"]
+    started = time.perf_counter()
+    try:
+        verdict = predict(g["ref_ms"], g["target_ms"], g["ratio"], opts.ref_column,
+                          opts.target_column, float(opts.verdict_interval))
+    except HitopsError as err:   # the columns are written: say why there is no verdict
+        log.warning("no verdict: %s", err)
+        return {"error": str(err)}
+    log_verdict(verdict, methods_transfer_baselines=opts.tracker != "antenna",
+                has_model=bool(opts.ref_model_column))
+    g["timings"]["verdict"] = time.perf_counter() - started
+    return {**verdict.as_dict(), "summary": summary(verdict)}
 
 
 def _log_tracking(rep: Dict, setup, resolved: bool = False) -> None:

@@ -156,6 +156,8 @@ def antenna_offsets(seg_sums, antenna_corrs, ant1, ant2, antenna_names, baseline
                                    max_k, ambiguity_deg, k=int(sol.k[v]))
             entry = {"antenna": antenna_names[p], "correlation": corr_names[c],
                      "scan": int(scans[s]), "segment": int(seg), "reference": is_ref,
+                     # indices, for the gains of a calibration table (hitops/calibrate/gains.py)
+                     "antenna_index": int(p), "correlation_index": int(c), "scan_index": int(s),
                      "baselines": int(sum(1 for i in range(len(ea)) if v in (ea[i], eb[i])))}
             if choice is None:
                 entry.update(k=int(sol.k[v]), samples=0, note="no sample to compare")

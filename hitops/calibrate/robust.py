@@ -524,6 +524,13 @@ class ReferenceTracker:
             self.station_tc = local_coherence_time(setup.coherence_time, sin_elevation)
         self.hist = History.empty(setup.context, self.n_bl, self.n_corr, n_ant)
         self.stats = Stats(self.n_bl, self.n_corr, n_ant)
+        # antenna mode: each station's unwrapped reference phase per correlation and union
+        # time, as transferred (the gains of a calibration table); NaN where unsolved
+        self.antenna_phase = (np.full((n_ant, self.n_corr, match.n_time), np.nan)
+                              if setup.tracker == "antenna" else None)
+        # ... and its tracking segment (aligned across chunks; -1 where none)
+        self.antenna_segment = (np.full((n_ant, self.n_corr, match.n_time), -1, np.int64)
+                                if setup.tracker == "antenna" else None)
         self.workers = workers or (os.cpu_count() or 1)
         if setup.tracker == "antenna" and not any(self.parallel):
             log.warning("antenna tracking needs parallel-hand correlations (RR, LL, XX, YY); "
@@ -626,6 +633,12 @@ class ReferenceTracker:
                 seg[:, c, a:b] = np.where(valid[:, c, a:b] & (sp >= 0) & (sq >= 0),
                                           sp * 1_000_003 + sq, -1)
                 ant_model, ant_ok = _per_sample_model(out)
+                # keep this chunk's own times (its context belongs to the neighbours)
+                lo, hi = max(a, t0 - t_lo), min(b, t1 - t_lo)
+                if hi > lo:
+                    self.antenna_phase[:, c, t_lo + lo:t_lo + hi] = np.where(
+                        ant_ok, ant_model, np.nan)[:, lo - a:hi - a]
+                    self.antenna_segment[:, c, t_lo + lo:t_lo + hi] = out["ant_seg"][:, lo - a:hi - a]
                 both = ant_ok[p_ant] & ant_ok[q_ant]
                 bl_model = np.where(both, ant_model[p_ant] - ant_model[q_ant], np.nan)
                 model[:, c, a:b] = bl_model
