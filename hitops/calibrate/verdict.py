@@ -47,6 +47,8 @@ log = logging.getLogger("hitops.calibrate")
 
 #: predicted or measured changes within +-this fraction count as neutral
 NEUTRAL = 0.01
+#: sample pairs per lag and series for a structure function (relative error ~1/sqrt(2 x this))
+MAX_PAIRS = 2000
 
 
 @dataclass
@@ -215,20 +217,22 @@ def window_variances(phi_t, phi_r, valid, scan, n_window: int, ratio: float):
     phi_t, phi_r (n_time,) wrapped phases on common samples, valid (n_time,), scan
     (n_time,).  Structure functions come from increments at lags tau (the reference
     unwrapped from sample to sample, since R times it is what FPT transfers), as
-    D = -2 ln |<exp(i increment)>|; lags on a grid of at most 24 values, D(tau)
+    D = -2 ln |<exp(i increment)>|; lags on a grid of at most 16 values, D(tau)
     interpolated between them.
     """
     n_window = max(int(n_window), 2)
-    lags = np.unique(np.round(np.geomspace(1, n_window - 1, 24)).astype(int)) \
+    lags = np.unique(np.round(np.geomspace(1, n_window - 1, 16)).astype(int)) \
         if n_window > 2 else np.array([1])
     ref_unwrapped = ratio * _unwrap_runs(phi_r, valid, scan)
     d = np.full((3, lags.size), np.nan)
     for k, lag in enumerate(lags):
-        ok = valid[lag:] & valid[:-lag] & (scan[lag:] == scan[:-lag])
-        if ok.sum() < 3:
+        ok = np.flatnonzero(valid[lag:] & valid[:-lag] & (scan[lag:] == scan[:-lag]))
+        if ok.size < 3:
             continue
-        d_t = (phi_t[lag:] - phi_t[:-lag])[ok]
-        d_r = (ref_unwrapped[lag:] - ref_unwrapped[:-lag])[ok]
+        if ok.size > MAX_PAIRS:      # a statistic: an even spread of pairs is enough
+            ok = ok[np.linspace(0, ok.size - 1, MAX_PAIRS).astype(np.int64)]
+        d_t = phi_t[ok + lag] - phi_t[ok]
+        d_r = ref_unwrapped[ok + lag] - ref_unwrapped[ok]
         d[:, k] = [_structure(d_t), _structure(d_r), _structure(d_t - d_r)]
     good = np.isfinite(d[0])
     if not good.any():
