@@ -103,8 +103,9 @@ def measure_layout(workdir: Path, ref_ms: Path, target_ms: Path, repeats: int, e
     """Floors and warm calibrate runs interleaved (floor, floor, calibrate; repeated), so a
     change of the machine's load hits both alike; the ratio is taken run by run."""
     hitops = str(Path(sys.executable).with_name("hitops"))
+    # the transfer itself: the verdict (about 1 s on this pair) is measured in docs/calibrate.md
     command = [hitops, "calibrate", str(ref_ms), str(target_ms), "--method", "pwc",
-               "--overwrite", "--report", str(workdir / f"report-{tag}.json")]
+               "--overwrite", "--no-verdict", "--report", str(workdir / f"report-{tag}.json")]
     run_process(command, env=env)   # the first run after building creates the column
     floors = {"issue": [], "same_columns": []}
     runs = []
@@ -199,7 +200,7 @@ def main(argv=None) -> None:
     env = {"NUMBA_CACHE_DIR": str(cold_cache)}
     load_before = os.getloadavg()[0]
     cold_command = [str(Path(sys.executable).with_name("hitops")), "calibrate", str(ref_ms),
-                    str(target_ms), "--method", "pwc", "--overwrite", "--report",
+                    str(target_ms), "--method", "pwc", "--overwrite", "--no-verdict", "--report",
                     str(workdir / "report-cold.json")]
     cold = run_process(cold_command, env=env)
     imports = measure_floors(workdir, ref_ms, target_ms, repeats=args.repeats,
