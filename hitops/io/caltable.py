@@ -30,14 +30,13 @@ hands get exp(-i (phi_p[R] - phi_q[L])) and its mirror, as CASA forms them.
 from __future__ import annotations
 
 import logging
-import os
-import shutil
 from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
 
 from ..errors import InputError, MeasurementSetError, OutputExistsError
+from .atomic import replaced_directory
 
 log = logging.getLogger("hitops.io")
 
@@ -143,10 +142,7 @@ def write_gain_table(path, ms, time, antenna_phase, valid, corr_names: Sequence[
             snr_out[:, :, 0, rec] = ok.astype(np.float32)
     n_row = n_time * n_ant
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(f".{path.name}.partial-{os.getpid()}")
-    shutil.rmtree(partial, ignore_errors=True)
-    try:
+    with replaced_directory(path) as partial:
         _create_empty(ms, str(partial))
         with pt.table(str(partial), readonly=False, ack=False) as t:
             t.addrows(n_row)
@@ -162,12 +158,6 @@ def write_gain_table(path, ms, time, antenna_phase, valid, corr_names: Sequence[
             t.putcol("PARAMERR", np.zeros((n_row, 1, 2), np.float32))
             t.putcol("FLAG", flag.reshape(n_row, 1, 2))
             t.putcol("SNR", snr_out.reshape(n_row, 1, 2))
-        if path.exists():
-            shutil.rmtree(path)
-        partial.rename(path)
-    except BaseException:
-        shutil.rmtree(partial, ignore_errors=True)
-        raise
     log.info("wrote calibration table %s: %d times x %d antennas, %.1f%% of solutions flagged",
              path, n_time, n_ant, 100.0 * float(flag[..., [RECEPTOR[c] for c in parallel]].mean()))
     return str(path)

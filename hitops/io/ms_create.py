@@ -11,7 +11,6 @@ half-written Measurement Set behind.
 
 from __future__ import annotations
 
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -19,6 +18,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..errors import InputError, OutputExistsError
+from .atomic import replaced_directory
 
 #: Stokes enumeration of casacore (casacore/measures/Measures/Stokes.h)
 CORR_CODES = {"RR": 5, "RL": 6, "LR": 7, "LL": 8, "XX": 9, "XY": 10, "YX": 11, "YY": 12}
@@ -275,11 +275,7 @@ def create_ms(path: str | Path, layout: ArrayLayout, band: Band, field: Field,
         if name not in columns or name in _CONSTANT_SCALARS:
             columns[name] = np.asarray(value)
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(path.name + ".partial")
-    if partial.exists():
-        shutil.rmtree(partial)
-    try:
+    with replaced_directory(path) as partial:
         ms = pt.default_ms(str(partial), _main_table_desc(n_corr), _main_dminfo(n_corr))
         ms.addrows(n_row)
         for name, value in columns.items():
@@ -288,10 +284,4 @@ def create_ms(path: str | Path, layout: ArrayLayout, band: Band, field: Field,
         t0 = float(time.min()) if n_row else 0.0
         t1 = float(time.max()) if n_row else 0.0
         _fill_subtables(str(partial), layout, band, field, (t0, t1), telescope)
-        if path.exists():
-            shutil.rmtree(path)
-        partial.rename(path)
-    except BaseException:
-        shutil.rmtree(partial, ignore_errors=True)
-        raise
     return path
