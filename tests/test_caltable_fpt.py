@@ -10,6 +10,9 @@ refused before anything is written.
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from casacore import tables as pt
@@ -27,10 +30,14 @@ def col(ms, name):
 
 
 def applycal(ms, table):
-    from hitops.casa.runner import run_task
-
-    run_task("applycal", vis=str(ms), gaintable=[str(table)], interp=["nearest"],
-             applymode="calflag", calwt=[False], flagbackup=False)
+    """CASA applycal in its own process: casatools carries its own casacore, and a table
+    this process still holds (dask-ms keeps handles until collected) must not see CASA
+    add CORRECTED_DATA underneath it."""
+    code = ("import sys; from hitops.casa.runner import run_task; "
+            "run_task('applycal', vis=sys.argv[1], gaintable=[sys.argv[2]], "
+            "interp=['nearest'], applymode='calflag', calwt=[False], flagbackup=False)")
+    subprocess.run([sys.executable, "-c", code, str(ms), str(table)], check=True,
+                   capture_output=True, timeout=300)
 
 
 @pytest.mark.parametrize("offset_model", [None, "point"])
@@ -66,3 +73,23 @@ def test_a_table_needs_the_antenna_tracker(tmp_path):
     with pt.table(str(truth.target_ms), ack=False) as t:
         assert "PWC_DATA" not in t.colnames()
     assert not (tmp_path / "t.G").exists()
+
+
+def test_calibrate_leaves_no_table_open_for_casa_to_invalidate(tmp_path):
+    """After calibrate returns, CASA (its own casacore) may add a column to the set and
+    this process must still read it: calibrate closes the table handles dask-ms held
+    (automatic garbage collection is switched off here, so only that close can help)."""
+    import gc
+
+    truth = make_pair(tmp_path, n_time=100, seed=7, corr_types=("RR", "RL", "LR", "LL"),
+                      ref_offset_scale=0.0)
+    table = tmp_path / "fpt.G"
+    gc.disable()
+    try:
+        calibrate(truth.ref_ms, truth.target_ms, tracker="antenna", caltable=str(table),
+                  no_verdict=True)
+        applycal(truth.target_ms, table)
+        with pt.table(str(truth.target_ms), ack=False) as t:
+            assert "CORRECTED_DATA" in t.colnames()
+    finally:
+        gc.enable()

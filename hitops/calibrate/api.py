@@ -25,6 +25,7 @@ could not be calibrated).  See docs/calibrate.md.
 
 from __future__ import annotations
 
+import gc
 import json
 import logging
 import math
@@ -212,6 +213,11 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
             _raise_if_damaged(err, [(ref_ms, [ref_column, "FLAG"] + INDEX_COLUMNS),
                                     (target_ms, [target_column, "FLAG"] + INDEX_COLUMNS)])
             raise
+        finally:
+            # dask-ms keeps its table handles until they are collected; close them now, so
+            # that CASA (its own casacore) or another process can change the set next
+            # without this process holding a stale column list
+            gc.collect()
 
 
 def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
