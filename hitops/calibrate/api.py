@@ -36,23 +36,21 @@ from typing import Dict, List
 
 import numpy as np
 
-from ..errors import (HitopsError, InputError, MeasurementSetError, OutputExistsError,
-                      RollbackError)
+from ..errors import HitopsError, InputError, MeasurementSetError, OutputExistsError
 from ..io import access
 from ..io import read as msio
 from ..io.match import parse_antenna_map
 from ..io.stations import read_stations
 from ..options import make_options
 from .chunks import INDEX_COLUMNS, ROW_COLUMNS, BandIndex, ChunkMatch, index_bands
+from .output import (FLAG_BACKUP, STAGING_PREFIX, OutputTransaction, drop_stale_columns,
+                     release_cluster_tables)
 
 log = logging.getLogger("hitops.calibrate")
 
 DEFAULT_COLUMNS = {"pwc": "PWC_DATA", "cfpt": "CFPT_DATA", "cwu": "CWU_DATA"}
-FLAG_BACKUP = "FLAG_HITOPS_BACKUP"
-#: output columns are written under this prefix and renamed when complete, so a run that is
-#: killed leaves nothing that looks like a result (and the next run removes the leftovers)
-STAGING_PREFIX = "HITOPS_PARTIAL_"
-STAGING_FLAG = STAGING_PREFIX + "FLAG"
+#: output columns are written under STAGING_PREFIX and renamed when complete, so a run that
+#: is killed leaves nothing that looks like a result (hitops/calibrate/output.py)
 META_COLUMNS = INDEX_COLUMNS
 #: read only when the DATA_DESCRIPTION / FIELD subtables have several rows
 SELECTION_COLUMNS = ["DATA_DESC_ID", "FIELD_ID"]
@@ -204,7 +202,7 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
     with access.RunLock(target_ms, lock_timeout, "target-band Measurement Set"):
         access.wait_for_table_lock(target_ms, True, lock_timeout, "target-band Measurement Set")
         access.wait_for_table_lock(ref_ms, False, lock_timeout, "reference-band Measurement Set")
-        _drop_staging_columns(target_ms)
+        drop_stale_columns(target_ms)
         opts = make_options("calibrate", locals())
         try:
             return _calibrate_locked(opts, methods, ref_ms, target_ms, started)
@@ -686,7 +684,7 @@ def _run(ctx: Dict, started: float) -> Dict:
             timings["transfer"] += time.perf_counter() - stage
             if write:
                 stage = time.perf_counter()
-                _write_chunk(g, ch, phasor_rows, calibrated, codes, staging, io_scheduler)
+                _write_chunk(tx, ch, phasor_rows, calibrated, codes, io_scheduler)
                 timings["write"] += time.perf_counter() - stage
         if tracker is not None:
             wrap_events = tracker.stats.per_series["wrap_events"].copy()
@@ -709,25 +707,22 @@ def _run(ctx: Dict, started: float) -> Dict:
                               [phasor_rows[c] for c in codes if c in (fpt.PWC, fpt.CWU)])
             timings["offset_apply"] = timings.get("offset_apply", 0.0) + time.perf_counter() - stage
             stage = time.perf_counter()
-            _write_chunk(g, ch, phasor_rows, calibrated, codes, staging, io_scheduler)
+            _write_chunk(tx, ch, phasor_rows, calibrated, codes, io_scheduler)
             timings["write"] += time.perf_counter() - stage
         return totals, wrap_events, None, None
 
-    state = {"created": [], "backup_created": False}
-    g["_state"] = state
-    present = set(msio.column_names(target_ms))
-    staging = {m: STAGING_PREFIX + col for m, col in outputs.items()}
-    state["created"] = list(staging.values()) + [STAGING_FLAG]
-    state["rows_written"] = np.zeros(g["n_target_rows"], dtype=bool)
-    _check_space(g, staging, FLAG_BACKUP not in present)
+    # everything this run changes in the target set (hitops/calibrate/output.py)
+    tx = OutputTransaction(target_ms, outputs, g["target_column"], g["n_target_rows"],
+                           g["chunk_rows"])
+    tx.check_space()
     if client is not None:
-        _release_cluster_tables(client)   # stale handles of an earlier run on this cluster
-        _create_columns_for_cluster(g, state)
+        release_cluster_tables(client)   # stale handles of an earlier run on this cluster
+        tx.create_columns()
     try:
         offsets, offset_report = _offset_pass(g, run_pass, codes, n_corr, n_scan)
     except BaseException:
         if client is not None:   # the columns made above are dropped again
-            _rollback(g)
+            tx.rollback()
         raise
     try:
         # robust trackers: offsets stays zero, the per-segment k goes into the counts
@@ -737,73 +732,13 @@ def _run(ctx: Dict, started: float) -> Dict:
             totals, wrap_events, _, _ = run_pass(offsets, write=True,
                                                  segment_k=g.get("_segment_k"))
         if client is not None:
-            _release_cluster_tables(client)
-        _commit_columns(g, staging, outputs)
+            release_cluster_tables(client)
+        tx.commit()
     except BaseException:
-        _rollback(g)
+        tx.rollback()
         raise
-    return _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, state,
+    return _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, tx,
                    started, n_chunks)
-
-
-def _release_cluster_tables(client) -> None:
-    """Let the scheduler and workers close their handles of the tables before the commit.
-
-    The commit renames and removes columns; a process that still holds the table
-    open from this run's reads would fail on its next use of it ("another process
-    changed the number of columns").  dask-ms keeps its table handles only while
-    tasks refer to them: wait until the scheduler has released this run's tasks,
-    then collect the garbage everywhere (best effort: a failure here only means
-    a later run on the same cluster reopens the table).
-    """
-    import gc
-
-    def settle(dask_scheduler=None, timeout=5.0):
-        deadline = time.monotonic() + timeout
-        while dask_scheduler is not None and dask_scheduler.tasks and time.monotonic() < deadline:
-            time.sleep(0.05)
-        return gc.collect()
-
-    try:
-        client.run_on_scheduler(settle)
-        client.run(gc.collect)
-    except Exception as err:   # noqa: BLE001 - best effort, see above
-        log.debug("could not ask the cluster to release its tables: %s", err)
-
-
-def _create_columns_for_cluster(g: Dict, state: Dict) -> None:
-    """Create the staging columns before any graph goes to a cluster.
-
-    dask-ms adds a missing column while it builds the write graph, in this
-    process; a dask.distributed scheduler and its workers still hold the table
-    open from the reads, with the old column list, and casacore then refuses to
-    open it again ("another process changed the number of columns"), which left
-    the run hanging.  Made here, the columns exist before the cluster opens the
-    table; a failure later drops them again (:func:`_rollback`).
-    """
-    from casacore import tables as pt
-
-    target_ms = g["target_ms"]
-    with pt.table(target_ms, readonly=False, ack=False) as t:
-        t.lock(write=True)
-        new = [(c, g["target_column"]) for c in state["created"] if c != STAGING_FLAG]
-        new.append((STAGING_FLAG, "FLAG"))
-        for name, like in new:
-            desc = t.getcoldesc(like)
-            desc["name"] = name
-            t.addcols(pt.makecoldesc(name, desc), _like_dminfo(t.getdminfo(like), name))
-    log.info("created %s in %s before sending work to the cluster",
-             ", ".join(n for n, _ in new), target_ms)
-
-
-def _like_dminfo(dminfo: Dict, name: str) -> Dict:
-    """A data manager of the same kind as ``dminfo`` (a column's) for new column ``name``."""
-    kind = dminfo.get("TYPE", "StandardStMan")
-    spec = dminfo.get("SPEC", {})
-    if kind.startswith("Tiled"):
-        keep = {"DEFAULTTILESHAPE": spec["DEFAULTTILESHAPE"]} if "DEFAULTTILESHAPE" in spec else {}
-        return {"TYPE": "TiledShapeStMan", "NAME": f"{name}_TSM", "SPEC": keep}
-    return {"TYPE": "StandardStMan", "NAME": f"{name}_SSM", "SPEC": {}}
 
 
 def _offset_pass(g, run_pass, codes, n_corr, n_scan):
@@ -936,7 +871,7 @@ def _log_antenna_offsets(antennas, solves) -> None:
              sum(bool(e.get("ambiguous")) for e in antennas))
 
 
-def _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, state, started,
+def _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, tx, started,
             n_chunks):
     """The log lines and the JSON report of a finished run."""
     match, methods, outputs = g["match"], g["methods"], g["outputs"]
@@ -976,9 +911,9 @@ def _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, stat
             "baselines": [{"baseline": name, "wrap_events": int(wrap_events[b].sum())}
                           for b, name in enumerate(match.baseline_names)]},
         "flags": {"column": "FLAG", "backup_column": FLAG_BACKUP,
-                  "flag_updated": bool(state.get("flag_written")),
+                  "flag_updated": tx.flag_written,
                   "input_flags": g["flag_column"],
-                  "backup_created": bool(state.get("backup_written"))},
+                  "backup_created": tx.backup_written},
         "rows": {"target": int(g["n_target_rows"]), "matched": match.n_matched,
                  "reference_unused": match.n_ref_unused},
         "samples": {"target": n_samples, "flagged": flagged,
@@ -1126,130 +1061,14 @@ def _merge_carry(carry, bls, part):
     carry.count[bls] = part.count
 
 
-def _write_chunk(g, ch, phasor_rows, calibrated, codes, staging, io_scheduler):
-    """Write one chunk's output columns and new flags, all into staging columns.
-
-    FLAG itself is not touched here: :func:`_commit_columns` copies the staged
-    flags into it once every chunk has been written, so a failure or a kill
-    before then leaves FLAG as it was.
-    """
+def _write_chunk(tx, ch, phasor_rows, calibrated, codes, io_scheduler):
+    """Stage one chunk: each method's output and the new flags (FLAG | FLAG_ROW | not calibrated)."""
     from ..kernels import fpt
 
     names = {v: k for k, v in fpt.METHOD_CODES.items()}
-    data = ch["tgt_data"]
-    arrays, dims = {}, {}
-    vis_dims = ("row", "chan", "corr")
-    for c in codes:
-        arrays[staging[names[c]]] = (data * phasor_rows[c][:, None, :]).astype(np.complex64, copy=False)
-        dims[staging[names[c]]] = vis_dims
-    arrays[STAGING_FLAG] = ch["tgt_flag"] | ch["tgt_flag_row"][:, None, None] | ~calibrated[:, None, :]
-    dims[STAGING_FLAG] = vis_dims
-    msio.write_main_columns(g["target_ms"], ch["tgt_rows"], arrays, dims, scheduler=io_scheduler)
-    g["_state"]["rows_written"][ch["tgt_rows"]] = True
-
-
-def _commit_columns(g: Dict, staging: Dict[str, str], outputs: Dict[str, str]) -> None:
-    """Make a finished run's output visible: FLAG backup, new FLAG, columns renamed.
-
-    In order: FLAG is backed up into FLAG_HITOPS_BACKUP the first time hitops
-    changes it; the staged flags replace FLAG on the rows this run wrote
-    (block by block, only where they differ); each staging column takes its
-    final name (an existing column of that name, kept until now, is removed
-    first).  Memory: one block of ``chunk_rows`` rows at a time.
-    """
-    from casacore import tables as pt
-
-    state = g["_state"]
-    written = state["rows_written"]
-    step = max(1, int(g["chunk_rows"]))
-    with pt.table(g["target_ms"], readonly=False, ack=False) as t:
-        t.lock(write=True)
-        n_row = t.nrows()
-        changed = []
-        for start in range(0, n_row, step):
-            n = min(step, n_row - start)
-            rows = written[start:start + n]
-            if not rows.any():
-                continue
-            flag = t.getcol("FLAG", start, n)
-            new = flag.copy()
-            new[rows] = t.getcol(STAGING_FLAG, start, n)[rows]
-            if not np.array_equal(new, flag):
-                changed.append(start)
-        if changed and FLAG_BACKUP not in t.colnames():
-            desc = t.getcoldesc("FLAG")
-            desc["name"] = FLAG_BACKUP
-            t.addcols(pt.makecoldesc(FLAG_BACKUP, desc), _like_dminfo(t.getdminfo("FLAG"),
-                                                                      FLAG_BACKUP))
-            for start in range(0, n_row, step):
-                n = min(step, n_row - start)
-                t.putcol(FLAG_BACKUP, t.getcol("FLAG", start, n), start, n)
-            state["backup_written"] = True
-        for start in changed:
-            n = min(step, n_row - start)
-            rows = written[start:start + n]
-            flag = t.getcol("FLAG", start, n)
-            flag[rows] = t.getcol(STAGING_FLAG, start, n)[rows]
-            t.putcol("FLAG", flag, start, n)
-        state["flag_written"] = bool(changed)
-        t.removecols([STAGING_FLAG])
-        for method, final in outputs.items():
-            if final in t.colnames():
-                t.removecols([final])
-            t.renamecol(staging[method], final)
-
-
-def _rollback(g):
-    """After a failure or an interrupt: drop this run's staging columns.
-
-    Nothing else was changed before :func:`_commit_columns`, so the target set
-    is then as it was before the run.
-    """
-    from casacore import tables as pt
-
-    state = g["_state"]
-    try:
-        with pt.table(g["target_ms"], readonly=False, ack=False) as t:
-            t.lock(write=True)
-            drop = [c for c in state["created"] if c in t.colnames()]
-            if drop:
-                t.removecols(drop)
-        log.error("calibrate stopped before it finished writing %s: removed its unfinished "
-                  "columns; the set is as it was before this run", g["target_ms"])
-    except Exception as err:  # the original error matters more
-        raise RollbackError(
-            f"calibrate failed while writing {g['target_ms']} and could not remove its "
-            f"unfinished columns ({' '.join(str(err).split())}); they start with "
-            f"{STAGING_PREFIX}: the next hitops calibrate run on the set removes them, or "
-            "remove them by hand (casacore table.removecols)") from err
-
-
-def _drop_staging_columns(target_ms: str) -> None:
-    """Remove staging columns left by a run that was killed (they never hold a result)."""
-    from casacore import tables as pt
-
-    with pt.table(target_ms, ack=False) as t:
-        stale = [c for c in t.colnames() if c.startswith(STAGING_PREFIX)]
-    if stale:
-        with pt.table(target_ms, readonly=False, ack=False) as t:
-            t.removecols(stale)
-        log.warning("removed %s from %s: unfinished columns of an earlier run that was "
-                    "stopped", ", ".join(stale), target_ms)
-
-
-def _check_space(g: Dict, staging: Dict[str, str], backup_needed: bool) -> None:
-    """Refuse before writing when the staging columns (and the backup) cannot fit."""
-    from casacore import tables as pt
-
-    with pt.table(g["target_ms"], ack=False) as t:
-        n_row = t.nrows()
-        cell = t.getcell(g["target_column"], 0) if n_row else np.zeros((1, 1))
-    n_cells = n_row * int(np.prod(cell.shape))
-    # complex64 outputs, the staged flags, the backup (casacore stores Bool as bits in
-    # tiled columns and bytes in others: count bytes)
-    n_bytes = n_cells * (8 * len(staging) + 1 + (1 if backup_needed else 0))
-    access.require_free_space(g["target_ms"], n_bytes,
-                              f"{', '.join(g['outputs'].values())} and FLAG")
+    new_flag = ch["tgt_flag"] | ch["tgt_flag_row"][:, None, None] | ~calibrated[:, None, :]
+    tx.write_chunk(ch["tgt_rows"], ch["tgt_data"], {names[c]: phasor_rows[c] for c in codes},
+                   new_flag, io_scheduler)
 
 
 def _raise_if_damaged(err: RuntimeError, tables) -> None:

@@ -1,0 +1,214 @@
+"""Everything a calibrate run changes in the target set, in one transaction.
+
+While the run goes on, every output column and the new flags are written under
+``HITOPS_PARTIAL_*`` names; FLAG and the final column names are touched only by
+:meth:`OutputTransaction.commit`, once every chunk is written.  A failure or an
+interrupt before then (:meth:`OutputTransaction.rollback`) drops the staging
+columns and leaves the set as it was; a killed run leaves only staging columns,
+which no reader takes for a result and the next run removes
+(:func:`drop_stale_columns`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Dict
+
+import numpy as np
+
+from ..errors import RollbackError
+from ..io import access
+from ..io import read as msio
+
+log = logging.getLogger("hitops.calibrate")
+
+FLAG_BACKUP = "FLAG_HITOPS_BACKUP"
+STAGING_PREFIX = "HITOPS_PARTIAL_"
+STAGING_FLAG = STAGING_PREFIX + "FLAG"
+VIS_DIMS = ("row", "chan", "corr")
+
+
+def like_dminfo(dminfo: Dict, name: str) -> Dict:
+    """A data manager of the same kind as ``dminfo`` (a column's) for new column ``name``."""
+    kind = dminfo.get("TYPE", "StandardStMan")
+    spec = dminfo.get("SPEC", {})
+    if kind.startswith("Tiled"):
+        keep = {"DEFAULTTILESHAPE": spec["DEFAULTTILESHAPE"]} if "DEFAULTTILESHAPE" in spec else {}
+        return {"TYPE": "TiledShapeStMan", "NAME": f"{name}_TSM", "SPEC": keep}
+    return {"TYPE": "StandardStMan", "NAME": f"{name}_SSM", "SPEC": {}}
+
+
+def drop_stale_columns(target_ms: str) -> None:
+    """Remove staging columns left by a run that was killed (they never hold a result)."""
+    from casacore import tables as pt
+
+    with pt.table(target_ms, ack=False) as t:
+        stale = [c for c in t.colnames() if c.startswith(STAGING_PREFIX)]
+    if stale:
+        with pt.table(target_ms, readonly=False, ack=False) as t:
+            t.removecols(stale)
+        log.warning("removed %s from %s: unfinished columns of an earlier run that was "
+                    "stopped", ", ".join(stale), target_ms)
+
+
+class OutputTransaction:
+    """This run's changes to the target set: staging columns, FLAG, commit and rollback.
+
+    ``outputs``: method -> final column name; ``target_column``: the column whose
+    description the outputs copy; ``chunk_rows``: rows per block when FLAG is
+    copied at the commit (the run's memory bound).
+    """
+
+    def __init__(self, target_ms: str, outputs: Dict[str, str], target_column: str,
+                 n_rows: int, chunk_rows: int):
+        self.target_ms = target_ms
+        self.outputs = dict(outputs)
+        self.target_column = target_column
+        self.chunk_rows = max(1, int(chunk_rows))
+        self.staging = {m: STAGING_PREFIX + col for m, col in outputs.items()}
+        self.created = list(self.staging.values()) + [STAGING_FLAG]
+        self.rows_written = np.zeros(int(n_rows), dtype=bool)
+        self.backup_written = False
+        self.flag_written = False
+
+    def check_space(self) -> None:
+        """Refuse before writing when the staging columns (and a backup) cannot fit."""
+        from casacore import tables as pt
+
+        with pt.table(self.target_ms, ack=False) as t:
+            n_row = t.nrows()
+            cell = t.getcell(self.target_column, 0) if n_row else np.zeros((1, 1))
+            backup_needed = FLAG_BACKUP not in t.colnames()
+        n_cells = n_row * int(np.prod(cell.shape))
+        # complex64 outputs, the staged flags, the backup (casacore stores Bool as bits in
+        # tiled columns and bytes in others: count bytes)
+        n_bytes = n_cells * (8 * len(self.staging) + 1 + (1 if backup_needed else 0))
+        access.require_free_space(self.target_ms, n_bytes,
+                                  f"{', '.join(self.outputs.values())} and FLAG")
+
+    def create_columns(self) -> None:
+        """Create the staging columns now (before a cluster opens the table).
+
+        dask-ms adds a missing column while it builds the write graph, in this
+        process; a dask.distributed scheduler and its workers that still hold the
+        table open from the reads keep the old column list, and casacore then
+        refuses to open it again ("another process changed the number of columns").
+        """
+        from casacore import tables as pt
+
+        with pt.table(self.target_ms, readonly=False, ack=False) as t:
+            t.lock(write=True)
+            new = [(c, self.target_column) for c in self.created if c != STAGING_FLAG]
+            new.append((STAGING_FLAG, "FLAG"))
+            for name, like in new:
+                desc = t.getcoldesc(like)
+                desc["name"] = name
+                t.addcols(pt.makecoldesc(name, desc), like_dminfo(t.getdminfo(like), name))
+        log.info("created %s in %s before sending work to the cluster",
+                 ", ".join(n for n, _ in new), self.target_ms)
+
+    def write_chunk(self, rows: np.ndarray, data: np.ndarray, phasors: Dict[str, np.ndarray],
+                    new_flag: np.ndarray, scheduler=None) -> None:
+        """One chunk's outputs (data times each method's phasor) and new flags, staged.
+
+        ``rows`` (n,) target rows; ``data`` (n, n_chan, n_corr); ``phasors``:
+        method -> (n, n_corr); ``new_flag`` (n, n_chan, n_corr).
+        """
+        arrays = {self.staging[m]: (data * p[:, None, :]).astype(np.complex64, copy=False)
+                  for m, p in phasors.items()}
+        arrays[STAGING_FLAG] = new_flag
+        msio.write_main_columns(self.target_ms, rows, arrays,
+                                {name: VIS_DIMS for name in arrays}, scheduler=scheduler)
+        self.rows_written[rows] = True
+
+    def commit(self) -> None:
+        """Make the finished run visible: FLAG backup, new FLAG, columns renamed.
+
+        FLAG is backed up into FLAG_HITOPS_BACKUP the first time hitops changes it;
+        the staged flags replace FLAG on the rows this run wrote (block by block,
+        only where they differ); each staging column takes its final name (an
+        existing column of that name, kept until now, is removed first).
+        """
+        from casacore import tables as pt
+
+        written, step = self.rows_written, self.chunk_rows
+        with pt.table(self.target_ms, readonly=False, ack=False) as t:
+            t.lock(write=True)
+            n_row = t.nrows()
+            changed = []
+            for start in range(0, n_row, step):
+                n = min(step, n_row - start)
+                rows = written[start:start + n]
+                if not rows.any():
+                    continue
+                flag = t.getcol("FLAG", start, n)
+                new = flag.copy()
+                new[rows] = t.getcol(STAGING_FLAG, start, n)[rows]
+                if not np.array_equal(new, flag):
+                    changed.append(start)
+            if changed and FLAG_BACKUP not in t.colnames():
+                desc = t.getcoldesc("FLAG")
+                desc["name"] = FLAG_BACKUP
+                t.addcols(pt.makecoldesc(FLAG_BACKUP, desc),
+                          like_dminfo(t.getdminfo("FLAG"), FLAG_BACKUP))
+                for start in range(0, n_row, step):
+                    n = min(step, n_row - start)
+                    t.putcol(FLAG_BACKUP, t.getcol("FLAG", start, n), start, n)
+                self.backup_written = True
+            for start in changed:
+                n = min(step, n_row - start)
+                rows = written[start:start + n]
+                flag = t.getcol("FLAG", start, n)
+                flag[rows] = t.getcol(STAGING_FLAG, start, n)[rows]
+                t.putcol("FLAG", flag, start, n)
+            self.flag_written = bool(changed)
+            t.removecols([STAGING_FLAG])
+            for method, final in self.outputs.items():
+                if final in t.colnames():
+                    t.removecols([final])
+                t.renamecol(self.staging[method], final)
+
+    def rollback(self) -> None:
+        """After a failure or an interrupt: drop the staging columns (nothing else changed)."""
+        from casacore import tables as pt
+
+        try:
+            with pt.table(self.target_ms, readonly=False, ack=False) as t:
+                t.lock(write=True)
+                drop = [c for c in self.created if c in t.colnames()]
+                if drop:
+                    t.removecols(drop)
+            log.error("calibrate stopped before it finished writing %s: removed its unfinished "
+                      "columns; the set is as it was before this run", self.target_ms)
+        except Exception as err:  # the original error matters more
+            raise RollbackError(
+                f"calibrate failed while writing {self.target_ms} and could not remove its "
+                f"unfinished columns ({' '.join(str(err).split())}); they start with "
+                f"{STAGING_PREFIX}: the next hitops calibrate run on the set removes them, or "
+                "remove them by hand (casacore table.removecols)") from err
+
+
+def release_cluster_tables(client) -> None:
+    """Let a cluster's scheduler and workers close their handles of the tables.
+
+    The commit renames and removes columns; a process that still holds the table
+    open from this run's reads would fail on its next use of it ("another process
+    changed the number of columns").  dask-ms keeps its table handles only while
+    tasks refer to them: wait until the scheduler has released this run's tasks,
+    then collect the garbage everywhere (best effort: a failure here only means
+    a later run on the same cluster reopens the table).
+    """
+    import gc
+
+    def settle(dask_scheduler=None, timeout=5.0):
+        deadline = time.monotonic() + timeout
+        while dask_scheduler is not None and dask_scheduler.tasks and time.monotonic() < deadline:
+            time.sleep(0.05)
+        return gc.collect()
+
+    try:
+        client.run_on_scheduler(settle)
+        client.run(gc.collect)
+    except Exception as err:   # noqa: BLE001 - best effort, see above
+        log.debug("could not ask the cluster to release its tables: %s", err)
