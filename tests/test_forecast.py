@@ -40,7 +40,7 @@ def test_forecast_paper_stations_writes_table_markdown_and_heatmap(tmp_path):
 
 
 @pytest.mark.parametrize("kwargs,words", [
-    (dict(months="7"), ["station AP", "APEX", "month 7", "months with data there: 4"]),
+    (dict(months="8"), ["station AP", "APEX", "month 8", "months with data there: 1, 3, 4, 7, 10"]),
     (dict(stations="AP,QQ"), ["unknown merra2 site 'QQ'", "nearest"]),
     (dict(stations="AP"), ["at least two stations"]),
     (dict(months="13"), ["1-12"]),

@@ -72,7 +72,7 @@ def test_3hourly_values_are_the_source_values_exactly(site, day, segment):
                                            ("SMA", 2018, 10), ("IRAM", 2011, 22)])
 def test_daily_values_are_the_source_values_exactly(site, year, day):
     row = next(r for r in shipped("merra2_daily.csv")
-               if (r["site"], int(r["year"]), int(r["day"])) == (site, year, day))
+               if (r["site"], int(r["year"]), int(r["month"]), int(r["day"])) == (site, year, 4, day))
     d = SOURCES / "daily" / site / "04Apr"
     for band in ("230", "345"):
         rows = source_values(d / f"mean_SEFD_info_{band}.csv", 2)
@@ -81,6 +81,42 @@ def test_daily_values_are_the_source_values_exactly(site, year, day):
         else:
             tau, tb = source_values(d / f"mean_SEFD_info_{band}.csv", 3)[(year, 4, day)]
         assert float(row[f"tau{band}"]) == float(tau) and float(row[f"tb{band}"]) == float(tb)
+
+
+@pytest.mark.parametrize("site,folder,year,day", [
+    ("GLT", "01Jan", 2013, 17), ("KVNYS", "01Jan", 2016, 5), ("SMA", "03Mar", 2015, 4),
+    ("KP", "03Mar", 2009, 22), ("APEX", "07Jul", 2011, 7), ("KVNYS", "07Jul", 2014, 10),
+    ("IRAM", "10Oct", 2012, 18), ("NOEMA", "10Oct", 2018, 31)])
+def test_other_months_are_the_source_values_exactly(site, folder, year, day):
+    """Daily means of months other than April: 230 GHz (and wind, 2009) to the last digit."""
+    month = int(folder[:2])
+    row = next(r for r in shipped("merra2_daily.csv")
+               if (r["site"], int(r["year"]), int(r["month"]), int(r["day"])) == (site, year, month, day))
+    path = SOURCES / "daily" / site / folder / "mean_SEFD_info_230.csv"
+    rows = source_values(path, 2)
+    if (year, day) in rows:
+        tau, tb = rows[(year, day)]
+    else:
+        tau, tb = source_values(path, 3)[(year, month, day)]
+    assert float(row["tau230"]) == float(tau) and float(row["tb230"]) == float(tb)
+    assert row["tau345"] == "" and row["src86"] == "derived"
+    wind = source_values(SOURCES / "daily" / site / folder / "mean_wind_speed.csv", 3)
+    if (year, month, day) in wind:
+        assert float(row["wind"]) == float(wind[(year, month, day)][0])
+    else:
+        assert row["wind"] == ""
+
+
+def test_months_in_the_daily_table():
+    months = {int(r["month"]) for r in shipped("merra2_daily.csv")}
+    assert months == {1, 3, 4, 7, 10}
+    manifest = (SOURCES / "daily" / "manifest.tsv").read_text().splitlines()[1:]
+    folders = {line.split("\t")[1] for line in manifest}
+    assert folders == {"01Jan", "03Mar", "04Apr", "07Jul", "10Oct"}
+    for line in manifest:
+        site, folder, name, commit, chars = line.split("\t")
+        assert len(commit) == 40
+        assert (SOURCES / "daily" / site / folder / name).stat().st_size == int(chars)
 
 
 def test_provenance_is_shipped_with_the_data():
@@ -135,10 +171,10 @@ def test_pyeongchang_uses_yonsei_and_says_so():
 
 
 @pytest.mark.parametrize("kwargs,station,bands,words", [
-    (dict(date="2023-07-10"), "AP", [("86", 86e9)], ["APEX", "2023-07-10", "nearest available date"]),
+    (dict(date="2023-08-10"), "AP", [("86", 86e9)], ["APEX", "2023-08-10", "nearest available date"]),
     (dict(date="2023-04-10", fallback="error"), "PV", [("86", 86e9)],
      ["IRAM", "2023-04-10", "2018-04-10", "year: 2018"]),
-    (dict(month=7), "PB", [("86", 86e9)], ["NOEMA", "month 7", "months with data: 4"]),
+    (dict(month=8), "PB", [("86", 86e9)], ["NOEMA", "month 8", "months with data: 1, 3, 4, 7, 10"]),
     (dict(date="2018-04-10"), "QQ", [("86", 86e9)], ["unknown merra2 site 'QQ'", "nearest name"]),
     (dict(date="2018-04-10"), "AP", [("100", 100e9)], ["100 GHz", "nearest: 86 GHz"]),
     (dict(date="2018-04-10"), "LM", [("345", 345e9)], ["band '345'", "LMT", "86, 230"]),
@@ -185,9 +221,23 @@ def test_scene_weather_sets_opacity_sky_and_coherence_with_overrides(tmp_path):
     assert "3-hourly" in str(truth["weather_source"][0])
 
 
+@pytest.mark.parametrize("month", [1, 3, 7, 10])
+def test_scene_weather_for_other_months(month):
+    """weather: {source: merra2, month: N, statistic: median} for the months beyond April."""
+    scene = weather_scene(weather={"source": "merra2", "month": month, "statistic": "median"})
+    parsed = parse_scene(scene)
+    times = np.arange(60) * 60.0 + mjd_seconds(dt.date(2018, 4, 10))
+    weathers = [w for w in station_weathers(parsed, times) if w is not None]
+    assert len(weathers) == len(parsed.stations)
+    for w in weathers:
+        assert w.mode == "month" and f"month {month}" in w.description
+        assert np.all(np.isfinite(w.tau["86"])) and np.all(np.isfinite(w.tau["230"]))
+        assert np.all(np.isfinite(w.wind))
+
+
 @pytest.mark.parametrize("change,words", [
-    ({"weather": {"source": "merra2", "date": "2023-07-10"}}, ["2023-07-10", "nearest"]),
-    ({"weather": {"source": "merra2", "month": 8}}, ["month 8", "months with data: 4"]),
+    ({"weather": {"source": "merra2", "date": "2023-08-10"}}, ["2023-08-10", "nearest"]),
+    ({"weather": {"source": "merra2", "month": 8}}, ["month 8", "months with data: 1, 3, 4, 7, 10"]),
     ({"weather": {"source": "merra2", "date": "2018-04-10", "statistic": "best"}}, ["statistic"]),
     ({"bands": [{"name": "86", "freq_ghz": 86, "bandwidth_ghz": 2},
                 {"name": "150", "freq_ghz": 150, "bandwidth_ghz": 2}]}, ["150 GHz", "nearest"]),

@@ -11,13 +11,15 @@ every file (``sources/native/manifest_native.tsv``, ``sources/daily/manifest.tsv
   for 2018-04-06..14: ``SEFD_info_230.csv`` (tau, Tb at 230 GHz), ``SEFD_info_86.csv``
   (86 GHz, APEX and KVNYS only), ``wind_speed.csv``, ``PWV.csv``;
   ``GLT/04Apr/mean_SEFD_info_86.csv``: GLT daily means at 86 GHz, April 2018.
-* ``daily/<SITE>/04Apr/``: daily means (mean of the 8 analyses) for April 2009-2018:
-  ``mean_SEFD_info_230.csv``, ``mean_SEFD_info_345.csv``, ``mean_wind_speed.csv`` (2009 only).
+* ``daily/<SITE>/<MM><Mon>/`` (one folder per month, e.g. ``03Mar``, ``04Apr``, named as in
+  the source): daily means (mean of the 8 analyses) for 2009-2018:
+  ``mean_SEFD_info_230.csv``, ``mean_SEFD_info_345.csv``, ``mean_wind_speed.csv`` (2009 only);
+  a month folder may lack the 345 GHz or wind file (those columns are then empty).
 
 Outputs (``hitops/weather/data/``):
 
 * ``merra2_3hourly.csv``: one row per site, day (2018-04-07..13) and analysis time.
-* ``merra2_daily.csv``: one row per site and day (April 2009-2018).
+* ``merra2_daily.csv``: one row per site and day (every month folder in ``sources/daily``).
 * ``derivation_86ghz.json``: the fitted 86 GHz model, its errors, the 345 GHz scaling.
 
 How the bands the tables lack are filled (column ``src86`` / ``src345``):
@@ -117,14 +119,19 @@ def load_sources():
             "86daily": {k[1]: v for k, v in read_daily(d / "mean_SEFD_info_86.csv", 2).items()},
         }
     for site_dir in sorted((SOURCES / "daily").iterdir()):
-        d = site_dir / "04Apr"
-        if not d.is_dir():
+        if not site_dir.is_dir():
             continue
-        daily[site_dir.name] = {
-            "230": read_daily(d / "mean_SEFD_info_230.csv", 2),
-            "345": read_daily(d / "mean_SEFD_info_345.csv", 2),
-            "wind": read_daily(d / "mean_wind_speed.csv", 1),
-        }
+        q = {"230": {}, "345": {}, "wind": {}}
+        # one folder per month, named as in the source (01Jan, 02Feb, ..., 12Dec)
+        for d in sorted(p for p in site_dir.iterdir() if p.is_dir() and p.name[:2].isdigit()):
+            month = int(d.name[:2])
+            for band, name, n in (("230", "mean_SEFD_info_230.csv", 2),
+                                  ("345", "mean_SEFD_info_345.csv", 2),
+                                  ("wind", "mean_wind_speed.csv", 1)):
+                for (year, day), vals in read_daily(d / name, n).items():
+                    q[band][(year, month, day)] = vals
+        if q["230"]:
+            daily[site_dir.name] = q
     return native, daily
 
 
@@ -219,8 +226,8 @@ def build():
         q = native[site]
         x2 = pressure_ratio(SITES[site]) ** 2
         for day in NATIVE_DAYS:
-            d345 = daily.get(site, {}).get("345", {}).get((YEAR, day))
-            d230 = daily.get(site, {}).get("230", {}).get((YEAR, day))
+            d345 = daily.get(site, {}).get("345", {}).get((YEAR, MONTH, day))
+            d230 = daily.get(site, {}).get("230", {}).get((YEAR, MONTH, day))
             for seg in SEGMENTS:
                 key = (day, seg)
                 if key not in q["230"] or key not in q["wind"]:
@@ -249,16 +256,16 @@ def build():
         q = daily[site]
         x2 = pressure_ratio(SITES[site]) ** 2
         glt86 = native.get(site, {}).get("86daily", {})
-        for (year, day), (tau230, tb230) in sorted(q["230"].items()):
-            t345 = q["345"].get((year, day), [math.nan, math.nan])
-            wind = q["wind"].get((year, day), [math.nan])[0]
-            if year == YEAR and day in glt86:
+        for (year, month, day), (tau230, tb230) in sorted(q["230"].items()):
+            t345 = q["345"].get((year, month, day), [math.nan, math.nan])
+            wind = q["wind"].get((year, month, day), [math.nan])[0]
+            if (year, month) == (YEAR, MONTH) and day in glt86:
                 (tau86, tb86), src86 = glt86[day], "merra2_am"
             else:
                 tau86 = tau86_model(x2, tau230, a, b)
                 tb86, src86 = tb86_model(tau230, tb230, tau86, c), "derived"
             fmt86 = _f if src86 == "merra2_am" else _d
-            rows_d.append([site, year, MONTH, day, fmt86(tau86), fmt86(tb86), src86, _f(tau230),
+            rows_d.append([site, year, month, day, fmt86(tau86), fmt86(tb86), src86, _f(tau230),
                            _f(tb230), _f(t345[0]), _f(t345[1]), _f(wind)])
 
     DATA.mkdir(exist_ok=True)

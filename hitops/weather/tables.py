@@ -6,8 +6,9 @@ Two tables (built by :mod:`hitops.weather.build_extract`, described in
 * 3-hourly: the instantaneous MERRA-2 analyses at 00, 03, ..., 21 UT of
   2018-04-07..13 for 10 sites (86 GHz native or derived, 230 GHz, 345 GHz
   scaled from the daily means, wind, PWV);
-* daily: daily means for every day of April 2009-2018 for 8 sites (230 and
-  345 GHz tabulated, 86 GHz derived, wind for 2009 only).
+* daily: daily means for every day of January, March, April, July and
+  October 2009-2018 for 8 sites (230 GHz tabulated, 86 GHz derived; 345 GHz
+  tabulated for April only; wind for 2009 only).
 
 :func:`station_weather` turns a request (a date, or a month and a statistic)
 into zenith opacity, sky brightness temperature and wind speed per band on
