@@ -52,8 +52,6 @@ DEFAULT_COLUMNS = {"pwc": "PWC_DATA", "cfpt": "CFPT_DATA", "cwu": "CWU_DATA"}
 #: output columns are written under STAGING_PREFIX and renamed when complete, so a run that
 #: is killed leaves nothing that looks like a result (hitops/calibrate/output.py)
 META_COLUMNS = INDEX_COLUMNS
-#: read only when the DATA_DESCRIPTION / FIELD subtables have several rows
-SELECTION_COLUMNS = ["DATA_DESC_ID", "FIELD_ID"]
 
 
 def parse_methods(method) -> List[str]:
@@ -76,21 +74,6 @@ def split_ratio(ratio: float):
         return int(nearest), 0.0
     r = math.floor(ratio)
     return int(r), float(ratio - r)
-
-
-def _selection_columns(ms: str) -> List[str]:
-    """Main-table columns needed to check spectral windows and fields.
-
-    With one DATA_DESCRIPTION row and one FIELD row there is nothing to check,
-    and reading 2 x n_row integers is skipped.
-    """
-    from casacore import tables as pt
-
-    with pt.table(f"{ms}::DATA_DESCRIPTION", ack=False) as t:
-        n_dd = t.nrows()
-    with pt.table(f"{ms}::FIELD", ack=False) as t:
-        n_field = t.nrows()
-    return SELECTION_COLUMNS if (n_dd > 1 or n_field > 1) else []
 
 
 def _band_setup(ms: str, role: str, meta: Dict[str, np.ndarray], average_channels: bool,
@@ -208,7 +191,7 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
             return _calibrate_locked(opts, methods, ref_ms, target_ms, started)
         except RuntimeError as err:
             # casacore's messages do not always say which table failed: find the damage
-            _raise_if_damaged(err, [(ref_ms, [ref_column, "FLAG"] + INDEX_COLUMNS),
+            access.raise_if_damaged(err, [(ref_ms, [ref_column, "FLAG"] + INDEX_COLUMNS),
                                     (target_ms, [target_column, "FLAG"] + INDEX_COLUMNS)])
             raise
         finally:
@@ -295,8 +278,8 @@ def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
                                     "--overwrite to replace it or --output-column to write "
                                     "another column")
 
-    ref_meta_cols = INDEX_COLUMNS + _selection_columns(ref_ms)
-    tgt_meta_cols = INDEX_COLUMNS + _selection_columns(target_ms)
+    ref_meta_cols = INDEX_COLUMNS + msio.selection_columns(ref_ms)
+    tgt_meta_cols = INDEX_COLUMNS + msio.selection_columns(target_ms)
     timings = {"checks": time.perf_counter() - started}
     stage = time.perf_counter()
     # dask row chunks of chunk_rows rows: the metadata blocks of the first pass are
@@ -1069,17 +1052,3 @@ def _write_chunk(tx, ch, phasor_rows, calibrated, codes, io_scheduler):
     new_flag = ch["tgt_flag"] | ch["tgt_flag_row"][:, None, None] | ~calibrated[:, None, :]
     tx.write_chunk(ch["tgt_rows"], ch["tgt_data"], {names[c]: phasor_rows[c] for c in codes},
                    new_flag, io_scheduler)
-
-
-def _raise_if_damaged(err: RuntimeError, tables) -> None:
-    """Turn an unexpected casacore error into a message naming the damaged table and column.
-
-    ``tables``: (ms, columns) pairs read by the run.  Returns without raising
-    when every column reads (the error had another cause).
-    """
-    for ms, columns in tables:
-        damage = access.locate_damage(ms, list(dict.fromkeys(columns)))
-        if damage:
-            raise MeasurementSetError(
-                f"'{ms}' is damaged: {damage}; the run stopped before writing anything: "
-                "restore the set from its source or a backup") from err

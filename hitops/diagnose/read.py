@@ -26,7 +26,7 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 
 from ..errors import ColumnError, InputError, MeasurementSetError
-from ..io.access import locate_damage, require_subtables
+from ..io.access import raise_if_damaged, require_subtables
 from ..io.stations import read_stations
 from ..io import read as msio
 from ..io.layout import baseline_time_layout
@@ -200,10 +200,7 @@ def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = 
         values = msio.compute_columns([(xds, wanted_cols + selection, None)])[0]
     except RuntimeError as err:
         # casacore does not always say which file is damaged: find the column that fails
-        damage = locate_damage(ms, wanted_cols + selection)
-        if damage:
-            raise MeasurementSetError(f"'{ms}' is damaged: {damage}; restore it from its "
-                                      "source or a backup") from err
+        raise_if_damaged(err, [(ms, wanted_cols + selection)])
         raise
     if values["TIME"].size == 0:
         raise MeasurementSetError(f"{ms}: the main table has no rows")

@@ -186,6 +186,20 @@ def wait_for_table_lock(ms: str, write: bool, timeout_s: float, role: str) -> No
             time.sleep(1.0)
 
 
+def raise_if_damaged(err: Exception, tables) -> None:
+    """Turn an unexpected casacore error into one naming the damaged table and column.
+
+    ``tables``: (ms, columns) pairs that were being read.  Returns without raising
+    when every column reads (the error had another cause, and is re-raised by the
+    caller).
+    """
+    for ms, columns in tables:
+        damage = locate_damage(ms, list(dict.fromkeys(columns)))
+        if damage:
+            raise MeasurementSetError(f"'{ms}' is damaged: {damage}; nothing was changed: "
+                                      "restore the set from its source or a backup") from err
+
+
 def locate_damage(ms: str, columns: Iterable[str], step: int = 200_000) -> Optional[str]:
     """'column C, rows a-b: message' for the first column of ``ms`` that cannot be read.
 
