@@ -16,12 +16,7 @@ from casacore import tables as pt
 from hitops.calibrate import calibrate
 from hitops.calibrate.synthetic import (DEFAULT_NAMES, add_column, expected_pwc_phase,
                                         make_pair, wrap)
-from hitops.errors import StationError
-
-
-def col(ms, name):
-    with pt.table(str(ms), ack=False) as t:
-        return t.getcol(name)
+from ms_columns import col  # tests/ is on sys.path (rootdir-relative)
 
 
 def out_phase(ms, name="PWC_DATA"):

@@ -20,13 +20,9 @@ from casacore import tables as pt
 from hitops.calibrate import calibrate
 from hitops.calibrate.synthetic import make_pair
 from hitops.errors import InputError
+from ms_columns import col  # tests/ is on sys.path (rootdir-relative)
 
 pytestmark = pytest.mark.slow
-
-
-def col(ms, name):
-    with pt.table(str(ms), ack=False) as t:
-        return t.getcol(name)
 
 
 def applycal(ms, table):

@@ -21,18 +21,9 @@ from casacore import tables as pt
 from hitops.calibrate import calibrate
 from hitops.calibrate.synthetic import add_column, make_pair, wrap
 from hitops.errors import InputError
+from ms_columns import col, put  # tests/ is on sys.path (rootdir-relative)
 
 EPS = 230.0 / 86.0 - 2
-
-
-def col(ms, name):
-    with pt.table(str(ms), ack=False) as t:
-        return t.getcol(name)
-
-
-def put(ms, name, values):
-    with pt.table(str(ms), readonly=False, ack=False) as t:
-        t.putcol(name, values)
 
 
 def run(truth, column="OUT", **kw):
