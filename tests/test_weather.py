@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import datetime as dt
+import gzip
 import json
 from pathlib import Path
 
@@ -24,10 +25,13 @@ from hitops.weather.tables import mjd_seconds
 PACKAGE = Path(weather.__file__).resolve().parent
 SOURCES = PACKAGE / "sources"
 DATA = PACKAGE / "data"
+DAILY = "merra2_daily.csv.gz"
 
 
 def shipped(name):
-    with open(DATA / name) as fh:
+    """Rows of a shipped table (``.gz``: gzip-compressed CSV)."""
+    opener = gzip.open if name.endswith(".gz") else open
+    with opener(DATA / name, "rt") as fh:
         return list(csv.DictReader(fh))
 
 
@@ -71,7 +75,7 @@ def test_3hourly_values_are_the_source_values_exactly(site, day, segment):
 @pytest.mark.parametrize("site,year,day", [("APEX", 2009, 1), ("KP", 2013, 17), ("KVNYS", 2016, 30),
                                            ("SMA", 2018, 10), ("IRAM", 2011, 22)])
 def test_daily_values_are_the_source_values_exactly(site, year, day):
-    row = next(r for r in shipped("merra2_daily.csv")
+    row = next(r for r in shipped(DAILY)
                if (r["site"], int(r["year"]), int(r["month"]), int(r["day"])) == (site, year, 4, day))
     d = SOURCES / "daily" / site / "04Apr"
     for band in ("230", "345"):
@@ -90,7 +94,7 @@ def test_daily_values_are_the_source_values_exactly(site, year, day):
 def test_other_months_are_the_source_values_exactly(site, folder, year, day):
     """Daily means of months other than April: 230 GHz (and wind, 2009) to the last digit."""
     month = int(folder[:2])
-    row = next(r for r in shipped("merra2_daily.csv")
+    row = next(r for r in shipped(DAILY)
                if (r["site"], int(r["year"]), int(r["month"]), int(r["day"])) == (site, year, month, day))
     path = SOURCES / "daily" / site / folder / "mean_SEFD_info_230.csv"
     rows = source_values(path, 2)
@@ -108,15 +112,29 @@ def test_other_months_are_the_source_values_exactly(site, folder, year, day):
 
 
 def test_months_in_the_daily_table():
-    months = {int(r["month"]) for r in shipped("merra2_daily.csv")}
-    assert months == {1, 3, 4, 7, 10}
+    months = {int(r["month"]) for r in shipped(DAILY)}
+    assert months == {1, 2, 3, 4, 7, 10}
     manifest = (SOURCES / "daily" / "manifest.tsv").read_text().splitlines()[1:]
     folders = {line.split("\t")[1] for line in manifest}
-    assert folders == {"01Jan", "03Mar", "04Apr", "07Jul", "10Oct"}
+    assert folders == {"01Jan", "02Feb", "03Mar", "04Apr", "07Jul", "10Oct"}
     for line in manifest:
         site, folder, name, commit, chars = line.split("\t")
         assert len(commit) == 40
         assert (SOURCES / "daily" / site / folder / name).stat().st_size == int(chars)
+
+
+@pytest.mark.parametrize("site,date,tau86,tb86", [
+    # the values the uncompressed extract stored (6 significant digits) before 86 GHz was
+    # derived on loading
+    ("APEX", dt.date(2009, 1, 1), 0.032616, 9.93564), ("APEX", dt.date(2009, 1, 4), 0.0214252, 8.17557)])
+def test_derived_86ghz_is_computed_on_loading(site, date, tau86, tb86):
+    daily = weather.tables.daily_table()[site]
+    i = list(daily["date"]).index(date)
+    assert daily["src86"][i] == "derived"
+    assert f"{daily['tau86'][i]:.6g}" == f"{tau86:.6g}" and f"{daily['tb86'][i]:.6g}" == f"{tb86:.6g}"
+    row = next(r for r in shipped(DAILY) if (r["site"], r["year"], r["month"], r["day"]) ==
+               (site, str(date.year), str(date.month), str(date.day)))
+    assert row["tau86"] == "" and row["src86"] == "derived"     # not stored: derived on loading
 
 
 def test_provenance_is_shipped_with_the_data():
@@ -171,10 +189,15 @@ def test_pyeongchang_uses_yonsei_and_says_so():
 
 
 @pytest.mark.parametrize("kwargs,station,bands,words", [
-    (dict(date="2023-08-10"), "AP", [("86", 86e9)], ["APEX", "2023-08-10", "nearest available date"]),
+    # LMT has only the 3-hourly April 2018 analyses: no climatology for another month
+    (dict(date="2023-08-10"), "LM", [("86", 86e9)], ["LMT", "2023-08-10", "nearest available date",
+                                                      "2018-04-13"]),
     (dict(date="2023-04-10", fallback="error"), "PV", [("86", 86e9)],
      ["IRAM", "2023-04-10", "2018-04-10", "year: 2018"]),
-    (dict(month=8), "PB", [("86", 86e9)], ["NOEMA", "month 8", "months with data: 1, 3, 4, 7, 10"]),
+    (dict(date="2019-08-10", fallback="error"), "AP", [("230", 230e9)],
+     ["APEX", "2019-08-10", "2018-08-10", "year: 2018"]),
+    (dict(month=8), "LM", [("86", 86e9)], ["LMT", "month 8", "months with data: 4"]),
+    (dict(month=13), "PB", [("86", 86e9)], ["NOEMA", "month 13", "months with data: 1, 2,"]),
     (dict(date="2018-04-10"), "QQ", [("86", 86e9)], ["unknown merra2 site 'QQ'", "nearest name"]),
     (dict(date="2018-04-10"), "AP", [("100", 100e9)], ["100 GHz", "nearest: 86 GHz"]),
     (dict(date="2018-04-10"), "LM", [("345", 345e9)], ["band '345'", "LMT", "86, 230"]),
@@ -236,8 +259,10 @@ def test_scene_weather_for_other_months(month):
 
 
 @pytest.mark.parametrize("change,words", [
-    ({"weather": {"source": "merra2", "date": "2023-08-10"}}, ["2023-08-10", "nearest"]),
-    ({"weather": {"source": "merra2", "month": 8}}, ["month 8", "months with data: 1, 3, 4, 7, 10"]),
+    ({"weather": {"source": "merra2", "date": "2023-08-10", "fallback": "error"}},
+     ["2023-08-10", "nearest", "2018-08-10"]),
+    ({"weather": {"source": "merra2", "month": 8}, "stations": ["AP", "PV", "LM"]},
+     ["LMT", "month 8", "months with data: 4"]),
     ({"weather": {"source": "merra2", "date": "2018-04-10", "statistic": "best"}}, ["statistic"]),
     ({"bands": [{"name": "86", "freq_ghz": 86, "bandwidth_ghz": 2},
                 {"name": "150", "freq_ghz": 150, "bandwidth_ghz": 2}]}, ["150 GHz", "nearest"]),

@@ -19,7 +19,13 @@ every file (``sources/native/manifest_native.tsv``, ``sources/daily/manifest.tsv
 Outputs (``hitops/weather/data/``):
 
 * ``merra2_3hourly.csv``: one row per site, day (2018-04-07..13) and analysis time.
-* ``merra2_daily.csv``: one row per site and day (every month folder in ``sources/daily``).
+* ``merra2_daily.csv.gz``: one row per site and day (every month folder in ``sources/daily``),
+  gzip-compressed CSV (stdlib ``gzip``; header mtime 0, so a rebuild is byte-identical).
+  Tabulated values are written as the shortest text that reads back to the same float
+  (exact); derived 86 GHz values are NOT stored: ``tau86``/``tb86`` are filled only where
+  native (``src86 = merra2_am``), and :mod:`hitops.weather.tables` computes the derived ones
+  on loading from the fitted model in ``derivation_86ghz.json`` (this keeps 12 months of
+  8 sites well under the 1 MB budget of the data folder).
 * ``derivation_86ghz.json``: the fitted 86 GHz model, its errors, the 345 GHz scaling.
 
 How the bands the tables lack are filled (column ``src86`` / ``src345``):
@@ -40,6 +46,8 @@ How the bands the tables lack are filled (column ``src86`` / ``src345``):
 from __future__ import annotations
 
 import csv
+import gzip
+import io
 import json
 import math
 from pathlib import Path
@@ -54,6 +62,7 @@ DATA = HERE / "data"
 YEAR, MONTH = 2018, 4
 NATIVE_DAYS = range(7, 14)          # every site has all 8 analyses of these days
 SEGMENTS = range(8)
+DAILY_FILE = "merra2_daily.csv.gz"
 
 
 def _rows(path: Path):
@@ -262,10 +271,10 @@ def build():
             if (year, month) == (YEAR, MONTH) and day in glt86:
                 (tau86, tb86), src86 = glt86[day], "merra2_am"
             else:
-                tau86 = tau86_model(x2, tau230, a, b)
-                tb86, src86 = tb86_model(tau230, tb230, tau86, c), "derived"
-            fmt86 = _f if src86 == "merra2_am" else _d
-            rows_d.append([site, year, month, day, fmt86(tau86), fmt86(tb86), src86, _f(tau230),
+                # derived on loading (tables.py) from the model in derivation_86ghz.json
+                tau86 = tb86 = None
+                src86 = "derived"
+            rows_d.append([site, year, month, day, _f(tau86), _f(tb86), src86, _f(tau230),
                            _f(tb230), _f(t345[0]), _f(t345[1]), _f(wind)])
 
     DATA.mkdir(exist_ok=True)
@@ -274,11 +283,17 @@ def build():
         w.writerow(["site", "year", "month", "day", "segment", "tau86", "tb86", "src86",
                     "tau230", "tb230", "tau345", "tb345", "src345", "wind", "pwv"])
         w.writerows(rows3)
-    with open(DATA / "merra2_daily.csv", "w", newline="") as fh:
-        w = csv.writer(fh, lineterminator="\n")
-        w.writerow(["site", "year", "month", "day", "tau86", "tb86", "src86", "tau230", "tb230",
-                    "tau345", "tb345", "wind"])
-        w.writerows(rows_d)
+    text = io.StringIO()
+    w = csv.writer(text, lineterminator="\n")
+    w.writerow(["site", "year", "month", "day", "tau86", "tb86", "src86", "tau230", "tb230",
+                "tau345", "tb345", "wind"])
+    w.writerows(rows_d)
+    with open(DATA / DAILY_FILE, "wb") as raw, \
+            gzip.GzipFile(filename="", mode="wb", fileobj=raw, compresslevel=9, mtime=0) as fh:
+        fh.write(text.getvalue().encode("ascii"))
+    old_plain = DATA / "merra2_daily.csv"       # the uncompressed layout of earlier builds
+    if old_plain.exists():
+        old_plain.unlink()
     derivation = {
         "model": "tau86 = a*(P/P0)^2 + b*tau230; Tb86 = c*Tb230/(1-exp(-tau230))*(1-exp(-tau86)); "
                  "P/P0 = exp(-site elevation / 8000 m)",

@@ -20,7 +20,9 @@ from __future__ import annotations
 import csv
 import datetime as dt
 import difflib
+import gzip
 import importlib.resources
+import json
 import math
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -29,7 +31,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from ..errors import InputError
-from .sites import PROXIES, SITES, distance_km, resolve
+from .sites import PROXIES, SITES, distance_km, pressure_ratio, resolve
 
 #: frequencies the tables give (GHz) and the column prefix of each
 TABLE_BANDS = {86.0: "86", 230.0: "230", 345.0: "345"}
@@ -43,6 +45,8 @@ MJD_EPOCH = dt.date(1858, 11, 17)
 CLIMATOLOGY_HALF_WIDTH_DAYS = 3
 #: a wind below this (m/s) is treated as this: t_c = r0 / v stays finite
 MIN_WIND = 0.1
+#: the shipped daily-mean table (gzip-compressed CSV, see build_extract.py)
+DAILY_FILE = "merra2_daily.csv.gz"
 
 
 class WeatherError(InputError):
@@ -66,8 +70,39 @@ class StationWeather:
 # ----------------------------------------------------------------------------- loading
 
 def _read_csv(name: str) -> List[dict]:
-    text = importlib.resources.files("hitops.weather").joinpath("data", name).read_text()
+    """Rows of a shipped table; a ``.gz`` name is gzip-compressed CSV (read with the stdlib)."""
+    resource = importlib.resources.files("hitops.weather").joinpath("data", name)
+    if name.endswith(".gz"):
+        text = gzip.decompress(resource.read_bytes()).decode("ascii")
+    else:
+        text = resource.read_text()
     return list(csv.DictReader(text.splitlines()))
+
+
+@lru_cache(maxsize=None)
+def model_86ghz() -> Dict[str, float]:
+    """The fitted 86 GHz model (a, b, c of ``derivation_86ghz.json``)."""
+    text = importlib.resources.files("hitops.weather").joinpath(
+        "data", "derivation_86ghz.json").read_text()
+    d = json.loads(text)
+    return {"a": float(d["a"]), "b": float(d["b"]), "c": float(d["c"])}
+
+
+def derive_86ghz(site: str, tau230, tb230):
+    """Derived 86 GHz zenith opacity and sky temperature from the 230 GHz values of a site.
+
+    ``tau86 = a (P/P0)^2 + b tau230`` (dry oxygen term scaling with the square of the
+    surface pressure, P/P0 = exp(-h / 8 km), plus a wet term proportional to the 230 GHz
+    opacity), ``Tb86 = c Tb230 / (1 - exp(-tau230)) (1 - exp(-tau86))``; see
+    ``hitops/weather/data/PROVENANCE.md``.
+    """
+    m = model_86ghz()
+    tau230 = np.asarray(tau230, dtype=np.float64)
+    tb230 = np.asarray(tb230, dtype=np.float64)
+    x2 = pressure_ratio(SITES[site]) ** 2
+    tau86 = m["a"] * x2 + m["b"] * tau230
+    tb86 = m["c"] * tb230 / -np.expm1(-tau230) * -np.expm1(-tau86)
+    return tau86, tb86
 
 
 def _num(value: str) -> float:
@@ -101,9 +136,13 @@ def native_table() -> Dict[str, Dict[str, np.ndarray]]:
 
 @lru_cache(maxsize=None)
 def daily_table() -> Dict[str, Dict[str, np.ndarray]]:
-    """site -> columns of the daily table; 'date' as datetime.date, 'time' MJD s at 12 UT."""
+    """site -> columns of the daily table; 'date' as datetime.date.
+
+    86 GHz values that are not native (``src86 == 'derived'``) are computed here from the
+    230 GHz values with :func:`derive_86ghz` (the file stores only tabulated values).
+    """
     out: Dict[str, Dict[str, list]] = {}
-    for row in _read_csv("merra2_daily.csv"):
+    for row in _read_csv(DAILY_FILE):
         cols = out.setdefault(row["site"], {k: [] for k in (
             "date", "tau86", "tb86", "tau230", "tb230", "tau345", "tb345", "wind", "src86")})
         cols["date"].append(dt.date(int(row["year"]), int(row["month"]), int(row["day"])))
@@ -113,8 +152,13 @@ def daily_table() -> Dict[str, Dict[str, np.ndarray]]:
     table = {}
     for site, cols in out.items():
         order = np.argsort(np.array([d.toordinal() for d in cols["date"]]))
-        table[site] = {k: (np.asarray(v, dtype=object) if k in ("date", "src86") else np.asarray(v))[order]
-                       for k, v in cols.items()}
+        columns = {k: (np.asarray(v, dtype=object) if k in ("date", "src86") else np.asarray(v))[order]
+                   for k, v in cols.items()}
+        derived = columns["src86"] == "derived"
+        tau86, tb86 = derive_86ghz(site, columns["tau230"][derived], columns["tb230"][derived])
+        columns["tau86"][derived] = tau86
+        columns["tb86"][derived] = tb86
+        table[site] = columns
     return table
 
 
