@@ -35,11 +35,13 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from benchmarks._report import PLOT_DIR, machine_line, replace_section  # noqa: E402
-from hitops.kernels.tracking import count_slips, slip_errors, track_wraps_smooth  # noqa: E402
-from hitops.kernels.wraps import count_wraps  # noqa: E402
+from hitops.tracking.count import count_wraps  # noqa: E402
+from hitops.tracking.slips import count_slips, slip_errors  # noqa: E402
+from hitops.tracking.smooth_kernel import track_wraps_smooth  # noqa: E402
 from hitops.simulate.troposphere import fbm_circulant  # noqa: E402
 from hitops.tracking import stations, theory  # noqa: E402
 from hitops.tracking.modes import track_antennas  # noqa: E402
+from hitops.tracking.windows import half_windows  # noqa: E402
 
 TRACKING_DOC = ROOT / "docs" / "tracking.md"
 RATIO = 230.0 / 86.0
@@ -204,7 +206,8 @@ def paper_scene(workdir: Path, target_rhos=(None, 3.0, 2.0), seed=11):
 
     from hitops.io.layout import baseline_time_layout
     from hitops.simulate.api import simulate
-    from hitops.tracking.modes import regular_grid, track_series
+    from hitops.tracking.grid import grid_positions
+    from hitops.tracking.modes import track_series
 
     base = yaml.safe_load((ROOT / "hitops" / "scenes" / "paper.yml").read_text())
     rows = []
@@ -225,7 +228,8 @@ def paper_scene(workdir: Path, target_rhos=(None, 3.0, 2.0), seed=11):
             sigma = tab.getcol("SIGMA")[:, 0]
         truth = np.load(out["truth"])
         lay = baseline_time_layout(time_col, a1, a2, tolerance=1e-3)
-        grid_index, n_grid, dt = regular_grid(lay.times)
+        grid_index, dt = grid_positions(lay.times, strict=True)
+        n_grid = int(grid_index[-1]) + 1
         n_bl = lay.n_bl
         vis = np.zeros((n_bl, n_grid), np.complex64)
         valid = np.zeros((n_bl, n_grid), bool)
@@ -276,7 +280,7 @@ def paper_scene(workdir: Path, target_rhos=(None, 3.0, 2.0), seed=11):
             tc_q = theory.local_coherence_time(tc86[lay.ant2][:, None], np.sin(el_grid[lay.ant2]))
             tc_bl = np.minimum(tc_p, tc_q) / 2 ** 0.6
             rho_t = np.where(np.isfinite(sig), flux86 / np.where(np.isfinite(sig), sig, 1.0), np.nan)
-            return theory.recommended_half_windows(rho_t, tc_bl)
+            return half_windows(rho_t, tc_bl)
 
         modes.insert(2, ("smooth, h(t) from el and SNR",
                          lambda: track_series(phase, valid, "smooth", half_window=h,

@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 
 from hitops.errors import InputError
-from hitops.kernels.antenna import closure_phases, solve_antenna_phases
-from hitops.kernels.tracking import count_slips, slip_errors
+from hitops.tracking.antenna_kernel import closure_phases, solve_antenna_phases
+from hitops.tracking.slips import count_slips, slip_errors
 from hitops.simulate.troposphere import fbm_circulant
 from hitops.tracking import theory
-from hitops.tracking.modes import regular_grid, track_antennas, track_series
+from hitops.tracking.grid import grid_positions
+from hitops.tracking.modes import track_antennas, track_series
 
 TWO_PI = 2.0 * np.pi
 RATIO = 230.0 / 86.0
@@ -189,7 +190,8 @@ def test_antenna_mode_on_a_measurement_set(tmp_path):
         flag = tab.getcol("FLAG")[:, 0, 0]
     assert data.dtype == np.complex64
     lay = baseline_time_layout(time, a1, a2)
-    grid_index, n_grid, dt = regular_grid(lay.times)
+    grid_index, dt = grid_positions(lay.times, strict=True)
+    n_grid = int(grid_index[-1]) + 1
     assert n_grid == n_time and dt == pytest.approx(1.0)
     ref_vis = np.zeros((lay.n_bl, n_grid), np.complex64)
     valid = np.zeros((lay.n_bl, n_grid), bool)
@@ -208,8 +210,13 @@ def test_antenna_mode_on_a_measurement_set(tmp_path):
     assert all(row["jumps"] == 0 for row in summary)
 
 
-def test_regular_grid_rejects_irregular_times():
-    index, n_grid, dt = regular_grid(np.array([0.0, 1.0, 2.0, 10.0, 11.0]))
-    assert index.tolist() == [0, 1, 2, 10, 11] and n_grid == 12
+def test_grid_positions_reject_irregular_times_when_strict():
+    index, dt = grid_positions(np.array([0.0, 1.0, 2.0, 10.0, 11.0]), strict=True)
+    assert index.tolist() == [0, 1, 2, 10, 11] and dt == 1.0
     with pytest.raises(InputError, match="regular"):
-        regular_grid(np.array([0.0, 1.0, 2.5, 3.0]))
+        grid_positions(np.array([0.0, 1.0, 2.5, 3.0]), strict=True)
+    # calibrate's form: within scans only, and off-grid times fall back to the union index
+    index, dt = grid_positions(np.array([0.0, 1.0, 2.0, 50.0, 51.0]), np.array([0, 0, 0, 1, 1]))
+    assert index.tolist() == [0, 1, 2, 50, 51] and dt == 1.0
+    index, dt = grid_positions(np.array([0.0, 1.0, 2.5, 3.0]))
+    assert index.tolist() == [0, 1, 2, 3]

@@ -31,8 +31,8 @@ from casacore import tables as pt
 from hitops.calibrate import calibrate
 from hitops.calibrate.synthetic import make_pair, wrap
 from hitops.errors import InputError, StationError
-from hitops.kernels.antenna import closure_phases
-from hitops.kernels.tracking import count_slips
+from hitops.tracking.antenna_kernel import closure_phases
+from hitops.tracking.slips import count_slips
 from ms_columns import col, put  # tests/ is on sys.path (rootdir-relative)
 
 EPS = 230.0 / 86.0 - 2
@@ -387,7 +387,7 @@ def test_extreme_cases_one_sample_fully_flagged_and_cross_hands(tmp_path):
 
 def test_station_elevations_from_the_ms_geometry(tmp_path):
     """sin(el) from ANTENNA positions and FIELD direction matches the simulator's truth."""
-    from hitops.calibrate.robust import station_sin_elevation
+    from hitops.geometry import station_sin_elevation
     from hitops.simulate.api import simulate
 
     out = simulate("paper", tmp_path, prefix="el", save_truth=True, duration=600,

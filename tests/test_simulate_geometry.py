@@ -32,7 +32,8 @@ from casacore import tables as pt
 from casacore.measures import measures
 
 from hitops.simulate import simulate
-from hitops.simulate.geometry import (casacore_uvw_matrix, earth_rotation_angle, fit_segments,
+from hitops.geometry import earth_rotation_angle
+from hitops.simulate.geometry import (casacore_uvw_matrix, fit_segments,
                                       uvw_matrices, time_grid)
 
 DAY = 86400.0

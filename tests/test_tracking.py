@@ -8,10 +8,12 @@ import numpy as np
 import pytest
 
 from hitops.errors import InputError
-from hitops.kernels.tracking import count_slips, slip_errors, track_wraps_smooth
-from hitops.kernels.wraps import count_wraps, get_tracker
+from hitops.tracking.count import count_wraps
+from hitops.tracking.slips import count_slips, slip_errors
+from hitops.tracking.smooth_kernel import track_wraps_smooth
 from hitops.simulate.troposphere import fbm_circulant
 from hitops.tracking import theory
+from hitops.tracking.windows import half_windows
 
 TWO_PI = 2.0 * np.pi
 
@@ -111,10 +113,10 @@ def test_smoothed_counts_agree_with_naive_at_high_snr():
     assert np.array_equal(naive - naive[0], robust - robust[0])
 
 
-def test_smooth_tracker_is_registered_for_calibrate():
-    tracker = get_tracker("smooth")
+def test_smooth_tracker_counts_a_clean_ramp_like_count():
     phase = np.angle(np.exp(1j * np.linspace(0, 20, 200)))
-    assert np.array_equal(tracker(phase, np.ones(200, bool)), count_wraps(phase, np.ones(200, bool)))
+    valid = np.ones(200, bool)
+    assert np.array_equal(track_wraps_smooth(phase, valid)[0], count_wraps(phase, valid))
 
 
 def test_inputs_are_not_mutated():
@@ -410,7 +412,7 @@ def test_per_sample_windows_follow_local_coherence():
     phase = noisy_phase(truth, 3.0, seed=83)
     valid = np.ones(truth.size, bool)
     t_c = np.where(np.arange(truth.size) < 20000, 60.0, 4.0)
-    windows = theory.recommended_half_windows(3.0, t_c)
+    windows = half_windows(3.0, t_c)
     assert windows[0] > windows[-1] >= 1
     fixed = track_wraps_smooth(phase, valid, half_window=int(windows[0]))[0]
     local = track_wraps_smooth(phase, valid, half_window=int(windows[0]), half_windows=windows)[0]

@@ -148,7 +148,7 @@ def _sigma_column_ratio(ms: str, grid, s: np.ndarray) -> np.ndarray:
 
 def closure_check(grid, sigma_phase: np.ndarray, max_triangles: int = 200) -> Optional[Dict]:
     """Mean reference closure phase per triangle against its standard error (first hand)."""
-    from ..kernels.antenna import closure_phases
+    from ..tracking.antenna_kernel import closure_phases
 
     ants = sorted(set(grid.ant1.tolist()) | set(grid.ant2.tolist()))
     if len(ants) < 3:

@@ -3,7 +3,7 @@
 The reference Measurement Set's phase (``--ref-column``, DATA by default)
 is read per baseline and correlation; a wrap is a step larger than pi
 between consecutive usable samples, the same detector PWC uses
-(:func:`hitops.kernels.wraps.count_wraps`).  Baselines are matched by
+(:func:`hitops.tracking.count.count_wraps`).  Baselines are matched by
 station names, so the two bands' ANTENNA tables may be ordered differently.
 """
 
@@ -14,7 +14,7 @@ from typing import Dict, List
 
 import numpy as np
 
-from ..kernels.wraps import count_wraps
+from ..tracking.count import count_wraps
 from .read import GridData, read_grid
 
 log = logging.getLogger("hitops.diagnose")

@@ -17,7 +17,7 @@ For a baseline p-q at 86 GHz, source elevation el (airmass X = 1/sin el):
   (Rice phase density, Gaussian true steps), tabulated once on a (rho, sigma)
   grid and interpolated in log P; per hour: 1 - (1 - P)^(3600/dt);
 * the smoothed tracker: window from
-  :func:`hitops.tracking.theory.recommended_half_windows`, per-step slip bound
+  :func:`hitops.tracking.windows.half_windows`, per-step slip bound
   :func:`hitops.tracking.theory.smoothed_slip_bound` (an upper bound).
 """
 
@@ -30,6 +30,7 @@ import numpy as np
 
 from ..simulate import noise as noise_mod
 from ..tracking import theory
+from ..tracking.windows import half_windows
 
 ETA_Q = 0.88
 RHO_GRID = np.geomspace(0.2, 12.0, 61)
@@ -106,7 +107,7 @@ def smooth_slip_probability(rho, tc_bl, dt) -> np.ndarray:
     """Per-step slip bound of the smoothed tracker with its recommended window."""
     rho = np.asarray(rho, dtype=np.float64)
     tc_bl = np.asarray(tc_bl, dtype=np.float64)
-    half = theory.recommended_half_windows(rho, tc_bl, dt)
+    half = half_windows(rho, tc_bl, dt)
     keys = np.stack([np.round(np.log(np.maximum(rho, 1e-3)), 2), np.round(np.log(tc_bl / dt), 2),
                      half], axis=1)
     unique, inverse = np.unique(keys, axis=0, return_inverse=True)

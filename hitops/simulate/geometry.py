@@ -58,36 +58,12 @@ from __future__ import annotations
 
 import numpy as np
 
-#: seconds per day
-DAY = 86400.0
-#: Earth rotation angle rate, turns per UT1 day (IERS Conventions 2010, eq. 5.15)
-ERA_RATE = 1.00273781191135448
-#: ERA_RATE - 1 written out: ERA_RATE - 1.0 in float64 is off by ~5e-12 rad after 23 years
-ERA_RATE_EXCESS = 0.00273781191135448
-ERA_J2000 = 0.7790572732640
-MJD_J2000 = 51544.5
-
-#: WGS84 ellipsoid (NIMA TR8350.2)
-WGS84_A = 6378137.0
-WGS84_F = 1.0 / 298.257223563
+# Earth rotation and the local zenith are shared with calibrate (elevations)
+from ..geometry import DAY, earth_rotation_angle, geodetic_up
 
 #: casacore refills its dUT1 / polar-motion caches only for epochs more than
 #: 0.04 d from the cached one; a call this far away forces the refill
 _CACHE_FLUSH_OFFSET = DAY
-
-
-def earth_rotation_angle(time_mjd_s: np.ndarray) -> np.ndarray:
-    """Earth rotation angle (rad) with UTC standing in for UT1 (the difference goes into A(t)).
-
-    The time is split into whole days and seconds of day before dividing:
-    t / 86400 as one float64 would round to 0.63 us (0.3 mm on 10^4 km).
-    """
-    since_j2000 = np.asarray(time_mjd_s, dtype=np.float64) - MJD_J2000 * DAY   # exact
-    whole_days = np.floor(since_j2000 / DAY)
-    day_fraction = (since_j2000 - whole_days * DAY) / DAY                      # exact numerator
-    turns = (ERA_J2000 + np.mod(ERA_RATE_EXCESS * whole_days, 1.0)
-             + ERA_RATE_EXCESS * day_fraction + day_fraction)
-    return 2.0 * np.pi * np.mod(turns, 1.0)
 
 
 def _rz(theta: np.ndarray) -> np.ndarray:
@@ -188,20 +164,6 @@ def uvw_matrices(times: np.ndarray, ra: float, dec: float, position: np.ndarray,
         a_t = np.polynomial.chebyshev.chebval((times[sel] - centre) / half, coef).T
         out[sel] = a_t.reshape(-1, 3, 3) @ _rz(earth_rotation_angle(times[sel]))
     return out
-
-
-def geodetic_up(position: np.ndarray) -> np.ndarray:
-    """Unit normal to the WGS84 ellipsoid (local zenith) at ITRF positions (n, 3)."""
-    x, y, z = np.asarray(position, dtype=np.float64).T
-    e2 = WGS84_F * (2.0 - WGS84_F)
-    p = np.hypot(x, y)
-    lat = np.arctan2(z, p * (1.0 - e2))
-    for _ in range(6):   # Bowring-style fixed point, converges to < 1e-12 rad
-        n_rad = WGS84_A / np.sqrt(1.0 - e2 * np.sin(lat) ** 2)
-        h = p / np.cos(lat) - n_rad
-        lat = np.arctan2(z, p * (1.0 - e2 * n_rad / (n_rad + h)))
-    lon = np.arctan2(y, x)
-    return np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], axis=-1)
 
 
 def station_uvw(matrices: np.ndarray, positions: np.ndarray) -> np.ndarray:

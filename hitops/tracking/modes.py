@@ -1,22 +1,25 @@
-"""Tracking modes over a (baseline, time) grid: the glue calibrate plugs in.
+"""Tracking modes over a (baseline, time) grid, whole tracks at once (tests, benchmarks).
 
 Modes:
 
-* ``naive``   - :func:`hitops.kernels.wraps.count_wraps` per baseline (the paper's PWC);
-* ``smooth``  - :func:`hitops.kernels.tracking.track_wraps_smooth` per baseline
+* ``naive``   - :func:`hitops.tracking.count.count_wraps` per baseline (the paper's PWC);
+* ``smooth``  - :func:`hitops.tracking.smooth_kernel.track_wraps_smooth` per baseline
   (smoothed unit phasor, gap bridging, jump detection);
 * ``antenna`` - solve antenna phases at the reference band, track each
   antenna with ``antenna_tracker`` (``naive`` or ``smooth``), transfer the
-  counts to baselines (:mod:`hitops.kernels.antenna`).
+  counts to baselines (:mod:`hitops.tracking.antenna_kernel`).
 
 Every function returns a :class:`TrackResult` whose arrays are (n_bl, n_time)
 and whose ``summary()`` gives the per-baseline (and per-antenna) confidence
 numbers for logs and ``hitops diagnose``: suspected slips, bridged gaps,
 segments, jumps with their times.
 
-The kernels work in samples of a *regular* time grid; :func:`regular_grid`
-maps the distinct times of a layout onto one (missing times become
-invalid samples, so a scan gap is a gap the tracker can see).
+The kernels work in samples of a *regular* time grid;
+:func:`hitops.tracking.grid.grid_positions` maps the distinct times of a layout
+onto one (missing times become invalid samples, so a scan gap is a gap the
+tracker can see).  These are the offline forms (tests, benchmarks, diagnose);
+calibrate runs the trackers of :mod:`hitops.tracking.smooth` and
+:mod:`hitops.tracking.antenna` chunk by chunk.
 """
 
 from __future__ import annotations
@@ -25,10 +28,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hitops.errors import InputError
-from hitops.kernels.antenna import baseline_counts_from_antennas, solve_antenna_phases
-from hitops.kernels.tracking import track_wraps_smooth
-from hitops.kernels.wraps import count_wraps
+from ..errors import InputError
+from .antenna_kernel import baseline_counts_from_antennas, solve_antenna_phases
+from .count import count_wraps
+from .smooth_kernel import track_wraps_smooth
+from .windows import running_sum
 
 MODES = ("naive", "smooth", "antenna")
 SMOOTH_PARAMS = ("half_window", "max_gap", "jump_window", "jump_threshold", "min_coherence",
@@ -59,29 +63,6 @@ class TrackResult:
                 "jump_sizes_deg": [float(np.degrees(self.jump[s, i])) for i in jump_idx],
             })
         return rows
-
-
-def regular_grid(times: np.ndarray, dt: float | None = None, tolerance: float = 1e-3):
-    """Index of each distinct time on a regular grid of step ``dt`` (median step if None).
-
-    Returns (grid_index int64 (n_time,), n_grid, dt).  Raises InputError for
-    times that are off the grid by more than ``tolerance`` of a step.
-    """
-    times = np.asarray(times, dtype=np.float64)
-    if times.size == 0:
-        return np.zeros(0, np.int64), 0, float(dt or 1.0)
-    if dt is None:
-        steps = np.diff(times)
-        dt = float(np.median(steps)) if steps.size else 1.0
-    if not dt > 0:
-        raise InputError(f"time step must be > 0, got {dt}")
-    pos = (times - times[0]) / dt
-    index = np.round(pos).astype(np.int64)
-    off = np.abs(pos - index).max()
-    if off > tolerance:
-        raise InputError(f"times are not on a regular {dt} s grid (off by {off * dt:.3g} s); "
-                         "pass the integration time explicitly or average to a common grid")
-    return index, int(index[-1]) + 1, float(dt)
 
 
 def _smooth_kwargs(params: dict) -> dict:
@@ -124,21 +105,6 @@ def track_series(ref_phase: np.ndarray, valid: np.ndarray, mode: str = "smooth",
     return TrackResult(counts, segment, suspect, bridged, jump)
 
 
-def running_sum(ref_vis: np.ndarray, valid: np.ndarray, half_window) -> np.ndarray:
-    """Sum of the valid visibilities within +-``half_window`` samples (complex128, per baseline).
-
-    ``half_window``: an int, or an int array (n_time,) giving each time its own
-    half-window (e.g. short where turbulence is fast, at low elevation).
-    """
-    vis = np.where(valid & np.isfinite(ref_vis), ref_vis, 0).astype(np.complex128)
-    n_time = vis.shape[1]
-    csum = np.concatenate([np.zeros((vis.shape[0], 1), np.complex128), np.cumsum(vis, axis=1)], axis=1)
-    half = np.maximum(np.broadcast_to(np.asarray(half_window, dtype=np.int64), (n_time,)), 0)
-    hi = np.minimum(np.arange(n_time) + half + 1, n_time)
-    lo = np.maximum(np.arange(n_time) - half, 0)
-    return csum[:, hi] - csum[:, lo]
-
-
 def track_antennas(ref_vis: np.ndarray, valid: np.ndarray, ant1, ant2, n_ant: int,
                    refants=(), antenna_tracker: str = "smooth", solve_half_window: int = 0,
                    **params) -> TrackResult:
@@ -167,7 +133,9 @@ def track_antennas(ref_vis: np.ndarray, valid: np.ndarray, ant1, ant2, n_ant: in
         raise InputError(f"n_ant={n_ant} is smaller than the largest antenna index in ant1/ant2")
     refants = np.asarray(list(refants), dtype=np.int64)
     windowed = np.any(np.asarray(solve_half_window) > 0)
-    solve_vis = running_sum(ref_vis, valid, solve_half_window) if windowed else ref_vis
+    # the sum of the valid visibilities within +-solve_half_window samples
+    summed = np.where(valid & np.isfinite(ref_vis), ref_vis, 0).astype(np.complex128)
+    solve_vis = running_sum(summed, solve_half_window) if windowed else ref_vis
     ant_phase, ant_valid, ref_used, frame_break = solve_antenna_phases(solve_vis, valid, ant1, ant2,
                                                                        n_ant, refants)
     # a frame break makes every antenna phase jump arbitrarily: track the pieces separately

@@ -36,7 +36,7 @@ off by one for the rest of the track (a later failure in the other direction
 can cancel it).  In phase-wrap counting each persistent error leaves a
 2 pi eps step in the 230 GHz residual (Lee et al., fpt-arbitrary-ratios).
 
-Smoothed-phasor tracking (see :mod:`hitops.kernels.tracking`) unwraps the
+Smoothed-phasor tracking (see :mod:`hitops.tracking.smooth_kernel`) unwraps the
 phase of the sum S of W unit phasors.  Consecutive sums differ by at most
 two unit vectors, so the smoothed phase can jump by more than pi only when
 |S| <= 2; :func:`smoothed_slip_bound` bounds that probability with a
@@ -204,30 +204,6 @@ def local_coherence_time(coherence_time_zenith: float, sin_elevation) -> np.ndar
     """Coherence time at elevation el: t_c sin(el)^(3/5) (phase variance grows with airmass)."""
     sin_el = np.clip(np.asarray(sin_elevation, dtype=np.float64), 1e-3, 1.0)
     return coherence_time_zenith * sin_el ** 0.6
-
-
-def _two_digits(x: np.ndarray) -> np.ndarray:
-    """Round positive values to 2 significant digits (vectorised)."""
-    exponent = np.floor(np.log10(x)) - 1
-    return np.round(x / 10.0 ** exponent) * 10.0 ** exponent
-
-
-def recommended_half_windows(rho, coherence_time, dt: float = 1.0, **kwargs) -> np.ndarray:
-    """Per-sample half-windows: :func:`recommended_half_window` for arrays of SNR and
-    (local) coherence time, broadcast together; evaluated once per distinct pair
-    after rounding both to 2 significant digits.  Non-finite or non-positive
-    inputs give 1."""
-    rho_arr, tc_arr = np.broadcast_arrays(np.asarray(rho, dtype=np.float64),
-                                          np.asarray(coherence_time, dtype=np.float64))
-    out = np.ones(rho_arr.shape, np.int64)
-    ok = np.isfinite(rho_arr) & np.isfinite(tc_arr) & (rho_arr > 0) & (tc_arr > 0)
-    if not ok.any():
-        return out
-    keys = np.stack([_two_digits(rho_arr[ok]), _two_digits(tc_arr[ok])], axis=1)
-    unique, inverse = np.unique(keys, axis=0, return_inverse=True)
-    values = np.array([recommended_half_window(r, t, dt, **kwargs) for r, t in unique], np.int64)
-    out[ok] = values[inverse.ravel()]
-    return out
 
 
 def gap_bridge_failure_probability(gap_s: float, coherence_time: float, noise_rad: float = 0.0) -> float:

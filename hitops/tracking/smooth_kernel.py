@@ -1,6 +1,6 @@
 """Robust phase-wrap tracking of a reference-band phase series.
 
-Same contract as :func:`hitops.kernels.wraps.count_wraps` (``ref_phase``
+Same contract as :func:`hitops.tracking.count.count_wraps` (``ref_phase``
 float64[n_time], ``valid`` bool[n_time] -> wrap counts int64[n_time], invalid
 samples carrying the previous count, counts starting at 0), plus keyword
 parameters and diagnostics.  Sign convention of the paper (Lee et al.,
@@ -203,7 +203,7 @@ def track_wraps_smooth(ref_phase, valid, half_window=5, max_gap=30, jump_window=
     ``half_windows`` (optional int64[n_time]): a half-window per sample,
     overriding ``half_window`` for the smoothing (``half_window`` still sets
     the base of the gap-bridging rates), e.g. from the local coherence time
-    (:func:`hitops.tracking.theory.recommended_half_windows`).
+    (:func:`hitops.tracking.windows.half_windows`).
 
     Returns ``(counts, segment, suspect, bridged, jump)``; see the module doc.
     """
@@ -295,7 +295,7 @@ def track_wraps_smooth(ref_phase, valid, half_window=5, max_gap=30, jump_window=
             # the rates are measured over max(2h+1, gap) samples, but never more
             # than max_gap + 1: beyond it the gap starts an unresolved segment anyway,
             # and a bounded reach lets calibrate chunk the time axis exactly with a
-            # finite context (hitops.calibrate.robust.context_samples)
+            # finite context (TrackingSetup.context, hitops.tracking.options)
             span = max(base, min(gap, max_gap + 1))
             predicted = unwrapped[k - 1] + _predicted_step(index, unwrapped, smooth_phase, k,
                                                            seg_lo[k - 1], seg_hi[k], span)
@@ -322,84 +322,3 @@ def track_wraps_smooth(ref_phase, valid, half_window=5, max_gap=30, jump_window=
             k += 1
         counts[i] = n_prev
     return counts, segment, suspect, bridged, jump
-
-
-@numba.njit(cache=True, nogil=True)
-def slip_errors(counts, ref_phase, valid, true_phase):
-    """Count error e = n - n_true at every valid sample, against a true unwrapped phase.
-
-    The true count is the lobe of ``ref_phase`` nearest ``true_phase`` (so a
-    sample whose noise exceeds pi counts as an error).  Returns int64[n_time]
-    with 0 where invalid; only its changes matter (n0 is arbitrary).
-    """
-    n_time = ref_phase.size
-    err = np.zeros(n_time, np.int64)
-    for i in range(n_time):
-        if valid[i] and np.isfinite(ref_phase[i]):
-            n_true = np.int64(np.round((ref_phase[i] - true_phase[i]) / TWO_PI))
-            err[i] = counts[i] - n_true
-    return err
-
-
-@numba.njit(cache=True, nogil=True)
-def count_slips(err, valid, max_transient=3):
-    """(persistent slips, transient samples) of a count-error series.
-
-    A transient is a run of at most ``max_transient`` valid samples whose
-    error differs from the valid samples on both sides, which agree with each
-    other: an outlier excursion (samples whose own noise exceeds pi), not a
-    slip.  Transients are replaced by their neighbours' value; persistent
-    slips are the sum of |changes| of the cleaned error between consecutive
-    valid samples.
-    """
-    n_time = err.size
-    m = 0
-    for i in range(n_time):
-        if valid[i]:
-            m += 1
-    e = np.empty(m, np.int64)
-    k = 0
-    for i in range(n_time):
-        if valid[i]:
-            e[k] = err[i]
-            k += 1
-    # runs of equal error
-    run_start = np.empty(m + 1, np.int64)
-    n_runs = 0
-    for k in range(m):
-        if k == 0 or e[k] != e[k - 1]:
-            run_start[n_runs] = k
-            n_runs += 1
-    run_start[n_runs] = m
-    cleaned = e.copy()
-    transients = 0
-    for r in range(1, n_runs - 1):
-        length = run_start[r + 1] - run_start[r]
-        before = cleaned[run_start[r] - 1]
-        after = e[run_start[r + 1]]
-        if length <= max_transient and before == after:
-            for k in range(run_start[r], run_start[r + 1]):
-                cleaned[k] = before
-            transients += length
-    slips = 0
-    for k in range(1, m):
-        slips += abs(cleaned[k] - cleaned[k - 1])
-    return slips, transients
-
-
-@numba.njit(cache=True, nogil=True)
-def track_wraps_smooth_counts(ref_phase, valid):
-    """Counts only, with the default parameters (for the ``TRACKERS`` registry)."""
-    return track_wraps_smooth(ref_phase, valid)[0]
-
-
-def _register():
-    """Make the robust tracker selectable by name in calibrate (``hitops.kernels.wraps.TRACKERS``)."""
-    try:
-        from .wraps import TRACKERS
-    except ImportError:  # pragma: no cover - wraps is part of the package
-        return
-    TRACKERS.setdefault("smooth", track_wraps_smooth_counts)
-
-
-_register()

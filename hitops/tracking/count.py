@@ -1,0 +1,186 @@
+"""The paper's wrap counter (``--tracker count``): a step > pi between consecutive samples.
+
+Paper (fpt-arbitrary-ratios.tex, "Phase-wrap counting"): a wrapped phase in
+[-pi, pi) that crosses the boundary from the -pi side jumps by +2*pi, so the
+wrap count n(t) goes up by one; crossing from the +pi side it goes down by
+one.  A step of magnitude > pi between consecutive samples is taken as a wrap
+(valid while the Itoh condition holds: true steps stay below pi).
+
+:func:`count_wraps` is the numba kernel on one series; :func:`count_scans`
+runs it over a (baseline, correlation, time) chunk, restarting at each scan and
+continuing across chunks through a :class:`Carry` (the last valid sample of
+each series and its count), so the counts do not depend on the chunk size;
+:class:`CountTracker` is the same behind the :class:`~hitops.tracking.base.WrapTracker`
+interface.  It needs no context: one sample is carried instead.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from .base import Tracked, WrapTracker, scan_runs
+from .state import Stats
+
+
+@numba.njit(cache=True, nogil=True)
+def count_wraps(ref_phase, valid):
+    """Cumulative wrap count n(t) of ``ref_phase`` (radians, wrapped).
+
+    Starts at 0; a step > pi between consecutive *valid* samples is a wrap
+    (+1 when the phase jumps up, i.e. crossed from the -pi side, -1 when it
+    jumps down).  Invalid or non-finite samples take no part and carry the
+    previous count.
+    """
+    n_time = ref_phase.shape[0]
+    wraps = np.zeros(n_time, dtype=np.int64)
+    count = 0
+    have_last = False
+    last = 0.0
+    for t in range(n_time):
+        phase = ref_phase[t]
+        if valid[t] and math.isfinite(phase):
+            if have_last:
+                step = phase - last
+                if step > math.pi:
+                    count += 1
+                elif step < -math.pi:
+                    count -= 1
+            last = phase
+            have_last = True
+        wraps[t] = count
+    return wraps
+
+
+@numba.njit(cache=True, nogil=True)
+def wrap_events(wraps, scan_of_time):
+    """Number of wraps counted in each series of ``wraps`` (..., n_time): sum of |steps|.
+
+    Steps between two scans are not wraps: the count restarts at 0 in every
+    scan, and that reset must not be reported as wrap events.
+    """
+    flat = wraps.reshape(-1, wraps.shape[-1])
+    events = np.zeros(flat.shape[0], dtype=np.int64)
+    for s in range(flat.shape[0]):
+        for t in range(1, flat.shape[1]):
+            if scan_of_time[t] == scan_of_time[t - 1]:
+                events[s] += abs(flat[s, t] - flat[s, t - 1])
+    return events.reshape(wraps.shape[:-1])
+
+
+@dataclass
+class Carry:
+    """State of each (baseline, correlation) series at the end of the previous chunk."""
+
+    last_phase: np.ndarray   # (n_bl, n_corr) float64 last valid phase
+    has_last: np.ndarray     # (n_bl, n_corr) bool
+    count: np.ndarray        # (n_bl, n_corr) int64 wrap count at that sample
+    last_scan: int = -1      # scan index of the previous chunk's last time
+
+    @classmethod
+    def empty(cls, n_bl: int, n_corr: int) -> "Carry":
+        return cls(np.zeros((n_bl, n_corr)), np.zeros((n_bl, n_corr), bool),
+                   np.zeros((n_bl, n_corr), np.int64), -1)
+
+    def subset(self, bls) -> "Carry":
+        """The carry of the baselines ``bls`` (a baseline group's task gets only its own)."""
+        return Carry(self.last_phase[bls], self.has_last[bls], self.count[bls], self.last_scan)
+
+
+def count_scans(phase: np.ndarray, valid: np.ndarray, scan_of_time: np.ndarray, carry: Carry):
+    """Wrap counts (n_bl, n_corr, n_time) of every series, and the carry after them.
+
+    :func:`count_wraps` runs on each scan run of each series; a run that
+    continues the previous chunk's scan is prefixed with the carried last
+    valid sample, so the count goes on where it stopped.  ``carry`` is not
+    changed: the carry after this chunk is returned.
+    """
+    n_bl, n_corr, n_time = phase.shape
+    wraps = np.zeros((n_bl, n_corr, n_time), dtype=np.int64)
+    runs = scan_runs(scan_of_time)
+    new = Carry(carry.last_phase.copy(), carry.has_last.copy(), carry.count.copy(),
+                runs[-1][2] if runs else carry.last_scan)
+    for b in range(n_bl):
+        for c in range(n_corr):
+            for i, (start, stop, scan) in enumerate(runs):
+                ph = phase[b, c, start:stop]
+                va = valid[b, c, start:stop]
+                if i == 0 and scan == carry.last_scan and carry.has_last[b, c]:
+                    n = count_wraps(np.concatenate(([carry.last_phase[b, c]], ph)),
+                                    np.concatenate(([True], va)))[1:] + carry.count[b, c]
+                else:
+                    n = count_wraps(ph, va)
+                wraps[b, c, start:stop] = n
+            if not runs:
+                continue
+            start, stop, scan = runs[-1]
+            last_valid = np.flatnonzero(valid[b, c, start:stop])
+            if last_valid.size:
+                t = start + int(last_valid[-1])
+                new.last_phase[b, c] = phase[b, c, t]
+                new.has_last[b, c] = True
+                new.count[b, c] = wraps[b, c, t]
+            elif not (len(runs) == 1 and scan == carry.last_scan):
+                # the series saw nothing in a scan of its own: the next one starts afresh
+                new.has_last[b, c] = False
+                new.count[b, c] = 0
+    return wraps, new
+
+
+def chunk_wrap_events(wraps: np.ndarray, scan_of_time: np.ndarray, carry: Carry) -> np.ndarray:
+    """Wrap events (n_bl, n_corr) of one chunk's counts; ``carry``: the one before the chunk.
+
+    The first sample's step from the carried count counts too when it
+    continues the previous chunk's scan, so the sum over chunks does not
+    depend on the chunk size.
+    """
+    steps = wrap_events(np.ascontiguousarray(wraps), scan_of_time)
+    if wraps.shape[-1] and scan_of_time[0] == carry.last_scan and carry.has_last.any():
+        first = wraps[:, :, 0] - np.where(carry.has_last, carry.count, 0)
+        steps = steps + np.abs(np.where(carry.has_last, first, 0))
+    return steps
+
+
+class CountTracker(WrapTracker):
+    """``--tracker count`` over the whole (n_bl, n_corr, n) grid, chunk after chunk.
+
+    ``track`` takes the gridded visibilities (complex; their phase is used) or
+    already wrapped phases (float: used as they are, e.g. the phases
+    :func:`hitops.kernels.fpt.gather_phase` gives).  It reads no context
+    (``context`` 0): its state is the :class:`Carry`.  ``sigma`` is not used.
+    """
+
+    name = "count"
+
+    def __init__(self, match, corr_names, setup=None, **_unused):
+        self.match = match
+        self.setup = setup
+        self.context = 0
+        self.corr_names = list(corr_names)
+        n_bl, n_corr = match.n_bl, len(self.corr_names)
+        self.state = Carry.empty(n_bl, n_corr)
+        self.stats = Stats(n_bl, n_corr, 0)
+        self.antenna_phase = self.antenna_segment = None   # no antenna model
+
+    def extended(self, t0: int, t1: int):
+        return t0, t1
+
+    def track(self, t_lo, t0, t1, t_hi, vis, valid, sigma=None) -> Tracked:
+        i0, i1 = t0 - t_lo, t1 - t_lo
+        vis, valid = vis[..., i0:i1], valid[..., i0:i1]
+        phase = np.angle(vis) if np.iscomplexobj(vis) else np.asarray(vis, dtype=np.float64)
+        scan = self.match.scan_of_time[t0:t1]
+        wraps, carry = count_scans(phase, valid, scan, self.state)
+        self.stats.per_series["wrap_events"] += chunk_wrap_events(wraps, scan, self.state)
+        self.state = carry
+        return Tracked(ref_wraps=wraps)
+
+    def report(self, times) -> dict:
+        """The JSON report's tracking entry: wrap events per baseline."""
+        events = self.stats.per_series["wrap_events"]
+        return {"setup": {"tracker": "count"},
+                "baselines": [{"baseline": name, "wrap_events": int(events[b].sum())}
+                              for b, name in enumerate(self.match.baseline_names)]}
