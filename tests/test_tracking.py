@@ -420,3 +420,113 @@ def test_per_sample_windows_follow_local_coherence():
     assert slips(local, phase, valid, truth)[0] <= 2
     sin_el = np.array([1.0, 0.5, np.sin(np.radians(10))])
     assert np.allclose(theory.local_coherence_time(33.0, sin_el), 33.0 * sin_el ** 0.6)
+
+
+# ---------------------------------------------------------------- the count tracker (issue 12)
+
+class _Match:
+    """The part of calibrate's station/time match a tracker reads."""
+
+    def __init__(self, scan_of_time, n_bl):
+        self.scan_of_time = np.asarray(scan_of_time, np.int64)
+        self.n_time = self.scan_of_time.size
+        self.times = np.arange(self.n_time, dtype=np.float64)
+        self.n_bl = n_bl
+        self.baseline_names = [f"B{b}" for b in range(n_bl)]
+
+
+def _count_reference(phase, valid, scan_of_time, carry):
+    """transfer.track(count_wraps, ...) as it was before issue 12, written out as the oracle:
+    count_wraps per scan run, the first run continuing the carried sample of the same scan."""
+    from hitops.tracking.base import scan_runs
+    from hitops.tracking.count import Carry
+
+    n_bl, n_corr, _ = phase.shape
+    wraps = np.zeros(phase.shape, np.int64)
+    runs = scan_runs(scan_of_time)
+    new = Carry(carry.last_phase.copy(), carry.has_last.copy(), carry.count.copy(),
+                runs[-1][2] if runs else carry.last_scan)
+    for b in range(n_bl):
+        for c in range(n_corr):
+            for i, (start, stop, scan) in enumerate(runs):
+                ph, va = phase[b, c, start:stop], valid[b, c, start:stop]
+                if i == 0 and scan == carry.last_scan and carry.has_last[b, c]:
+                    n = count_wraps(np.concatenate(([carry.last_phase[b, c]], ph)),
+                                    np.concatenate(([True], va)))[1:] + carry.count[b, c]
+                else:
+                    n = count_wraps(ph, va)
+                wraps[b, c, start:stop] = n
+            start, stop, scan = runs[-1]
+            last = np.flatnonzero(valid[b, c, start:stop])
+            if last.size:
+                new.last_phase[b, c] = phase[b, c, start + last[-1]]
+                new.has_last[b, c] = True
+                new.count[b, c] = wraps[b, c, start + last[-1]]
+            elif not (len(runs) == 1 and scan == carry.last_scan):
+                new.has_last[b, c] = False
+                new.count[b, c] = 0
+    return wraps, new
+
+
+def _count_case(seed=11, n_bl=3, n_corr=2, n_time=400):
+    """Fast wrapping phases with scans, flagged runs and NaN samples."""
+    rng = np.random.default_rng(seed)
+    true = np.cumsum(rng.normal(0.0, 1.2, (n_bl, n_corr, n_time)), axis=-1)
+    vis = np.exp(1j * true)
+    valid = rng.random((n_bl, n_corr, n_time)) > 0.1
+    valid[0, 0, 150:260] = False             # flagged across a scan change and chunk edges
+    valid[1, :, 90:100] = False
+    vis[2, 1, rng.integers(0, n_time, 30)] = np.nan + 0j
+    scan = np.repeat([0, 0, 1, 1, 1, 3, 3, 4], n_time // 8)
+    return vis, valid, scan
+
+
+@pytest.mark.parametrize("chunk", [1, 7, 64, 97, 400])
+def test_count_tracker_equals_the_transfer_counter_whole_and_chunked(chunk):
+    from hitops.tracking.count import Carry, CountTracker
+
+    vis, valid, scan = _count_case()
+    n_bl, n_corr, n_time = vis.shape
+    # NaN samples marked valid: count_wraps skips them, so the whole-track counts are the
+    # transfer counter's, and chunked ones equal them (the carry skips them too)
+    expected, _ = _count_reference(np.angle(vis), valid, scan, Carry.empty(n_bl, n_corr))
+    tracker = CountTracker(_Match(scan, n_bl), ["RR", "LL"])
+    assert tracker.context == 0 and tracker.extended(10, 20) == (10, 20)
+    got = []
+    for t0 in range(0, n_time, chunk):
+        t1 = min(t0 + chunk, n_time)
+        out = tracker.track(t0, t0, t1, t1, vis[..., t0:t1], valid[..., t0:t1], None)
+        assert out.ref_exclude is None and out.segment_keys is None and out.ref_model is None
+        got.append(out.ref_wraps)
+    assert np.array_equal(np.concatenate(got, axis=-1), expected)
+    # the reference counts restart in every scan, and the events do not count the restarts
+    whole = CountTracker(_Match(scan, n_bl), ["RR", "LL"])
+    whole.track(0, 0, n_time, n_time, vis, valid, None)
+    assert np.array_equal(tracker.stats.per_series["wrap_events"],
+                          whole.stats.per_series["wrap_events"])
+    assert tracker.report(np.arange(n_time))["baselines"][0]["wrap_events"] > 0
+
+
+def test_count_scans_continues_the_carry_like_the_transfer_counter():
+    """Chunk by chunk with the carry, against the oracle; phases (float) pass through as they are."""
+    from hitops.tracking.count import Carry, count_scans
+
+    vis, valid, scan = _count_case(seed=12)
+    valid &= np.isfinite(vis)            # as calibrate gathers them: unusable = invalid
+    phase = np.where(valid, np.angle(vis), np.nan)
+    carry_a = carry_b = Carry.empty(*vis.shape[:2])
+    for t0, t1 in [(0, 33), (33, 150), (150, 151), (151, 400)]:
+        a, carry_a = count_scans(phase[..., t0:t1], valid[..., t0:t1], scan[t0:t1], carry_a)
+        b, carry_b = _count_reference(phase[..., t0:t1], valid[..., t0:t1], scan[t0:t1], carry_b)
+        assert np.array_equal(a, b)
+        assert np.array_equal(carry_a.count, carry_b.count)
+        assert np.array_equal(carry_a.has_last, carry_b.has_last)
+        assert carry_a.last_scan == carry_b.last_scan
+    try:   # the transfer tasks' own counter, while it exists (issue 12 replaces it)
+        from hitops.calibrate.transfer import track
+    except ImportError:
+        return
+    carry = Carry.empty(*vis.shape[:2])
+    old, _ = track(count_wraps, phase, valid, scan, carry)
+    new, _ = count_scans(phase, valid, scan, carry)
+    assert np.array_equal(old, new)

@@ -1,9 +1,13 @@
-"""Robust phase-wrap tracking: theory, station terms and the tracking modes.
+"""Reference-band phase-wrap tracking: the three trackers of ``hitops calibrate`` and their theory.
 
-The numba kernels live in :mod:`hitops.kernels.tracking` and
-:mod:`hitops.kernels.antenna`; this package holds the pure-Python helpers:
-:mod:`.theory` (exact slip probabilities, recommended windows and
-thresholds), :mod:`.stations` (the threshold in SEFD/opacity terms) and
-:mod:`.modes` (naive / smooth / antenna over a (baseline, time) grid).
-See docs/tracking.md.
+One interface (:mod:`.base`: ``WrapTracker``, ``Tracked``) with one module per
+tracker: :mod:`.count` (the paper's step > pi rule), :mod:`.smooth` (smoothed
+unit phasor, gap bridging, jump detection) and :mod:`.antenna` (wraps tracked
+per antenna), each with its numba kernels beside it (:mod:`.smooth_kernel`,
+:mod:`.antenna_kernel`); the shared parts: :mod:`.options` (checks, resolved
+setup), :mod:`.grid` (regular time grid), :mod:`.windows` (per-sample SNR and
+windows), :mod:`.state` / :mod:`.antenna_state` (what carries across chunks,
+confidence numbers), :mod:`.factory` (a tracker by name).  Offline and
+theory: :mod:`.modes` (whole tracks at once), :mod:`.slips`, :mod:`.theory`,
+:mod:`.stations`.  See docs/tracking.md.
 """

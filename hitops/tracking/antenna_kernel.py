@@ -16,7 +16,7 @@ the *antennas*:
    changes, the new frame is rotated onto the previous sample's solution
    (circular mean over the antennas present in both) so each antenna's phase
    stays continuous;
-2. any tracker of :mod:`hitops.kernels.wraps` / :mod:`hitops.kernels.tracking`
+2. any tracker of :mod:`hitops.tracking.count` / :mod:`hitops.tracking.smooth_kernel`
    on each antenna's phase series (the antenna solution has the SNR of all
    its baselines combined);
 3. :func:`baseline_counts_from_antennas` - each baseline sample takes the
@@ -42,6 +42,106 @@ def _wrap(x):
 
 
 @numba.njit(cache=True, nogil=True)
+def _sample(vis, valid, ant1, ant2, t, v_re, v_im, use, present):
+    """Copy time sample t's usable baselines into (v_re, v_im, use); mark the antennas present."""
+    present[:] = False
+    for b in range(vis.shape[0]):
+        use[b] = False
+        if valid[b, t] and ant1[b] != ant2[b]:
+            v = vis[b, t]
+            re = np.float64(v.real)
+            im = np.float64(v.imag)
+            if np.isfinite(re) and np.isfinite(im) and (re != 0.0 or im != 0.0):
+                use[b] = True
+                v_re[b] = re
+                v_im[b] = im
+                present[ant1[b]] = True
+                present[ant2[b]] = True
+
+
+@numba.njit(cache=True, nogil=True)
+def _reference(refants, present):
+    """The first of ``refants`` present, else the lowest-numbered present antenna, else -1."""
+    n_ant = present.size
+    for r in refants:
+        if 0 <= r < n_ant and present[r]:
+            return r
+    for p in range(n_ant):
+        if present[p]:
+            return p
+    return -1
+
+
+@numba.njit(cache=True, nogil=True)
+def _solve(v_re, v_im, use, ant1, ant2, present, g_re, g_im, n_iter, tol):
+    """Phase-only StEFCal iterations on one sample, updating the unit gains (g_re, g_im)."""
+    n_ant = g_re.size
+    acc_re = np.zeros(n_ant)
+    acc_im = np.zeros(n_ant)
+    for it in range(n_iter):
+        acc_re[:] = 0.0
+        acc_im[:] = 0.0
+        for b in range(v_re.size):
+            if not use[b]:
+                continue
+            p = ant1[b]
+            q = ant2[b]
+            re = v_re[b]
+            im = v_im[b]
+            # V_pq g_q -> g_p ; conj(V_pq) g_p -> g_q
+            acc_re[p] += re * g_re[q] - im * g_im[q]
+            acc_im[p] += re * g_im[q] + im * g_re[q]
+            acc_re[q] += re * g_re[p] + im * g_im[p]
+            acc_im[q] += re * g_im[p] - im * g_re[p]
+        change = 0.0
+        for p in range(n_ant):
+            if not present[p]:
+                continue
+            amp = np.hypot(acc_re[p], acc_im[p])
+            if amp == 0.0:
+                continue
+            # every second iterate is averaged with the previous one (StEFCal's
+            # damping, which stops the two-cycle oscillation), then renormalised
+            if it % 2 == 1:
+                n_re = 0.5 * (g_re[p] + acc_re[p] / amp)
+                n_im = 0.5 * (g_im[p] + acc_im[p] / amp)
+            else:
+                n_re = acc_re[p] / amp
+                n_im = acc_im[p] / amp
+            n_amp = np.hypot(n_re, n_im)
+            if n_amp == 0.0:
+                n_re = acc_re[p] / amp
+                n_im = acc_im[p] / amp
+                n_amp = 1.0
+            n_re /= n_amp
+            n_im /= n_amp
+            change = max(change, np.hypot(n_re - g_re[p], n_im - g_im[p]))
+            g_re[p] = n_re
+            g_im[p] = n_im
+        if change < tol:
+            break
+
+
+@numba.njit(cache=True, nogil=True)
+def _frame_offset(ant_phase, ant_valid, prev_t, present, g_re, g_im, ref_phase):
+    """(angle, carried): the rotation of a new reference antenna's frame onto the previous
+    sample's solutions (circular mean over the antennas in both); (0, False) when no
+    antenna was present at both samples to carry the frame."""
+    s_re = 0.0
+    s_im = 0.0
+    n_common = 0
+    for p in range(present.size):
+        if present[p] and ant_valid[p, prev_t]:
+            d = ant_phase[p, prev_t] - (np.arctan2(g_im[p], g_re[p]) - ref_phase)
+            s_re += np.cos(d)
+            s_im += np.sin(d)
+            n_common += 1
+    if n_common > 0:
+        return np.arctan2(s_im, s_re), True
+    return 0.0, False
+
+
+@numba.njit(cache=True, nogil=True)
 def solve_antenna_phases(vis, valid, ant1, ant2, n_ant, refants, n_iter=30, tol=1e-4):
     """Per-sample phase-only antenna solutions at the reference band.
 
@@ -64,8 +164,6 @@ def solve_antenna_phases(vis, valid, ant1, ant2, n_ant, refants, n_iter=30, tol=
     frame_break = np.zeros(n_time, np.bool_)
     g_re = np.ones(n_ant)
     g_im = np.zeros(n_ant)
-    acc_re = np.zeros(n_ant)
-    acc_im = np.zeros(n_ant)
     present = np.zeros(n_ant, np.bool_)
     offset = 0.0
     prev_t = -1
@@ -75,29 +173,8 @@ def solve_antenna_phases(vis, valid, ant1, ant2, n_ant, refants, n_iter=30, tol=
     v_im = np.zeros(n_bl)
     use = np.zeros(n_bl, np.bool_)
     for t in range(n_time):
-        present[:] = False
-        for b in range(n_bl):
-            use[b] = False
-            if valid[b, t] and ant1[b] != ant2[b]:
-                v = vis[b, t]
-                re = np.float64(v.real)
-                im = np.float64(v.imag)
-                if np.isfinite(re) and np.isfinite(im) and (re != 0.0 or im != 0.0):
-                    use[b] = True
-                    v_re[b] = re
-                    v_im[b] = im
-                    present[ant1[b]] = True
-                    present[ant2[b]] = True
-        ref = -1
-        for r in refants:
-            if 0 <= r < n_ant and present[r]:
-                ref = r
-                break
-        if ref < 0:
-            for p in range(n_ant):
-                if present[p]:
-                    ref = p
-                    break
+        _sample(vis, valid, ant1, ant2, t, v_re, v_im, use, present)
+        ref = _reference(refants, present)
         if ref < 0:
             continue
         # warm start from the previous solution; fresh antennas start at 1
@@ -105,65 +182,13 @@ def solve_antenna_phases(vis, valid, ant1, ant2, n_ant, refants, n_iter=30, tol=
             if not (prev_t >= 0 and ant_valid[p, prev_t]):
                 g_re[p] = 1.0
                 g_im[p] = 0.0
-        for it in range(n_iter):
-            acc_re[:] = 0.0
-            acc_im[:] = 0.0
-            for b in range(n_bl):
-                if not use[b]:
-                    continue
-                p = ant1[b]
-                q = ant2[b]
-                re = v_re[b]
-                im = v_im[b]
-                # V_pq g_q -> g_p ; conj(V_pq) g_p -> g_q
-                acc_re[p] += re * g_re[q] - im * g_im[q]
-                acc_im[p] += re * g_im[q] + im * g_re[q]
-                acc_re[q] += re * g_re[p] + im * g_im[p]
-                acc_im[q] += re * g_im[p] - im * g_re[p]
-            change = 0.0
-            for p in range(n_ant):
-                if not present[p]:
-                    continue
-                amp = np.hypot(acc_re[p], acc_im[p])
-                if amp == 0.0:
-                    continue
-                # every second iterate is averaged with the previous one (StEFCal's
-                # damping, which stops the two-cycle oscillation), then renormalised
-                if it % 2 == 1:
-                    n_re = 0.5 * (g_re[p] + acc_re[p] / amp)
-                    n_im = 0.5 * (g_im[p] + acc_im[p] / amp)
-                else:
-                    n_re = acc_re[p] / amp
-                    n_im = acc_im[p] / amp
-                n_amp = np.hypot(n_re, n_im)
-                if n_amp == 0.0:
-                    n_re = acc_re[p] / amp
-                    n_im = acc_im[p] / amp
-                    n_amp = 1.0
-                n_re /= n_amp
-                n_im /= n_amp
-                change = max(change, np.hypot(n_re - g_re[p], n_im - g_im[p]))
-                g_re[p] = n_re
-                g_im[p] = n_im
-            if change < tol:
-                break
+        _solve(v_re, v_im, use, ant1, ant2, present, g_re, g_im, n_iter, tol)
         ref_phase = np.arctan2(g_im[ref], g_re[ref])
         if prev_ref >= 0 and ref != prev_ref:
             # rotate the new frame onto the previous sample's solutions
-            s_re = 0.0
-            s_im = 0.0
-            n_common = 0
-            for p in range(n_ant):
-                if present[p] and ant_valid[p, prev_t]:
-                    d = ant_phase[p, prev_t] - (np.arctan2(g_im[p], g_re[p]) - ref_phase)
-                    s_re += np.cos(d)
-                    s_im += np.sin(d)
-                    n_common += 1
-            if n_common > 0:
-                offset = np.arctan2(s_im, s_re)
-            else:
-                offset = 0.0
-                frame_break[t] = True
+            offset, carried = _frame_offset(ant_phase, ant_valid, prev_t, present, g_re, g_im,
+                                            ref_phase)
+            frame_break[t] = not carried
         for p in range(n_ant):
             if present[p]:
                 ant_phase[p, t] = _wrap(np.arctan2(g_im[p], g_re[p]) - ref_phase + offset)

@@ -117,7 +117,9 @@ def count_scans(phase: np.ndarray, valid: np.ndarray, scan_of_time: np.ndarray, 
             if not runs:
                 continue
             start, stop, scan = runs[-1]
-            last_valid = np.flatnonzero(valid[b, c, start:stop])
+            # the sample carried is one count_wraps used: valid and finite (a NaN marked
+            # valid would break the chain at a chunk edge; gather_phase never gives one)
+            last_valid = np.flatnonzero(valid[b, c, start:stop] & np.isfinite(phase[b, c, start:stop]))
             if last_valid.size:
                 t = start + int(last_valid[-1])
                 new.last_phase[b, c] = phase[b, c, t]

@@ -188,6 +188,120 @@ def _predicted_step(index, unwrapped, smooth_phase, k, seg_lo_before, seg_hi_aft
 
 
 @numba.njit(cache=True, nogil=True)
+def _segments(index, pre_re, pre_im, max_gap, jump_window, jump_threshold, min_coherence):
+    """(first sample of a segment?, segment id, measured jump) of each valid sample.
+
+    A run of invalid samples longer than ``max_gap`` starts a segment, and so
+    does an instrumental jump (detected within the gap-segments).
+    """
+    m = index.size
+    long_gap_first = np.zeros(m, np.bool_)
+    long_gap_first[0] = True
+    for k in range(1, m):
+        if index[k] - index[k - 1] - 1 > max_gap:
+            long_gap_first[k] = True
+    jumps = _detect_jumps(index, pre_re, pre_im, long_gap_first, jump_window,
+                          jump_threshold, min_coherence)
+    seg_first = long_gap_first.copy()
+    for k in range(m):
+        if jumps[k] != 0.0:
+            seg_first[k] = True
+    seg_id = np.empty(m, np.int64)
+    current = -1
+    for k in range(m):
+        if seg_first[k]:
+            current += 1
+        seg_id[k] = current
+    return seg_first, seg_id, jumps
+
+
+@numba.njit(cache=True, nogil=True)
+def _smoothed(index, pre_re, pre_im, seg_first, seg_lo, seg_hi, half_window, half_windows):
+    """Phase and mean resultant of the unit-phasor sum over +-h samples (by time index)
+    within the segment; with ``half_windows`` each sample has its own h (e.g. from the
+    local coherence time, which shrinks as sin(el)^(3/5) towards low elevation)."""
+    m = index.size
+    smooth_phase = np.empty(m)
+    coherence = np.empty(m)
+    h = max(half_window, 0)
+    a = 0
+    b = 0
+    for k in range(m):
+        if half_windows is None:
+            if seg_first[k]:
+                a = k
+                b = k
+            while index[a] < index[k] - h:
+                a += 1
+            if b < k + 1:
+                b = k + 1
+            while b < seg_hi[k] and index[b] <= index[k] + h:
+                b += 1
+        else:
+            hk = max(half_windows[index[k]], 0)
+            a = max(np.searchsorted(index, index[k] - hk), seg_lo[k])
+            b = min(np.searchsorted(index, index[k] + hk, side="right"), seg_hi[k])
+        s_re = pre_re[b] - pre_re[a]
+        s_im = pre_im[b] - pre_im[a]
+        smooth_phase[k] = np.arctan2(s_im, s_re)
+        coherence[k] = np.hypot(s_re, s_im) / (b - a)
+    return smooth_phase, coherence
+
+
+@numba.njit(cache=True, nogil=True)
+def _jump_prediction(index, unwrapped, seg_lo, k, jump, h, jump_window, base):
+    """Smoothed phase predicted at k, the first sample after a jump: continue across it
+    with its measured size (|jump| <= pi).  The statistic compares window means
+    jump_window samples apart, while the one-sided smoothed phases either side of the
+    boundary are about h+1 samples apart: correct the turbulent trend for it."""
+    rate = 0.0
+    j0 = k - 1
+    while j0 - 1 >= seg_lo[k - 1] and index[k - 1] - index[j0 - 1] <= base:
+        j0 -= 1
+    if j0 < k - 1:
+        rate, _ok = _local_rate(index, unwrapped, j0, k - 1)
+    return unwrapped[k - 1] + jump + rate * (h + 1 - jump_window)
+
+
+@numba.njit(cache=True, nogil=True)
+def _unwrap_smoothed(index, smooth_phase, seg_first, seg_lo, seg_hi, jumps, h, jump_window,
+                     max_gap, bridged, suspect):
+    """Unwrapped smoothed phase, bridging gaps and crossing segment boundaries.
+
+    Sets ``bridged`` at the first sample after a bridged gap and ``suspect``
+    where the smoothed phase steps by more than pi/2 (outputs of the caller).
+    """
+    m = index.size
+    unwrapped = np.empty(m)
+    base = max(2 * h + 1, 3)
+    for k in range(m):
+        if k == 0:
+            unwrapped[k] = smooth_phase[k]
+            continue
+        gap = index[k] - index[k - 1]
+        if seg_first[k] and jumps[k] != 0.0:
+            predicted = _jump_prediction(index, unwrapped, seg_lo, k, jumps[k], h, jump_window,
+                                         base)
+        elif gap > 1:
+            # the rates are measured over max(2h+1, gap) samples, but never more
+            # than max_gap + 1: beyond it the gap starts an unresolved segment anyway,
+            # and a bounded reach lets calibrate chunk the time axis exactly with a
+            # finite context (TrackingSetup.context, hitops.tracking.options)
+            span = max(base, min(gap, max_gap + 1))
+            predicted = unwrapped[k - 1] + _predicted_step(index, unwrapped, smooth_phase, k,
+                                                           seg_lo[k - 1], seg_hi[k], span)
+            if not seg_first[k]:
+                bridged[index[k]] = True
+        else:
+            predicted = unwrapped[k - 1]
+        step = _wrap(smooth_phase[k] - smooth_phase[k - 1] - (predicted - unwrapped[k - 1]))
+        unwrapped[k] = predicted + step
+        if not seg_first[k] and gap == 1 and abs(_wrap(smooth_phase[k] - smooth_phase[k - 1])) > 0.5 * np.pi:
+            suspect[index[k]] = True
+    return unwrapped
+
+
+@numba.njit(cache=True, nogil=True)
 def track_wraps_smooth(ref_phase, valid, half_window=5, max_gap=30, jump_window=5,
                        jump_threshold=0.0, min_coherence=0.2, half_windows=None):
     """Wrap counts from a smoothed unit-phasor track, with gap bridging and jump detection.
@@ -221,96 +335,20 @@ def track_wraps_smooth(ref_phase, valid, half_window=5, max_gap=30, jump_window=
     for k in range(m):
         phase[k] = ref_phase[index[k]]
     pre_re, pre_im = _prefix_phasors(phase)
-
-    # 1. long gaps start segments
-    long_gap_first = np.zeros(m, np.bool_)
-    long_gap_first[0] = True
-    for k in range(1, m):
-        if index[k] - index[k - 1] - 1 > max_gap:
-            long_gap_first[k] = True
-    # 2. instrumental jumps start segments too
-    jumps = _detect_jumps(index, pre_re, pre_im, long_gap_first, jump_window,
-                          jump_threshold, min_coherence)
-    seg_first = long_gap_first.copy()
-    for k in range(m):
-        if jumps[k] != 0.0:
-            seg_first[k] = True
-    seg_id = np.empty(m, np.int64)
-    current = -1
-    for k in range(m):
-        if seg_first[k]:
-            current += 1
-        seg_id[k] = current
+    # 1.-2. segments: long gaps and instrumental jumps start them
+    seg_first, seg_id, jumps = _segments(index, pre_re, pre_im, max_gap, jump_window,
+                                         jump_threshold, min_coherence)
     seg_lo, seg_hi = segment_bounds(seg_first)
-
-    # 3. smoothed phasor over +-h samples (by time index) within the segment;
-    # with ``half_windows`` each sample has its own h (e.g. from the local
-    # coherence time, which shrinks as sin(el)^(3/5) towards low elevation)
-    smooth_phase = np.empty(m)
-    coherence = np.empty(m)
+    # 3. smoothed phasor
+    smooth_phase, coherence = _smoothed(index, pre_re, pre_im, seg_first, seg_lo, seg_hi,
+                                        half_window, half_windows)
+    # 4. unwrapped smoothed phase (marks bridged gaps and suspect steps)
     h = max(half_window, 0)
-    a = 0
-    b = 0
-    for k in range(m):
-        if half_windows is None:
-            if seg_first[k]:
-                a = k
-                b = k
-            while index[a] < index[k] - h:
-                a += 1
-            if b < k + 1:
-                b = k + 1
-            while b < seg_hi[k] and index[b] <= index[k] + h:
-                b += 1
-        else:
-            hk = max(half_windows[index[k]], 0)
-            a = max(np.searchsorted(index, index[k] - hk), seg_lo[k])
-            b = min(np.searchsorted(index, index[k] + hk, side="right"), seg_hi[k])
-        s_re = pre_re[b] - pre_re[a]
-        s_im = pre_im[b] - pre_im[a]
-        smooth_phase[k] = np.arctan2(s_im, s_re)
-        coherence[k] = np.hypot(s_re, s_im) / (b - a)
-
-    # 4. unwrap the smoothed phase, bridging gaps and crossing segment boundaries
-    unwrapped = np.empty(m)
-    base = max(2 * h + 1, 3)
-    for k in range(m):
-        if k == 0:
-            unwrapped[k] = smooth_phase[k]
-            continue
-        gap = index[k] - index[k - 1]
-        if seg_first[k] and jumps[k] != 0.0:
-            # continue across the jump with its measured size (|jump| <= pi).
-            # The statistic compares window means jump_window samples apart,
-            # while the one-sided smoothed phases either side of the boundary
-            # are about h+1 samples apart: correct the turbulent trend for it.
-            rate = 0.0
-            j0 = k - 1
-            while j0 - 1 >= seg_lo[k - 1] and index[k - 1] - index[j0 - 1] <= base:
-                j0 -= 1
-            if j0 < k - 1:
-                rate, _ok = _local_rate(index, unwrapped, j0, k - 1)
-            predicted = unwrapped[k - 1] + jumps[k] + rate * (h + 1 - jump_window)
-        elif gap > 1:
-            # the rates are measured over max(2h+1, gap) samples, but never more
-            # than max_gap + 1: beyond it the gap starts an unresolved segment anyway,
-            # and a bounded reach lets calibrate chunk the time axis exactly with a
-            # finite context (TrackingSetup.context, hitops.tracking.options)
-            span = max(base, min(gap, max_gap + 1))
-            predicted = unwrapped[k - 1] + _predicted_step(index, unwrapped, smooth_phase, k,
-                                                           seg_lo[k - 1], seg_hi[k], span)
-            if not seg_first[k]:
-                bridged[index[k]] = True
-        else:
-            predicted = unwrapped[k - 1]
-        step = _wrap(smooth_phase[k] - smooth_phase[k - 1] - (predicted - unwrapped[k - 1]))
-        unwrapped[k] = predicted + step
-        if not seg_first[k] and gap == 1 and abs(_wrap(smooth_phase[k] - smooth_phase[k - 1])) > 0.5 * np.pi:
-            suspect[index[k]] = True
+    unwrapped = _unwrap_smoothed(index, smooth_phase, seg_first, seg_lo, seg_hi, jumps, h,
+                                 jump_window, max_gap, bridged, suspect)
     for k in range(m):
         if coherence[k] < min_coherence:
             suspect[index[k]] = True
-
     # 5. snap each raw sample to the lobe nearest the smoothed track
     n_prev = 0
     k = 0

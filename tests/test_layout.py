@@ -1,0 +1,132 @@
+"""The package's shape (issue 12): no import cycles in hitops; wrap tracking small enough to read.
+
+The import graph is built from the source with ``ast`` (every ``import`` and
+``from ... import``, at module level or inside functions: a lazy import that
+closes a cycle is still a cycle in the design).  ``from pkg import name``
+depends on the submodule ``pkg.name`` when there is one, else on ``pkg``; a
+module's own parent packages are not dependencies (Python imports them first
+whatever the module does).
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent / "hitops"
+#: issue 12: no module of hitops/tracking over ~400 lines, no function over ~80
+MAX_MODULE_LINES = 400
+MAX_FUNCTION_LINES = 80
+
+
+def _modules():
+    """{dotted name: (path, is_package)} of every module of hitops."""
+    out = {}
+    for path in ROOT.rglob("*.py"):
+        parts = list(path.relative_to(ROOT.parent).with_suffix("").parts)
+        is_pkg = parts[-1] == "__init__"
+        out[".".join(parts[:-1] if is_pkg else parts)] = (path, is_pkg)
+    return out
+
+
+def _imports(name, path, is_pkg, modules):
+    """The hitops modules ``name`` imports."""
+    package = name if is_pkg else name.rsplit(".", 1)[0]
+    deps = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            targets = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")
+                parts = parts[:len(parts) - node.level + 1]
+                base = ".".join(parts + ([node.module] if node.module else []))
+            targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in modules else base
+                       for a in node.names]
+        else:
+            continue
+        deps.update(t for t in targets
+                    if t in modules and t != name and not name.startswith(t + "."))
+    return deps
+
+
+def import_graph():
+    modules = _modules()
+    return {name: _imports(name, path, is_pkg, modules) for name, (path, is_pkg) in modules.items()}
+
+
+def cycles(graph):
+    """Strongly connected components of more than one module (Tarjan, iterative)."""
+    index, low, on_stack, stack, found = {}, {}, set(), [], []
+    counter = 0
+    for root in graph:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = counter
+        counter += 1
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = counter
+                    counter += 1
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph[child]))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    found.append(sorted(component))
+    return found
+
+
+def test_the_cycle_finder_finds_a_cycle():
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_import_cycles_in_hitops():
+    graph = import_graph()
+    assert "hitops.tracking.smooth" in graph and graph["hitops.tracking.antenna"]
+    assert cycles(graph) == []
+
+
+def test_tracking_modules_and_functions_are_small():
+    too_long = []
+    for path in sorted((ROOT / "tracking").glob("*.py")):
+        text = path.read_text()
+        if len(text.splitlines()) > MAX_MODULE_LINES:
+            too_long.append(f"{path.name}: {len(text.splitlines())} lines")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                lines = node.end_lineno - node.lineno + 1
+                if lines > MAX_FUNCTION_LINES:
+                    too_long.append(f"{path.name}: {node.name}() {lines} lines")
+    assert too_long == []
+
+
+def test_wrap_tracking_lives_in_hitops_tracking():
+    """The kernels sit beside their trackers; simulate and calibrate share hitops/geometry.py."""
+    graph = import_graph()
+    for gone in ("hitops.kernels.tracking", "hitops.kernels.antenna"):
+        assert gone not in graph
+    calibrate_side = [n for n in graph if n.startswith(("hitops.calibrate", "hitops.tracking"))]
+    assert not [n for n in calibrate_side if "hitops.simulate.geometry" in graph[n]]
+    assert "hitops.geometry" in graph["hitops.simulate.geometry"]
