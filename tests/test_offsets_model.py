@@ -204,3 +204,117 @@ def test_model_column_is_not_an_output(tmp_path):
     with pytest.raises(InputError, match="input or flag column"):
         calibrate(truth.ref_ms, truth.target_ms, offset_model="MODEL_DATA",
                   output_column="MODEL_DATA", overwrite=True)
+
+
+# ----------------------------------------------------------------------------- both hands
+
+def test_reference_column_with_antenna_tracker_solves_on_the_lattice(tmp_path):
+    """--offset-reference-column with --tracker antenna: per antenna on the lattice against
+    the reference column (as --offset-model does against a model), both hands tied."""
+    truth = late_station_pair(tmp_path)
+    add_column(truth.target_ms, "CORRECTED_DATA", np.exp(1j * truth.source_phase)[:, None, :])
+    before, _ = run(truth, column="NOSTEP", tracker="antenna", refant="PV")
+    valid = ~col(truth.target_ms, "FLAG")[:, 0, :]
+    resid0 = wrap(np.angle(before[:, 0, :]) - truth.source_phase)
+    gl_pv = (truth.ant1 == 2) & (truth.ant2 == 3) & valid[:, 0]
+    k_true = np.unique(lattice_integer(resid0[gl_pv, 0]))
+    assert k_true.size == 1 and k_true[0] != 0
+    after, rep = run(truth, column="STEP", tracker="antenna", refant="PV",
+                     offset_reference_column="CORRECTED_DATA")
+    resid = wrap(np.angle(after[:, 0, :]) - truth.source_phase)
+    assert np.max(np.abs(resid[valid])) < 1e-3
+    step = rep["offset_step"]
+    assert step["solve"] == "antenna lattice" and step["column"] == "CORRECTED_DATA"
+    by_ant = {(e["antenna"], e["correlation"]): e for e in step["antennas"]}
+    for c in ("RR", "LL"):
+        assert by_ant[("GL", c)]["k"] == k_true[0] and by_ant[("PV", c)]["reference"]
+        # the hands were solved together, each antenna tied to its other hand
+        assert all(by_ant[(a, c)]["hands"] == "RR+LL" and by_ant[(a, c)]["tied"]
+                   for a in ("AP", "SM", "PV", "GL"))
+    assert {s["hands"] for s in step["solves"]} == {"RR+LL"}
+    # the per-baseline integers close on every triangle
+    d = {(e["baseline"], e["correlation"]): e["k"] for e in step["series"]}
+    names = ["AP", "SM", "PV", "GL"]
+    for c in ("RR", "LL"):
+        for p, q, r in itertools.combinations(range(4), 3):
+            assert (d[(f"{names[p]}-{names[q]}", c)] + d[(f"{names[q]}-{names[r]}", c)]
+                    - d[(f"{names[p]}-{names[r]}", c)]) == 0
+
+
+def _hands_scene(n_scans=4, n_per_scan=10, j=(0, 2, -1), ref_rl=(0.0, 0.5, -0.4)):
+    """Tracked antenna phases of two hands (RR, LL) whose count errors differ by j per
+    antenna, plus a constant instrumental R-L phase ref_rl (rad)."""
+    n_ant, n_time = 3, n_scans * n_per_scan
+    rng = np.random.default_rng(5)
+    common = np.cumsum(rng.normal(0, 0.2, (n_ant, n_time)), axis=1)
+    common[0] = 0.0                                    # the reference antenna
+    phase = np.zeros((n_ant, 2, n_time))
+    phase[:, 0] = common
+    phase[:, 1] = common - np.asarray(ref_rl)[:, None] - 2 * np.pi * np.asarray(j)[:, None]
+    segment = np.zeros((n_ant, 2, n_time), np.int64)
+    scan_of_time = np.repeat(np.arange(n_scans), n_per_scan)
+    return {"phase": phase, "segment": segment, "scan_of_time": scan_of_time}
+
+
+def test_hand_ties_recover_j_and_refuse_a_split_segment():
+    from hitops.calibrate.offsets import hand_ties
+
+    hands = _hands_scene()
+    ties = hand_ties(hands["phase"], hands["segment"], hands["scan_of_time"], 0, 1)
+    assert {(s, p): jt for (s, p, a, b), (jt, n) in ties.items()} == \
+        {(s, p): jp for s in range(4) for p, jp in enumerate((0, 2, -1))}
+    assert all(n == 10 for _, n in ties.values())
+    # a slip in one hand half-way through scan 2 of antenna 1: no tie there
+    phase = hands["phase"].copy()
+    phase[1, 1, 25:30] += 2 * np.pi
+    ties = hand_ties(phase, hands["segment"], hands["scan_of_time"], 0, 1)
+    assert (2, 1, 0, 0) not in ties and (1, 1, 0, 0) in ties and (2, 2, 0, 0) in ties
+
+
+def test_both_hands_outvote_one_hand_off_its_lattice_point():
+    """Per scan, one hand of antenna 1 measures its offset beyond the midpoint between
+    lattice points (4.6 deg, half the spacing is 4.19 deg) and the other hand 3 deg the
+    other way: alone, that hand picks the neighbouring point; tied (k_RR - k_LL = j from
+    the reference band, LL's constant instrumental phase of 100 deg on antenna 2 measured
+    over the track and removed), every integer is the true one."""
+    from hitops.calibrate.offsets import PAIR_KEY, antenna_offsets
+
+    two_pi_eps = 2 * np.pi * EPS
+    j = np.array([0, 2, -1])
+    m_rr = {0: np.array([0, 5, -7]), 1: np.array([0, -11, 3]), 2: np.array([0, 1, 9]),
+            3: np.array([0, -4, -2])}
+    bias = {0: (4.6, -3.0), 1: (-3.0, 4.6), 2: (1.0, 1.0), 3: (0.0, 0.0)}   # antenna 1, deg
+    beta_ll = np.radians([0.0, 0.0, 100.0])
+    ant1, ant2 = np.array([0, 0, 1]), np.array([1, 2, 2])
+    seg_sums = {}
+    key_of = lambda s: s * (1 << 32) + 0 * PAIR_KEY + 0
+    for s in range(4):
+        for c in (0, 1):
+            m = m_rr[s] - (j if c == 1 else 0)             # k_RR - k_LL = j
+            cst = np.radians([0.0, bias[s][c], 0.0]) + (beta_ll if c == 1 else 0.0)
+            for b, (p, q) in enumerate(zip(ant1, ant2)):
+                z = 600 * np.exp(1j * (two_pi_eps * (m[p] - m[q]) - (cst[p] - cst[q])))
+                seg_sums[(b, c, key_of(s))] = (z, 600)
+    args = (seg_sums, {0, 1}, ant1, ant2, ["AP", "SM", "PV"], ["AP-SM", "AP-PV", "SM-PV"],
+            ["RR", "LL"], np.arange(1, 5), EPS, 50, 2.0)
+
+    def wrong_segments(result):
+        _, antennas, _, _ = result
+        bad = set()
+        for e in antennas:
+            truth = m_rr[e["scan"] - 1][e["antenna_index"]] - (j[e["antenna_index"]]
+                                                                 if e["correlation"] == "LL" else 0)
+            if abs(math.remainder(two_pi_eps * (e["k"] - truth), 2 * np.pi)) > 1e-6:
+                bad.add((e["scan"], e["correlation"]))
+        return bad
+
+    alone = antenna_offsets(*args, refants=[0])
+    # (LL alone also rounds its 100 deg instrumental phase onto the lattice: not the truth)
+    assert {w for w in wrong_segments(alone) if w[1] == "RR"} == {(1, "RR")}
+    tied = antenna_offsets(*args, refants=[0], hands=_hands_scene())
+    assert wrong_segments(tied) == set()
+    assert all(e["hands"] == "RR+LL" and e["tied"] for e in tied[1])
+    # LL keeps its instrumental phase, the same in every scan (no lattice step between scans)
+    ap_pv = [e["residual_deg"] for e in tied[3]
+             if e["correlation"] == "LL" and e["baseline"] == "AP-PV"]
+    assert len(ap_pv) == 4 and np.allclose(ap_pv, 100.0, atol=1e-6)

@@ -702,7 +702,8 @@ def _run(ctx: Dict, started: float) -> Dict:
         release_cluster_tables(client)   # stale handles of an earlier run on this cluster
         tx.create_columns()
     try:
-        offsets, offset_report = _offset_pass(g, run_pass, codes, n_corr, n_scan)
+        offsets, offset_report = _offset_pass(g, run_pass, codes, n_corr, n_scan,
+                                              first_tracker=lambda: tracker)
     except BaseException:
         if client is not None:   # the columns made above are dropped again
             tx.rollback()
@@ -724,16 +725,18 @@ def _run(ctx: Dict, started: float) -> Dict:
                    started, n_chunks)
 
 
-def _offset_pass(g, run_pass, codes, n_corr, n_scan):
+def _offset_pass(g, run_pass, codes, n_corr, n_scan, first_tracker=None):
     """The n0 offset step's first pass; (offsets, report).
 
     Compared with ``--offset-reference-column`` (a reference calibration) or
     ``--offset-model`` (``point`` or a model column).  Per baseline the lattice
     point nearest the circular mean (:func:`hitops.calibrate.offsets.choose_offset`;
     per scan with ``count``, per segment with the robust trackers); with
-    ``--tracker antenna`` and ``--offset-model`` the parallel hands get integers per
-    antenna and segment from one lattice solve over every baseline
-    (:func:`hitops.calibrate.offsets.antenna_offsets`), so closure phases are kept.
+    ``--tracker antenna`` (against a model or a reference column) the parallel hands
+    get integers per antenna and segment from one lattice solve over every baseline
+    and both hands (:func:`hitops.calibrate.offsets.antenna_offsets`), so closure
+    phases are kept.  ``first_tracker``: returns the first pass's tracker (its
+    antenna phases tie the hands).
     """
     from ..kernels import fpt
     from .offsets import antenna_offsets, choose_offset
@@ -757,16 +760,21 @@ def _offset_pass(g, run_pass, codes, n_corr, n_scan):
                 # robust trackers: the n0 step per segment (every scan starts one; long gaps
                 # and jumps start more); k is added to the segment's wrap count
                 segment_k = {}
-                if g["offset_model"] and setup.tracker == "antenna":
-                    # antenna mode against a model: integers per antenna and segment, solved
-                    # on the lattice with every baseline at once (parallel hands)
+                if setup.tracker == "antenna":
+                    # antenna mode (against a model or a reference column): integers per
+                    # antenna and segment, solved on the lattice with every baseline and
+                    # both parallel hands at once
                     antenna_corrs = {c for c, name in enumerate(match.corr_names)
                                      if len(name) == 2 and name[0] == name[1]}
+                    tr = first_tracker() if first_tracker is not None else None
+                    hands = None if getattr(tr, "antenna_phase", None) is None else {
+                        "phase": tr.antenna_phase, "segment": tr.antenna_segment,
+                        "scan_of_time": match.scan_of_time}
                     seg_k, antennas, solves, series = antenna_offsets(
                         sums, antenna_corrs, match.ant1, match.ant2, list(g["tgt_names"]),
                         match.baseline_names, match.corr_names, match.scans, eps,
                         int(g["max_offset_wraps"]), float(g["offset_ambiguity_deg"]),
-                        refants=setup.refants, segment_key=int(SEGMENT_KEY))
+                        refants=setup.refants, segment_key=int(SEGMENT_KEY), hands=hands)
                     segment_k.update(seg_k)
                     offset_report.extend(series)
                     g["_offset_antennas"], g["_offset_solves"] = antennas, solves
