@@ -1,12 +1,12 @@
 """The shared Measurement Set reader (hitops.io.read) against dask-ms's public API and TaQL.
 
-``open_main`` builds its dask-ms dataset without dask-ms's row-ordering
-query; these tests check that it gives exactly what
-``xds_from_ms(..., index_cols=[], group_cols=[])`` gives (values, dtypes,
-ROWID) on a table stored in random row order and cut into several chunks,
-that a subset of rows written back through ``write_main_columns`` lands on
-those rows only, and that diagnose (which reads through the same code)
-refuses a set mixing two fields.
+Only dask-ms's public API is used.  These tests check that ``open_main``
+gives the table in storage order (values, dtypes, ROWID) on a table stored
+in random row order and cut into several chunks, that ``open_groups`` gives
+each group's rows in time order with their ROWID, that a subset of rows
+written back through ``write_main_columns`` lands on those rows only, and
+that diagnose (which reads through the same code) refuses a set mixing two
+fields.
 """
 
 from __future__ import annotations
@@ -49,6 +49,27 @@ def test_open_main_matches_xds_from_ms(pair):
         np.testing.assert_array_equal(got["TIME"], t.getcol("TIME"))
         np.testing.assert_array_equal(got["DATA"], t.getcol("DATA"))
     np.testing.assert_array_equal(got["ROWID"], np.arange(got["TIME"].size))
+
+
+def test_open_groups_gives_time_order_with_row_numbers(pair):
+    """A shuffled table read through open_groups: TIME ascending, ROWID the table's rows."""
+    import dask
+    from casacore import tables as pt
+
+    ms = str(pair.target_ms)
+    (key, ds), = msio.open_groups(ms, ["TIME", "DATA"], chunks=(100, 150, 50),
+                                  grouped=False).items()
+    assert key == (0, 0)
+    with pt.table(ms, ack=False) as t:
+        time, data = t.getcol("TIME"), t.getcol("DATA")
+    assert ds.chunks["row"] == (100, 150, 50) and time.size == 300
+    rowid, got_time, got_data = dask.compute(ds.ROWID.data, ds.TIME.data, ds.DATA.data,
+                                             scheduler="sync")
+    assert np.all(np.diff(got_time) >= 0)
+    assert not np.all(np.diff(rowid) > 0)             # the storage order was not time order
+    np.testing.assert_array_equal(np.sort(rowid), np.arange(time.size))
+    np.testing.assert_array_equal(got_time, time[rowid])
+    np.testing.assert_array_equal(got_data, data[rowid])
 
 
 def test_read_rows_subset_and_write_back(pair, tmp_path):

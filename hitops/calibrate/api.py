@@ -76,26 +76,11 @@ def split_ratio(ratio: float):
     return int(r), float(ratio - r)
 
 
-def _band_setup(ms: str, role: str, meta: Dict[str, np.ndarray], average_channels: bool,
-                names: List[str]):
-    """Check one band's spectral windows, fields and channels; return (freq, corr types, names).
-
-    ``meta``: the distinct DATA_DESC_ID / FIELD_ID values (absent: one of each).
-    """
-    dd = np.unique(meta["DATA_DESC_ID"]) if "DATA_DESC_ID" in meta else np.array([0])
-    if dd.size != 1:
-        raise MeasurementSetError(
-            f"{role} '{ms}' holds {dd.size} data descriptions (spectral windows) "
-            f"{dd.tolist()}; hitops calibrate takes one spectral window per set: split them "
-            "(CASA split spw=...) and run once per spectral window")
-    fields = np.unique(meta["FIELD_ID"]) if "FIELD_ID" in meta else np.array([0])
-    if fields.size != 1:
-        raise MeasurementSetError(
-            f"{role} '{ms}' holds {fields.size} fields {fields.tolist()}; FPT is done per "
-            "source: split the fields (CASA split field=...) and run once per field")
+def _band_setup(ms: str, role: str, ddid: int, average_channels: bool):
+    """Check one group's spectral window and channels; return (mean frequency, corr types)."""
     ddt = msio.read_subtable(ms, "DATA_DESCRIPTION", ["SPECTRAL_WINDOW_ID", "POLARIZATION_ID"])
-    spw = int(ddt["SPECTRAL_WINDOW_ID"][dd[0]])
-    pol = int(ddt["POLARIZATION_ID"][dd[0]])
+    spw = int(ddt["SPECTRAL_WINDOW_ID"][ddid])
+    pol = int(ddt["POLARIZATION_ID"][ddid])
     spw_t = msio.read_subtable(ms, "SPECTRAL_WINDOW", ["CHAN_FREQ", "NUM_CHAN"])
     n_chan = int(spw_t["NUM_CHAN"][spw])
     if n_chan > 1 and not average_channels:
@@ -105,7 +90,7 @@ def _band_setup(ms: str, role: str, meta: Dict[str, np.ndarray], average_channel
             "pass --average-channels to average the unflagged channels on the fly")
     freq = float(np.mean(np.asarray(spw_t["CHAN_FREQ"][spw], dtype=np.float64)))
     corr = [int(c) for c in msio.read_subtable(ms, "POLARIZATION", ["CORR_TYPE"])["CORR_TYPE"][pol]]
-    return freq, corr, names
+    return freq, corr
 
 
 def _average(data: np.ndarray, flag: np.ndarray, flag_row: np.ndarray):
@@ -278,6 +263,13 @@ def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
                                     "--overwrite to replace it or --output-column to write "
                                     "another column")
 
+    # the robust trackers take the per-sample SNR from SIGMA or WEIGHT where they are
+    # informative (hitops/calibrate/robust.py): that column is read with the data
+    snr_from = "data"
+    if tracker != "count" and not (float(opts.snr) > 0 or int(opts.half_window) > 0):
+        from .robust import sigma_source
+        snr_from = sigma_source(ref_ms)
+    snr_cols = [snr_from.upper()] if snr_from in ("sigma", "weight") else []
     ref_meta_cols = INDEX_COLUMNS + msio.selection_columns(ref_ms)
     tgt_meta_cols = INDEX_COLUMNS + msio.selection_columns(target_ms)
     timings = {"checks": time.perf_counter() - started}
@@ -285,16 +277,22 @@ def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
     # dask row chunks of chunk_rows rows: the metadata blocks of the first pass are
     # slices of these datasets (no dataset per block)
     io_rows = min(int(chunk_rows), 1 << 21)
-    ref_ds = msio.open_main(ref_ms, list(dict.fromkeys(ref_meta_cols + ref_cols)), io_rows)
-    tgt_ds = msio.open_main(target_ms, list(dict.fromkeys(tgt_meta_cols + tgt_cols)), io_rows)
+    ref_groups = msio.open_groups(ref_ms, list(dict.fromkeys(ref_meta_cols + ref_cols + snr_cols)),
+                                  io_rows,
+                                  grouped=bool(msio.selection_columns(ref_ms)))
+    tgt_groups = msio.open_groups(target_ms, list(dict.fromkeys(tgt_meta_cols + tgt_cols)),
+                                  io_rows, grouped=bool(msio.selection_columns(target_ms)))
     timings["open"] = time.perf_counter() - stage
     ref_stations = read_stations(ref_ms, "reference-band Measurement Set")
     tgt_stations = read_stations(target_ms, "target-band Measurement Set")
     ref_names, tgt_names = ref_stations.codes, tgt_stations.codes
-    ref_index = BandIndex(ms=ref_ms, ds=ref_ds, n_row=int(ref_ds["TIME"].shape[0]),
-                          n_ant=len(ref_names))
-    tgt_index = BandIndex(ms=target_ms, ds=tgt_ds, n_row=int(tgt_ds["TIME"].shape[0]),
-                          n_ant=len(tgt_names))
+    ref_key, tgt_key = sorted(ref_groups)[0], sorted(tgt_groups)[0]
+    ref_index = BandIndex(ms=ref_ms, ds=ref_groups[ref_key], n_ant=len(ref_names),
+                          n_row=int(ref_groups[ref_key].sizes["row"]), key=ref_key,
+                          grouped=len(ref_groups) > 1)
+    tgt_index = BandIndex(ms=target_ms, ds=tgt_groups[tgt_key], n_ant=len(tgt_names),
+                          n_row=int(tgt_groups[tgt_key].sizes["row"]), key=tgt_key,
+                          grouped=len(tgt_groups) > 1)
     if ref_index.n_row == 0 or tgt_index.n_row == 0:
         empty = ref_ms if ref_index.n_row == 0 else target_ms
         raise MeasurementSetError(f"{empty} has no rows; nothing to calibrate")
@@ -303,10 +301,10 @@ def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
     # for tables not in time order), see hitops/calibrate/chunks.py
     index_bands([ref_index, tgt_index], [ref_meta_cols, tgt_meta_cols], int(chunk_rows))
     timings["metadata"] = time.perf_counter() - stage
-    ref_freq, ref_corr, _ = _band_setup(ref_ms, "reference-band Measurement Set",
-                                        ref_index.selection, average_channels, ref_names)
-    tgt_freq, tgt_corr, _ = _band_setup(target_ms, "target-band Measurement Set",
-                                        tgt_index.selection, average_channels, tgt_names)
+    ref_freq, ref_corr = _band_setup(ref_ms, "reference-band Measurement Set", ref_key[1],
+                                     average_channels)
+    tgt_freq, tgt_corr = _band_setup(target_ms, "target-band Measurement Set", tgt_key[1],
+                                     average_channels)
     if ratio is None:
         if not (ref_freq > 0 and tgt_freq > 0):
             raise MeasurementSetError(f"cannot take R from the spectral windows ({ref_freq} Hz, "
@@ -330,13 +328,12 @@ def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
              ref_stations.column, target_ms, tgt_stations.column,
              ", ".join(f"{e['reference'] or '-'}->{e['target'] or '-'}" for e in match.pairing))
     bounds = _chunk_bounds(match.time_counts(), int(chunk_rows))
-    match.set_chunks(bounds)
     if len(bounds) > 2:
         # one dataset per band whose row blocks are the chunks, read by both passes; the
-        # robust trackers read reference context beyond each chunk, so not for them
-        match.use_chunk_datasets(bounds, {
-            "tgt": ROW_COLUMNS + tgt_cols,
-            **({"ref": ROW_COLUMNS + ref_cols} if tracker == "count" else {})})
+        # robust trackers read reference context beyond each chunk: finer blocks there
+        match.use_chunk_datasets(bounds, {"tgt": ROW_COLUMNS + ["ROWID"] + tgt_cols,
+                                          "ref": ROW_COLUMNS + ["ROWID"] + ref_cols + snr_cols},
+                                 split={"ref": 1 if tracker == "count" else 8})
     # every chunk's cells are checked (duplicates, matches, scans) before anything is written
     first_chunk = match.check(bounds)
     # no wrap is counted across a stretch without data, whatever SCAN_NUMBER says
@@ -380,7 +377,7 @@ def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
 def _tracking_setup(g: Dict):
     """Resolved robust-tracking parameters (None for --tracker count); checks --refant."""
     from .robust import ANTENNA_TRACK_HALF_WINDOW as ROBUST_ANTENNA_H
-    from .robust import grid_positions, setup_tracking, sigma_source, station_sin_elevation
+    from .robust import grid_positions, setup_tracking, station_sin_elevation
 
     defaults = {"half_window": 0, "coherence_time": 20.0, "snr": 0.0, "max_gap": -1,
                 "jump_threshold": -1.0, "jump_window": 0, "jump_action": "segment",
@@ -395,7 +392,7 @@ def _tracking_setup(g: Dict):
         log.warning("--refant is used by --tracker antenna only; ignored")
     _, dt = grid_positions(g["match"].times, g["match"].scan_of_time)
     fixed = float(g["snr"]) > 0 or int(g["half_window"]) > 0
-    snr_from = "fixed" if fixed else sigma_source(g["ref_ms"])
+    snr_from = "fixed" if fixed else g["snr_from"]
     sin_el = None
     if not g["no_elevation_scaling"]:
         sin_el = station_sin_elevation(g["target_ms"], g["match"].times)
@@ -456,7 +453,6 @@ def _run(ctx: Dict, started: float) -> Dict:
     ref_read_cols = list(ref_cols)
     if setup is not None and setup.snr_source in ("sigma", "weight"):
         ref_read_cols.append(setup.snr_source.upper())
-        g["ref_ds"] = msio.open_main(ref_ms, list(dict.fromkeys(ref_read_cols)))
 
     def new_tracker():
         if setup is None:
@@ -486,30 +482,22 @@ def _run(ctx: Dict, started: float) -> Dict:
         # the chunk's rows and their grid cells; the metadata is read with the data (or
         # reused from the checks when the whole track is one chunk)
         first = g["first_chunk"] if (n_chunks == 1 and (t_lo, t_hi) == (t0, t1)) else None
-        ref_blocks = "ref" in match.blocks and (t_lo, t_hi) == (t0, t1) and \
-            set(ref_read_cols) <= set(match.blocks["ref"].columns)
-        t_rows = first[0].rows if first else match.chunk_rows("tgt", i, t0, t1)
-        r_rows = (first[1].rows if first else match.chunk_rows("ref", i, t0, t1) if ref_blocks
-                  else match.row_numbers("ref", t_lo, t_hi))
+        t_rows = match.row_numbers("tgt", t0, t1)
+        r_rows = match.row_numbers("ref", t_lo, t_hi)
         t_read = list(dict.fromkeys(list(tgt_cols) + ([] if first or match.tgt.whole
-                                                      else ROW_COLUMNS)))
+                                                      else ROW_COLUMNS + ["ROWID"])))
         r_read = list(dict.fromkeys(list(ref_read_cols) + ([] if first or match.ref.whole
-                                                            else ROW_COLUMNS)))
-        whole_t = t_rows.size == match.tgt.n_row
-        whole_r = r_rows.size == match.ref.n_row
-        tgt, ref = msio.compute_columns(
-            [match.chunk_request("tgt", i, t_rows, t_read) if "tgt" in match.blocks
-             else (g["tgt_ds"], t_read, None if whole_t else t_rows),
-             match.chunk_request("ref", i, r_rows, r_read) if ref_blocks
-             else (g["ref_ds"], r_read, None if whole_r else r_rows)],
-            scheduler=io_scheduler)
+                                                            else ROW_COLUMNS + ["ROWID"])))
+        tgt, ref = msio.compute_columns([match.chunk_request("tgt", t_rows, t_read),
+                                         match.chunk_request("ref", r_rows, r_read)],
+                                        scheduler=io_scheduler)
         if first:
             t_idx, r_idx = first
         else:
-            t_idx = match.index_rows("tgt", t_rows, tgt if not match.tgt.whole else
-                                     match.read_meta("tgt", t_rows, ROW_COLUMNS))
-            r_idx = match.index_rows("ref", r_rows, ref if not match.ref.whole else
-                                     match.read_meta("ref", r_rows, ROW_COLUMNS))
+            t_idx = match.index_rows("tgt", tgt if not match.tgt.whole else
+                                     match.read_meta("tgt", t_rows, ROW_COLUMNS + ["ROWID"]))
+            r_idx = match.index_rows("ref", ref if not match.ref.whole else
+                                     match.read_meta("ref", r_rows, ROW_COLUMNS + ["ROWID"]))
         # reference rows whose station pair has no target baseline take no part
         keep = r_idx.bl >= 0
         if not keep.all():

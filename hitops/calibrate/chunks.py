@@ -46,119 +46,82 @@ ROW_COLUMNS = ["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER", "FLAG_ROW"]
 
 @dataclass
 class BandIndex:
-    """Summary of one band's per-row metadata; only ``time`` is per row."""
+    """Summary of one band's (field, spectral window) group; nothing is kept per row.
+
+    ``ds`` is the group's dask-ms dataset in time order (:func:`hitops.io.read.open_groups`),
+    so the rows of any time range are one contiguous slice of it.
+    """
 
     ms: str
     ds: object
     n_row: int
     n_ant: int
-    time: np.ndarray = None               # (n_row,) TIME, storage order; None when sorted
-    time_sorted: bool = True
+    key: tuple = (0, 0)                   # (FIELD_ID, DATA_DESC_ID) of the group
+    grouped: bool = False                 # the set holds several groups (open_groups)
     last_time: float = -np.inf
-    time_unsorted_from: int = 0           # first row whose block was kept in ``time``
-    bucket_edges: np.ndarray = None       # unsorted tables: TIME edges of the chunks
-    bucket_order: np.ndarray = None       # ... their rows (int32), see kernels.sorted_runs.bucket_rows
-    bucket_start: np.ndarray = None
     unique_time: np.ndarray = None        # sorted distinct TIME values
     time_rows: np.ndarray = None          # rows at each distinct TIME value
-    row_start: np.ndarray = None          # sorted tables: first row of each distinct TIME
+    row_start: np.ndarray = None          # first row (dataset position) of each distinct TIME
     pair_present: np.ndarray = None       # (n_ant * n_ant,) ANTENNA1 * n_ant + ANTENNA2 used
     scans: np.ndarray = None
     min_interval: float = np.inf
-    selection: Dict[str, np.ndarray] = field(default_factory=dict)   # distinct DD / FIELD ids
     whole: Optional[Dict[str, np.ndarray]] = None   # every row's metadata, when one block
 
-    def rows_in(self, lo: float, hi: float) -> np.ndarray:
-        """Ascending row numbers with lo <= TIME < hi."""
-        if self.time_sorted:
-            # rows in time order: those at each distinct time follow each other
-            u0, u1 = np.searchsorted(self.unique_time, [lo, hi])
-            return np.arange(self.row_start[u0], self.row_start[u1], dtype=np.int64)
-        # not in time order: the chunks' rows were bucketed once (see bucket); take the
-        # buckets overlapping [lo, hi) and keep the rows inside it
-        k0 = max(int(np.searchsorted(self.bucket_edges, lo, side="right")) - 1, 0)
-        k1 = int(np.searchsorted(self.bucket_edges, hi, side="left"))
-        cand = self.bucket_order[self.bucket_start[k0]:self.bucket_start[min(k1, self.bucket_start.size - 1)]]
-        t = self.time[cand]
-        return np.sort(cand[(t >= lo) & (t < hi)]).astype(np.int64)
-
-    def bucket(self, edges: np.ndarray) -> None:
-        """Group the rows of a table not in time order by chunk, once (O(n_row))."""
-        if not self.time_sorted:
-            self.bucket_edges = np.asarray(edges, dtype=np.float64)
-            from ..kernels.sorted_runs import bucket_rows
-            self.bucket_order, self.bucket_start = bucket_rows(self.time, self.bucket_edges)
+    def rows_in(self, lo: float, hi: float) -> slice:
+        """Dataset positions of the rows with lo <= TIME < hi (they follow each other)."""
+        u0, u1 = np.searchsorted(self.unique_time, [lo, hi])
+        return slice(int(self.row_start[u0]), int(self.row_start[u1]))
 
 
 def index_bands(bands: List[BandIndex], columns: List[List[str]], block_rows: int,
                 scheduler=None) -> None:
     """Fill each :class:`BandIndex` from blocks of at most ``block_rows`` rows.
 
-    Blocks of both bands are read in one dask call (the tables concurrently).
-    A band that fits in one block keeps that block's metadata in ``whole``
-    (it is bounded by ``block_rows`` and saves reading it again).
+    Blocks of both bands are read in one dask call (the tables concurrently),
+    as slices of each band's dataset (whose dask blocks are ``block_rows``
+    long).  A band that fits in one block keeps that block's metadata in
+    ``whole`` (it is bounded by ``block_rows`` and saves reading it again).
     """
     for band in bands:
-        band.time = None   # kept only for tables not in time order (see _summarise_block)
         band.pair_present = np.zeros(band.n_ant * band.n_ant, dtype=bool)
-    parts = {id(b): {"unique": np.zeros(0), "counts": np.zeros(0, np.int64), "scans": [],
-                     "sel": {}} for b in bands}
+    parts = {id(b): {"unique": np.zeros(0), "counts": np.zeros(0, np.int64), "scans": []}
+             for b in bands}
     n_blocks = max(-(-b.n_row // block_rows) for b in bands)
-    # several blocks: a dataset whose dask row chunks are the blocks, read by slices
-    block_ds = {id(band): (band.ds if band.ds.chunks["row"][0] == block_rows else
-                           msio.open_main(band.ms, cols, chunk_rows=block_rows))
-                for band, cols in zip(bands, columns) if band.n_row > block_rows}
     for k in range(n_blocks):
         requests, which = [], []
         for band, cols in zip(bands, columns):
             a, b = k * block_rows, min(band.n_row, (k + 1) * block_rows)
-            if a >= b:
-                continue
-            if id(band) in block_ds:
-                requests.append((block_ds[id(band)], cols, slice(a, b)))
-            else:
-                requests.append((band.ds, cols, None))
-            which.append((band, a, b))
+            if a < b:
+                one_block = a == 0 and b == band.n_row
+                requests.append((band.ds, list(cols) + (["ROWID"] if one_block else []),
+                                 slice(a, b)))
+                which.append((band, a, b))
         for (band, a, b), meta in zip(which, msio.compute_columns(requests, scheduler)):
             _summarise_block(band, a, b, meta, parts[id(band)])
             if a == 0 and b == band.n_row:
-                band.whole = {c: meta[c] for c in ROW_COLUMNS}
+                band.whole = {c: meta[c] for c in ROW_COLUMNS + ["ROWID"]}
     for band in bands:
         p = parts[id(band)]
         band.unique_time, band.time_rows = p["unique"], p["counts"]
         band.scans = np.unique(np.concatenate(p["scans"]))
         band.row_start = np.concatenate([[0], np.cumsum(band.time_rows)])
-        if band.time is not None and band.time_unsorted_from > 0:
-            # TIME of the blocks read before the table was seen not to be in time order
-            for a in range(0, band.time_unsorted_from, block_rows):
-                part = slice(a, min(band.time_unsorted_from, a + block_rows))
-                band.time[part] = msio.compute_columns([(block_ds[id(band)], ["TIME"], part)],
-                                                       scheduler)[0]["TIME"]
-        band.selection = {c: np.unique(np.concatenate(v)) for c, v in p["sel"].items()}
 
 
 def _summarise_block(band: BandIndex, a: int, b: int, meta: Dict[str, np.ndarray], p) -> None:
     t = np.asarray(meta["TIME"], dtype=np.float64)
     if not np.all(np.isfinite(t)):
-        bad = a + int(np.flatnonzero(~np.isfinite(t))[0])
-        raise MeasurementSetError(f"{band.ms}: TIME of row {bad} is {t[bad - a]}; rows without "
+        bad = int(np.flatnonzero(~np.isfinite(t))[0])
+        row = int(meta["ROWID"][bad]) if "ROWID" in meta else a + bad
+        raise MeasurementSetError(f"{band.ms}: TIME of row {row} is {t[bad]}; rows without "
                                   "a valid time cannot be matched: remove them (CASA split "
                                   "with a time range) or repair the TIME column")
-    one_block = a == 0 and b == band.n_row
-    if t.size and band.time_sorted and (np.any(t[1:] < t[:-1]) or t[0] < band.last_time):
-        # not in time order: the rows of a time chunk are found from the TIME column
-        # (8 bytes per row), kept from this block on (the blocks before are re-read)
-        band.time_sorted = False
-        if not one_block:
-            band.time = np.empty(band.n_row, dtype=np.float64)
-            band.time_unsorted_from = a
-    if one_block:
-        band.time = t   # held anyway (in ``whole``)
-    elif band.time is not None:
-        band.time[a:b] = t
+    if t.size and (np.any(t[1:] < t[:-1]) or t[0] < band.last_time):
+        # dask-ms sorted the group by TIME (open_groups); anything else is a changed table
+        raise MeasurementSetError(f"{band.ms}: TIME changed while it was being read; run "
+                                  "again when nothing else writes to the set")
     if t.size:
         band.last_time = float(t[-1])
-    values, counts = distinct_counts(t)   # one pass when the block is in time order
+    values, counts = distinct_counts(t)   # one pass: the block is in time order
     p["unique"], p["counts"] = _merge_time_counts(p["unique"], p["counts"], values, counts)
     key = meta["ANTENNA1"].astype(np.int64) * band.n_ant + meta["ANTENNA2"]
     if key.size and (key.min() < 0 or key.max() >= band.pair_present.size):
@@ -170,9 +133,6 @@ def _summarise_block(band: BandIndex, a: int, b: int, meta: Dict[str, np.ndarray
     iv = iv[np.isfinite(iv) & (iv > 0)]
     if iv.size:
         band.min_interval = min(band.min_interval, float(iv.min()))
-    for c in ("DATA_DESC_ID", "FIELD_ID"):
-        if c in meta:
-            p["sel"].setdefault(c, []).append(np.unique(meta[c]))
 
 
 def _merge_time_counts(known, known_counts, values, counts):
@@ -192,46 +152,11 @@ def _merge_time_counts(known, known_counts, values, counts):
                                minlength=merged.size).astype(np.int64)
 
 
-class ChunkedBand:
-    """One band's rows in time-chunk order, as one dask-ms dataset whose row blocks are the chunks.
-
-    Both passes over a chunked track (the checks, then the data) read a
-    chunk as one aligned block of this dataset.  A time-ordered table's chunks
-    are consecutive row ranges (no row numbers held); a table not in time order
-    reuses its int32 chunk buckets (:meth:`BandIndex.bucket`), so no per-row
-    array is added.
-    """
-
-    def __init__(self, band: "BandIndex", parts: List[np.ndarray], columns: List[str]):
-        sizes = np.array([p.size for p in parts], dtype=np.int64)
-        self.offsets = np.concatenate([[0], np.cumsum(sizes)])
-        if (band.bucket_order is not None and band.bucket_start.size == sizes.size + 1
-                and np.array_equal(np.diff(band.bucket_start), sizes)):
-            # a table not in time order: its rows were already bucketed by chunk (int32,
-            # ascending within each bucket), and those buckets are the parts
-            self.order = band.bucket_order
-        else:
-            order = np.concatenate(parts) if parts else np.zeros(0, np.int64)
-            in_order = order.size == band.n_row and bool(np.all(order == np.arange(order.size)))
-            self.order = None if in_order else order.astype(np.int64)
-        self.columns = list(columns)
-        self.ds = msio.open_main_blocks(band.ms, self.columns, sizes, rows=self.order)
-
-    def rows(self, k: int) -> np.ndarray:
-        a, b = int(self.offsets[k]), int(self.offsets[k + 1])
-        if self.order is None:
-            return np.arange(a, b, dtype=np.int64)
-        return self.order[a:b].astype(np.int64)
-
-    def request(self, k: int, columns: List[str]):
-        return (self.ds, list(columns), slice(int(self.offsets[k]), int(self.offsets[k + 1])))
-
-
 @dataclass
 class ChunkRows:
     """One band's rows of a time chunk on the (baseline, time) grid."""
 
-    rows: np.ndarray        # ascending row numbers
+    rows: np.ndarray        # row numbers (ROWID) in the table, in the dataset's time order
     bl: np.ndarray          # baseline index (-1: reference pair without target baseline)
     time: np.ndarray        # union time index
     swapped: np.ndarray     # reference only: antenna order reversed
@@ -288,7 +213,7 @@ class ChunkMatch:
         self.scan_of_time = np.zeros(self.times.size, dtype=np.int64)
         self.n_matched = 0
         self.n_ref_unused = 0
-        self.blocks: Dict[str, ChunkedBand] = {}   # see use_chunk_datasets
+        self.blocks: Dict[str, object] = {}   # see use_chunk_datasets
 
     @property
     def n_bl(self) -> int:
@@ -305,31 +230,36 @@ class ChunkMatch:
         hi = band.unique_time[u1] if u1 < group.size else np.inf
         return lo, hi
 
-    def row_numbers(self, which: str, t0: int, t1: int) -> np.ndarray:
+    def row_numbers(self, which: str, t0: int, t1: int) -> slice:
+        """Dataset positions of a band's rows whose union time index is in [t0, t1)."""
         band, group = (self.tgt, self.tgt_group) if which == "tgt" else (self.ref, self.ref_group)
         if t0 <= 0 and t1 >= self.n_time:
-            return np.arange(band.n_row, dtype=np.int64)
+            return slice(0, band.n_row)
         return band.rows_in(*self._time_range(band, group, t0, t1))
 
-    def set_chunks(self, bounds: List[int]) -> None:
-        """Chunk boundaries (union time indices); buckets the rows of unsorted tables."""
-        for band, group in ((self.tgt, self.tgt_group), (self.ref, self.ref_group)):
-            if not band.time_sorted and len(bounds) > 2:
-                los = [self._time_range(band, group, t0, t0 + 1)[0] for t0 in bounds[:-1]]
-                band.bucket(np.array(los + [np.inf]))
+    def use_chunk_datasets(self, bounds: List[int], columns: Dict[str, List[str]],
+                           split: Dict[str, int] = None) -> None:
+        """Read the bands named in ``columns`` ("tgt", "ref") through a dataset whose dask
+        blocks are the time chunks, so each chunk's read is exactly its rows.
 
-    def use_chunk_datasets(self, bounds: List[int], columns: Dict[str, List[str]]) -> None:
-        """Read the bands named in ``columns`` ("tgt", "ref") through one chunk-ordered dataset each.
-
-        Only for several chunks without overlap (a band read with context
-        beyond its chunk keeps a dataset per read).  A band with a chunk that
-        holds none of its rows keeps them too (dask-ms reads no empty block).
+        ``split``: blocks per chunk for a band read with context beyond its chunks
+        (the robust trackers' reference band): a read then touches at most a small
+        block on either side instead of whole neighbouring chunks.
         """
+        split = split or {}
         for which, cols in columns.items():
-            parts = [self.row_numbers(which, t0, t1) for t0, t1 in zip(bounds[:-1], bounds[1:])]
-            if len(parts) > 1 and all(p.size for p in parts):
-                band = self.tgt if which == "tgt" else self.ref
-                self.blocks[which] = ChunkedBand(band, parts, list(dict.fromkeys(cols)))
+            band = self.tgt if which == "tgt" else self.ref
+            sizes = []
+            for t0, t1 in zip(bounds[:-1], bounds[1:]):
+                span = self.row_numbers(which, t0, t1)
+                n, parts = span.stop - span.start, max(1, int(split.get(which, 1)))
+                sizes.extend(p for p in np.diff(np.linspace(0, n, parts + 1).astype(np.int64))
+                             if p > 0)
+            if len(sizes) > 1:
+                datasets = msio.open_groups(band.ms, [c for c in dict.fromkeys(cols) if c != "ROWID"],
+                                            tuple(sizes),
+                                            band.grouped)
+                self.blocks[which] = datasets[band.key]
 
     def time_counts(self) -> np.ndarray:
         """Rows of both bands per union time (for cutting chunks)."""
@@ -337,27 +267,18 @@ class ChunkMatch:
                 + np.bincount(self.ref_group, weights=self.ref.time_rows,
                               minlength=self.n_time)).astype(np.int64)
 
-    def chunk_rows(self, which: str, k: int, t0: int, t1: int) -> np.ndarray:
-        """Row numbers of chunk ``k`` (union times [t0, t1)) of a band, ascending."""
-        if which in self.blocks:
-            return self.blocks[which].rows(k)
-        return self.row_numbers(which, t0, t1)
+    def chunk_request(self, which: str, rows: slice, columns: List[str]):
+        """A :func:`hitops.io.read.compute_columns` request for a band's ``columns`` at ``rows``."""
+        band = self.tgt if which == "tgt" else self.ref
+        return (self.blocks.get(which, band.ds), list(columns), rows)
 
-    def chunk_request(self, which: str, k: int, rows: np.ndarray, columns: List[str]):
-        """A :func:`hitops.io.read.compute_columns` request for chunk ``k``'s ``columns``."""
-        if which in self.blocks:
-            return self.blocks[which].request(k, columns)
-        return (self.tgt.ds if which == "tgt" else self.ref.ds, list(columns), rows)
-
-    def read_meta(self, which, rows, columns, scheduler=None):
+    def read_meta(self, which, rows: slice, columns, scheduler=None):
         band = self.tgt if which == "tgt" else self.ref
         if band.whole is not None:
-            if rows.size == band.n_row:
-                return {c: band.whole[c] for c in columns}
             return {c: band.whole[c][rows] for c in columns}
         return msio.compute_columns([(band.ds, columns, rows)], scheduler)[0]
 
-    def index_rows(self, which, rows, meta) -> ChunkRows:
+    def index_rows(self, which, meta) -> ChunkRows:
         band, group = (self.tgt, self.tgt_group) if which == "tgt" else (self.ref, self.ref_group)
         from ..kernels.sorted_runs import lookup_sorted
 
@@ -372,7 +293,7 @@ class ChunkMatch:
             bl, swapped = self.tgt_pair_bl[key], None
         else:
             bl, swapped = self.ref_pair_bl[key], self.ref_pair_swapped[key]
-        return ChunkRows(rows=rows, bl=bl, time=time, swapped=swapped,
+        return ChunkRows(rows=meta.get("ROWID"), bl=bl, time=time, swapped=swapped,
                          flag_row=meta.get("FLAG_ROW"), scan=meta.get("SCAN_NUMBER"))
 
     def check(self, bounds: List[int], scheduler=None, keep_single: bool = True):
@@ -383,18 +304,18 @@ class ChunkMatch:
         """
         kept = None
         cols = ["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER"]
-        for k, (t0, t1) in enumerate(zip(bounds[:-1], bounds[1:])):
-            t_rows = self.chunk_rows("tgt", k, t0, t1)
-            r_rows = self.chunk_rows("ref", k, t0, t1)
+        for t0, t1 in zip(bounds[:-1], bounds[1:]):
+            t_rows = self.row_numbers("tgt", t0, t1)
+            r_rows = self.row_numbers("ref", t0, t1)
             if self.tgt.whole is not None and self.ref.whole is not None:
-                t_meta = self.read_meta("tgt", t_rows, ROW_COLUMNS)
-                r_meta = self.read_meta("ref", r_rows, ROW_COLUMNS)
+                t_meta = self.read_meta("tgt", t_rows, ROW_COLUMNS + ["ROWID"])
+                r_meta = self.read_meta("ref", r_rows, ROW_COLUMNS + ["ROWID"])
             else:
                 t_meta, r_meta = msio.compute_columns(
-                    [self.chunk_request("tgt", k, t_rows, cols),
-                     self.chunk_request("ref", k, r_rows, cols)], scheduler)
-            tgt = self.index_rows("tgt", t_rows, t_meta)
-            ref = self.index_rows("ref", r_rows, r_meta)
+                    [self.chunk_request("tgt", t_rows, cols),
+                     self.chunk_request("ref", r_rows, cols)], scheduler)
+            tgt = self.index_rows("tgt", t_meta)
+            ref = self.index_rows("ref", r_meta)
             self._check_chunk(tgt, ref, t0, t1)
             if len(bounds) == 2 and keep_single and "FLAG_ROW" in t_meta:
                 kept = (tgt, ref)
@@ -422,7 +343,7 @@ class ChunkMatch:
         if np.count_nonzero(has_ref) != r_cells.size:
             self._raise_duplicate(r_cells, n_t, t0, self.ref.ms)
         self.n_matched += int(np.count_nonzero(has_ref[t_cells]))
-        self.n_ref_unused += int(ref.rows.size - np.count_nonzero(has_tgt[r_cells]))
+        self.n_ref_unused += int(ref.bl.size - np.count_nonzero(has_tgt[r_cells]))
         # target's SCAN_NUMBER where the target has a row at that time, else the reference's
         self.scan_of_time[ref.time] = np.searchsorted(self.scans, ref.scan)
         self.scan_of_time[tgt.time] = np.searchsorted(self.scans, tgt.scan)

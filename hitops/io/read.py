@@ -1,10 +1,11 @@
 """Reading and writing main-table columns of a Measurement Set through dask-ms.
 
-One dataset per table (no grouping, storage order, ``ROWID`` coordinate), so
-callers index rows themselves and lay them out by (baseline, time) with
-:mod:`hitops.io.layout`; dask-ms's ``index_cols`` sort is not needed and its
-TaQL cost is avoided.  Writes go back through the same ``ROWID`` so any row
-subset can be written.  Small subtables (SPECTRAL_WINDOW, POLARIZATION,
+Only dask-ms's public API (``xds_from_ms``, ``xds_to_table``, ``Dataset``):
+calibrate opens one dataset per (field, spectral window) group in time order
+(:func:`open_groups`), diagnose one dataset of the whole table in storage
+order (:func:`open_main`); callers lay rows out by (baseline, time)
+themselves.  Writes go back through ``ROWID`` so any row subset can be
+written.  Small subtables (SPECTRAL_WINDOW, POLARIZATION,
 ANTENNA) are read with python-casacore directly: they are a few rows and
 dask-ms adds only overhead there.
 """
@@ -74,101 +75,46 @@ def selection_columns(ms: str) -> List[str]:
     return ["DATA_DESC_ID", "FIELD_ID"] if (n_dd > 1 or n_field > 1) else []
 
 
-#: where each dataset made by open_main came from (table, row chunk), so a row subset can
-#: be read as its own dask-ms dataset (see compute_columns)
+#: the Measurement Set each dataset opened here came from (for record_reads)
 _SOURCES: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+#: the main-table columns that tell one (field, spectral window) group from another
+GROUP_COLUMNS = ("FIELD_ID", "DATA_DESC_ID")
 
 
 def open_main(ms: str, columns: Sequence[str], chunk_rows: int = 1 << 21):
-    """Lazy dask-ms dataset of the main table: one group, storage order, ROWID coordinate.
+    """Lazy dask-ms dataset of the whole main table in storage order (ROWID coordinate)."""
+    from daskms import xds_from_ms
 
-    Storage order is what every caller here wants (rows are laid out by
-    (baseline, time) afterwards), so the dataset is built by dask-ms's own
-    dataset factory with the row order given directly, not found by dask-ms's
-    ordering query ``SELECT ROWID() AS __tablerow__ FROM $1``: that query
-    evaluates an expression on every row (about 0.2 s per 1.2 M-row table
-    here, holding the GIL) only to return 0..n_row-1.  Reads still run through
-    dask-ms (its TableProxy, executor and getcol wrappers), and the result is
-    identical to ``xds_from_ms(ms, columns, index_cols=[], group_cols=[])``
-    (tests/test_io_read.py checks it).  If a dask-ms release changes those
-    internals, the public call is used instead.
-    """
-    columns = list(columns)
-    try:
-        ds = _storage_order_dataset(ms, columns, int(chunk_rows))
-    except (ImportError, AttributeError, TypeError):   # dask-ms internals moved
-        from daskms import xds_from_ms
-
-        (ds,) = xds_from_ms(ms, columns=columns, index_cols=[], group_cols=[],
-                            chunks={"row": int(chunk_rows)})
-        return ds
-    _SOURCES[ds] = (ms, int(chunk_rows))
+    (ds,) = xds_from_ms(ms, columns=list(columns), index_cols=[], group_cols=[],
+                        chunks={"row": int(chunk_rows)})
+    _SOURCES[ds] = ms
     return ds
 
 
-def open_main_blocks(ms: str, columns: Sequence[str], block_sizes: Sequence[int],
-                     rows: Optional[np.ndarray] = None):
-    """Lazy dask-ms dataset whose row chunks are given blocks (e.g. time chunks).
+def open_groups(ms: str, columns: Sequence[str], chunks, grouped: bool) -> Dict[tuple, object]:
+    """Lazy dask-ms datasets of the main table, one per (FIELD_ID, DATA_DESC_ID), in time order.
 
-    ``rows``: the row numbers in block order (each block's ascending), default
-    0..n_row-1; ``block_sizes`` add up to their number.  Slices aligned with
-    the blocks (:func:`compute_columns`) read exactly one block's rows, so a
-    chunked run builds one dataset per table instead of one per chunk and read
-    (about 12 ms each, measured).
+    dask-ms's own grouping and ordering (``xds_from_ms`` with ``group_cols``
+    and ``index_cols=["TIME"]``): each dataset holds the rows of one field and
+    spectral window sorted by TIME, with their row numbers in ``ROWID``, so a
+    time chunk is a contiguous slice of it whatever the table's storage order
+    (baseline-major, shuffled or time-ordered).  ``grouped=False`` (a set with
+    one field and one data description, see :func:`selection_columns`) skips
+    the grouping query and returns the single group under (0, 0).  ``chunks``:
+    rows per dask block, or a tuple of block sizes (one block per time chunk).
     """
-    sizes = tuple(int(n) for n in block_sizes)
-    ds = _storage_order_dataset(ms, list(columns), sizes, rows=rows)
-    _SOURCES[ds] = (ms, max(sizes))
-    return ds
+    from daskms import xds_from_ms
 
-
-def _storage_order_dataset(ms: str, columns: List[str], chunk_rows,
-                           rows: Optional[np.ndarray] = None):
-    """dask-ms Dataset of ``columns`` in storage order without the ordering TaQL query.
-
-    ``rows``: ascending row numbers to read (default every row).  They become the
-    dataset's ROWID and dask-ms reads exactly their runs of consecutive rows.
-    """
-    import dask.array as da
-    from dask.array.core import normalize_chunks
-    from daskms.ordering import row_run_factory
-    from daskms.reads import DatasetFactory
-
-    class _StorageOrderFactory(DatasetFactory):
-        def datasets(self):
-            table_proxy = self._table_proxy_factory()
-            if rows is None:
-                n_row = table_proxy.nrows().result()
-                chunks = normalize_chunks(self.chunks[0]["row"], shape=(n_row,))
-                # the rows dask-ms's query returns for no index_cols and no where clause
-                order = da.arange(n_row, chunks=chunks, dtype=np.int64)
-            else:
-                order = _blocks_of(np.asarray(rows), self.chunks[0]["row"])
-            row_runs = order.map_blocks(row_run_factory, sort_dir="read", dtype=object)
-            return self._single_dataset(table_proxy, (order, row_runs))
-
-    # the keyword arguments xds_from_ms passes for a Measurement Set main table
-    return _StorageOrderFactory(ms, columns, [], [], chunks={"row": chunk_rows},
-                                table_schema="MS", context="ms").datasets()
-
-
-def _blocks_of(rows: np.ndarray, chunks) -> "dask.array.Array":
-    """int64 dask array of ``rows`` whose blocks are views of it, converted block by block.
-
-    ``da.from_array`` would copy and hash the whole array; a chunked run's row
-    numbers (int32 for tables not in time order) stay one array in memory.
-    """
-    import uuid
-
-    import dask.array as da
-    from dask.array.core import normalize_chunks
-
-    (sizes,) = normalize_chunks(chunks, shape=rows.shape)
-    name = f"hitops-rows-{uuid.uuid4().hex}"
-    edges = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-    graph = {(name, k): rows[edges[k]:edges[k + 1]] for k in range(len(sizes))}
-    blocks = da.Array(graph, name, chunks=(tuple(sizes),), dtype=rows.dtype)
-    return blocks if rows.dtype == np.int64 else blocks.astype(np.int64)
+    datasets = xds_from_ms(ms, columns=list(columns), index_cols=["TIME"],
+                           group_cols=list(GROUP_COLUMNS) if grouped else [],
+                           chunks={"row": chunks})
+    out = {}
+    for ds in datasets:
+        key = (int(ds.attrs.get("FIELD_ID", 0)), int(ds.attrs.get("DATA_DESC_ID", 0)))
+        _SOURCES[ds] = ms
+        out[key] = ds
+    return out
 
 
 def _take_rows(array, rows: Optional[np.ndarray]):
@@ -214,11 +160,10 @@ def record_reads():
 
 
 def _record(ds, columns, rows) -> None:
-    source = _SOURCES.get(ds)
-    n_all = int(ds[list(columns)[0]].shape[0])
+    n_all = int(ds.sizes["row"])
     n_rows = (len(range(*rows.indices(n_all))) if isinstance(rows, slice)
               else len(rows) if rows is not None else n_all)
-    entry = (source[0] if source else None, tuple(columns), n_rows)
+    entry = (_SOURCES.get(ds), tuple(columns), n_rows)
     for log in _RECORDERS:
         log.append(entry)
 
@@ -226,10 +171,10 @@ def _record(ds, columns, rows) -> None:
 def compute_columns(requests, scheduler=None) -> List[Dict[str, np.ndarray]]:
     """Compute several datasets' columns in one dask call (tables are read concurrently).
 
-    ``requests``: sequence of (dataset, columns, rows) with ``rows`` ascending
-    row positions of the dataset, a ``slice`` of them, or None for all.  Returns
-    one dict per request.  A slice aligned with the dataset's row chunks (see
-    ``open_main(chunk_rows=)``) reads exactly those rows and builds no dataset.
+    ``requests``: sequence of (dataset, columns, rows) with ``rows`` a ``slice``
+    of the dataset's rows, ascending row positions, or None for all.  A slice
+    aligned with the dataset's row blocks reads exactly those rows.  ``ROWID``
+    may be asked for like a column.  Returns one dict per request.
     """
     import dask
     import dask.threaded
@@ -237,15 +182,9 @@ def compute_columns(requests, scheduler=None) -> List[Dict[str, np.ndarray]]:
     graphs = []
     for ds, columns, rows in requests:
         if _RECORDERS:
-            _record(ds, columns, rows)
-        source = _SOURCES.get(ds)
+            _record(ds, [c for c in columns if c != "ROWID"] or columns, rows)
         if isinstance(rows, slice):
             graphs.append({c: ds[c].data[rows] for c in columns})
-        elif rows is not None and source is not None and len(rows):
-            # a dataset of just these rows: dask-ms reads their runs and nothing else
-            # (slicing the whole-table dataset would read every row chunk a run touches)
-            sub = _storage_order_dataset(source[0], list(columns), source[1], rows=rows)
-            graphs.append({c: sub[c].data for c in columns})
         else:
             graphs.append({c: _take_rows(ds[c].data, rows) for c in columns})
     # a callable scheduler avoids dask probing for a distributed client on every call
