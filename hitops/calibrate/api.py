@@ -43,6 +43,7 @@ from ..io.match import parse_antenna_map
 from ..io.stations import read_stations
 from ..options import make_options
 from .chunks import INDEX_COLUMNS, ROW_COLUMNS, BandIndex, ChunkMatch, index_bands
+from .groups import describe_groups, pair_groups
 from .output import (FLAG_BACKUP, STAGING_PREFIX, OutputTransaction, drop_stale_columns,
                      release_cluster_tables)
 
@@ -74,23 +75,6 @@ def split_ratio(ratio: float):
         return int(nearest), 0.0
     r = math.floor(ratio)
     return int(r), float(ratio - r)
-
-
-def _band_setup(ms: str, role: str, ddid: int, average_channels: bool):
-    """Check one group's spectral window and channels; return (mean frequency, corr types)."""
-    ddt = msio.read_subtable(ms, "DATA_DESCRIPTION", ["SPECTRAL_WINDOW_ID", "POLARIZATION_ID"])
-    spw = int(ddt["SPECTRAL_WINDOW_ID"][ddid])
-    pol = int(ddt["POLARIZATION_ID"][ddid])
-    spw_t = msio.read_subtable(ms, "SPECTRAL_WINDOW", ["CHAN_FREQ", "NUM_CHAN"])
-    n_chan = int(spw_t["NUM_CHAN"][spw])
-    if n_chan > 1 and not average_channels:
-        raise MeasurementSetError(
-            f"{role} '{ms}' has {n_chan} channels in spectral window {spw}; FPT works on one "
-            "channel per band: average first (CASA split/mstransform with chanaverage) or "
-            "pass --average-channels to average the unflagged channels on the fly")
-    freq = float(np.mean(np.asarray(spw_t["CHAN_FREQ"][spw], dtype=np.float64)))
-    corr = [int(c) for c in msio.read_subtable(ms, "POLARIZATION", ["CORR_TYPE"])["CORR_TYPE"][pol]]
-    return freq, corr
 
 
 def _average(data: np.ndarray, flag: np.ndarray, flag_row: np.ndarray):
@@ -270,8 +254,9 @@ def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
         from .robust import sigma_source
         snr_from = sigma_source(ref_ms)
     snr_cols = [snr_from.upper()] if snr_from in ("sigma", "weight") else []
-    ref_meta_cols = INDEX_COLUMNS + msio.selection_columns(ref_ms)
-    tgt_meta_cols = INDEX_COLUMNS + msio.selection_columns(target_ms)
+    # a field/spectral-window group is a dask-ms dataset of its own, so FIELD_ID and
+    # DATA_DESC_ID are not read per row (hitops/calibrate/groups.py)
+    ref_meta_cols = tgt_meta_cols = INDEX_COLUMNS
     timings = {"checks": time.perf_counter() - started}
     stage = time.perf_counter()
     # dask row chunks of chunk_rows rows: the metadata blocks of the first pass are
@@ -286,7 +271,73 @@ def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
     ref_stations = read_stations(ref_ms, "reference-band Measurement Set")
     tgt_stations = read_stations(target_ms, "target-band Measurement Set")
     ref_names, tgt_names = ref_stations.codes, tgt_stations.codes
-    ref_key, tgt_key = sorted(ref_groups)[0], sorted(tgt_groups)[0]
+    ref_described = describe_groups(ref_ms, ref_groups, "reference-band Measurement Set",
+                                    average_channels)
+    tgt_described = describe_groups(target_ms, tgt_groups, "target-band Measurement Set",
+                                    average_channels)
+    pairs = pair_groups(ref_ms, target_ms, ref_described, tgt_described)
+    if len(pairs) > 1:
+        log.info("%d (field, spectral window) groups calibrated one by one: %s", len(pairs),
+                 "; ".join(p.label for p in pairs))
+        if opts.caltable:
+            raise InputError(f"--caltable {opts.caltable}: the sets hold {len(pairs)} field/"
+                             "spectral-window groups and the table holds one; split them "
+                             "(CASA split field=/spw=) and write one table per group")
+    common = dict(locals())
+    plans = [_plan_group(dict(common), pair) for pair in pairs]
+
+    # ---- 2. chunks and the dask machinery
+    client = closer = None
+    if scheduler:
+        # an address, or slurm[:N] (dask-jobqueue worker jobs): hitops/cluster.py
+        from ..cluster import dask_client
+        client, closer = dask_client(scheduler)
+    try:
+        return _run_groups(plans, client, started)
+    finally:
+        if closer is not None:
+            closer.close()
+
+
+def _run_groups(plans: List[Dict], client, started: float) -> Dict:
+    """Run every group pair into one OutputTransaction; commit once; the report."""
+    first = plans[0]
+    # everything this run changes in the target set (hitops/calibrate/output.py)
+    tx = OutputTransaction(first["target_ms"], first["outputs"], first["target_column"],
+                           None, first["chunk_rows"])
+    tx.check_space()
+    if client is not None:
+        release_cluster_tables(client)   # stale handles of an earlier run on this cluster
+        tx.create_columns()
+    try:
+        results = [_run(g, tx, client) for g in plans]
+        if client is not None:
+            release_cluster_tables(client)
+        tx.commit()
+    except BaseException:
+        tx.rollback()
+        raise
+    reports = [_finish(g, *result, tx, started) for g, result in zip(plans, results)]
+    if len(reports) == 1:
+        return _write_report(first, reports[0], results[0], started)
+    return _write_report(first, _combined_report(plans, reports), None, started)
+
+
+def _plan_group(g: Dict, pair) -> Dict:
+    """Index, match and check one (field, spectral window) group pair before anything is
+    written; returns the group's run inputs (``g``: the run's checked options and sets)."""
+    ref_ms, target_ms, ref_groups, tgt_groups = g["ref_ms"], g["target_ms"], g["ref_groups"], g["tgt_groups"]
+    ref_stations, tgt_stations = g["ref_stations"], g["tgt_stations"]
+    ref_names, tgt_names = g["ref_names"], g["tgt_names"]
+    ref_meta_cols, tgt_meta_cols = g["ref_meta_cols"], g["tgt_meta_cols"]
+    ref_cols, tgt_cols, snr_cols = g["ref_cols"], g["tgt_cols"], g["snr_cols"]
+    chunk_rows, ratio, tracker, timings = g["chunk_rows"], g["ratio"], g["tracker"], g["timings"]
+    antenna_map, time_tolerance = g["antenna_map"], g["time_tolerance"]
+    coherence_time = g["coherence_time"]
+    grouped = len(g["pairs"]) > 1
+    for name in ("pairs", "common", "ref_described", "tgt_described"):
+        g.pop(name, None)
+    ref_key, tgt_key = pair.ref.key, pair.tgt.key
     ref_index = BandIndex(ms=ref_ms, ds=ref_groups[ref_key], n_ant=len(ref_names),
                           n_row=int(ref_groups[ref_key].sizes["row"]), key=ref_key,
                           grouped=len(ref_groups) > 1)
@@ -295,16 +346,14 @@ def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
                           grouped=len(tgt_groups) > 1)
     if ref_index.n_row == 0 or tgt_index.n_row == 0:
         empty = ref_ms if ref_index.n_row == 0 else target_ms
-        raise MeasurementSetError(f"{empty} has no rows; nothing to calibrate")
+        raise MeasurementSetError(f"{empty} has no rows ({pair.label}); nothing to calibrate")
     stage = time.perf_counter()
     # per-row metadata in blocks of at most chunk_rows rows; only summaries stay (and TIME
     # for tables not in time order), see hitops/calibrate/chunks.py
     index_bands([ref_index, tgt_index], [ref_meta_cols, tgt_meta_cols], int(chunk_rows))
     timings["metadata"] = time.perf_counter() - stage
-    ref_freq, ref_corr = _band_setup(ref_ms, "reference-band Measurement Set", ref_key[1],
-                                     average_channels)
-    tgt_freq, tgt_corr = _band_setup(target_ms, "target-band Measurement Set", tgt_key[1],
-                                     average_channels)
+    ref_freq, ref_corr = pair.ref.freq, list(pair.ref.corr)
+    tgt_freq, tgt_corr = pair.tgt.freq, list(pair.tgt.corr)
     if ratio is None:
         if not (ref_freq > 0 and tgt_freq > 0):
             raise MeasurementSetError(f"cannot take R from the spectral windows ({ref_freq} Hz, "
@@ -315,8 +364,9 @@ def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
         ratio = float(ratio)
         source = "from --ratio"
     r, eps = split_ratio(ratio)
-    log.info("R = %.10g (%s): r = %d, eps = %.10g; a reference wrap moves CFPT by %.2f deg",
-             ratio, source, r, eps, math.degrees(math.remainder(2 * math.pi * eps, 2 * math.pi)))
+    log.info("%sR = %.10g (%s): r = %d, eps = %.10g; a reference wrap moves CFPT by %.2f deg",
+             f"{pair.label}: " if grouped else "", ratio, source, r, eps,
+             math.degrees(math.remainder(2 * math.pi * eps, 2 * math.pi)))
     if ratio < 1:
         log.warning("R = %.6g < 1: the target band is below the reference band; FPT scales "
                     "the reference phases down (PWC still applies, eps = R)", ratio)
@@ -347,7 +397,7 @@ def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
                            for n, t, g in splits[:6]) + (" ..." if len(splits) > 6 else ""))
     timings["match"] = time.perf_counter() - stage
     n_target_rows = tgt_index.n_row
-    tracking_setup = _tracking_setup(locals())
+    tracking_setup = _tracking_setup({**g, **locals()})
     n_corr = len(tgt_corr)
     for c, name in enumerate(match.corr_names):
         if match.corr_map[0, c] < 0:
@@ -361,17 +411,9 @@ def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
         log.warning("%d target rows have no reference row (time/station) and are flagged",
                     n_target_rows - match.n_matched)
 
-    # ---- 2. chunks and the dask machinery
-    client = closer = None
-    if scheduler:
-        # an address, or slurm[:N] (dask-jobqueue worker jobs): hitops/cluster.py
-        from ..cluster import dask_client
-        client, closer = dask_client(scheduler)
-    try:
-        return _run(locals(), started)
-    finally:
-        if closer is not None:
-            closer.close()
+    g.update({k: v for k, v in locals().items() if k not in ("g", "pair")})
+    g["group"] = pair
+    return g
 
 
 def _tracking_setup(g: Dict):
@@ -419,8 +461,9 @@ def _tracking_setup(g: Dict):
     return setup
 
 
-def _run(ctx: Dict, started: float) -> Dict:
-    """Stages 2-5 of :func:`calibrate`; ``ctx`` holds its validated inputs and metadata."""
+def _run(ctx: Dict, tx: OutputTransaction, client) -> tuple:
+    """Stages 2-4 of :func:`calibrate` for one group pair, written through ``tx``;
+    ``ctx`` holds its validated inputs and metadata.  Returns what the report needs."""
     import dask
 
     from ..kernels import fpt
@@ -428,12 +471,10 @@ def _run(ctx: Dict, started: float) -> Dict:
     from .transfer import Carry, group_inputs, plan_groups, transfer_group
 
     g = ctx
-    match, methods, outputs = g["match"], g["methods"], g["outputs"]
-    ref_ms, target_ms = g["ref_ms"], g["target_ms"]
+    match, methods = g["match"], g["methods"]
     ratio, eps = g["ratio"], g["eps"]
     n_corr = len(g["tgt_corr"])
     n_scan = match.scans.size
-    client = g["client"]
     import dask.threaded
 
     compute_kw = {"scheduler": client.get if client is not None else dask.threaded.get}
@@ -682,35 +723,14 @@ def _run(ctx: Dict, started: float) -> Dict:
             timings["write"] += time.perf_counter() - stage
         return totals, wrap_events, None, None
 
-    # everything this run changes in the target set (hitops/calibrate/output.py)
-    tx = OutputTransaction(target_ms, outputs, g["target_column"], g["n_target_rows"],
-                           g["chunk_rows"])
-    tx.check_space()
-    if client is not None:
-        release_cluster_tables(client)   # stale handles of an earlier run on this cluster
-        tx.create_columns()
-    try:
-        offsets, offset_report = _offset_pass(g, run_pass, codes, n_corr, n_scan,
-                                              first_tracker=lambda: tracker)
-    except BaseException:
-        if client is not None:   # the columns made above are dropped again
-            tx.rollback()
-        raise
-    try:
-        # robust trackers: offsets stays zero, the per-segment k goes into the counts
-        if kept:   # one chunk, robust tracker: the first pass's output, shifted
-            totals, wrap_events, _, _ = write_kept(g.get("_segment_k"))
-        else:
-            totals, wrap_events, _, _ = run_pass(offsets, write=True,
-                                                 segment_k=g.get("_segment_k"))
-        if client is not None:
-            release_cluster_tables(client)
-        tx.commit()
-    except BaseException:
-        tx.rollback()
-        raise
-    return _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, tx,
-                   started, n_chunks)
+    offsets, offset_report = _offset_pass(g, run_pass, codes, n_corr, n_scan,
+                                          first_tracker=lambda: tracker)
+    # robust trackers: offsets stays zero, the per-segment k goes into the counts
+    if kept:   # one chunk, robust tracker: the first pass's output, shifted
+        totals, wrap_events, _, _ = write_kept(g.get("_segment_k"))
+    else:
+        totals, wrap_events, _, _ = run_pass(offsets, write=True, segment_k=g.get("_segment_k"))
+    return totals, wrap_events, offsets, offset_report, tracker, setup, n_chunks
 
 
 def _offset_pass(g, run_pass, codes, n_corr, n_scan, first_tracker=None):
@@ -850,9 +870,9 @@ def _log_antenna_offsets(antennas, solves) -> None:
              sum(bool(e.get("ambiguous")) for e in antennas))
 
 
-def _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, tx, started,
-            n_chunks):
-    """The log lines and the JSON report of a finished run."""
+def _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, n_chunks, tx,
+            started):
+    """The log lines and the report of one finished group pair."""
     match, methods, outputs = g["match"], g["methods"], g["outputs"]
     ref_ms, target_ms, eps = g["ref_ms"], g["target_ms"], g["eps"]
     off_col, timings = g["offset_reference_column"], g["timings"]
@@ -919,11 +939,47 @@ def _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, tx, 
         "time_s": elapsed,
         "timings_s": {k: round(v, 4) for k, v in timings.items()},
     }
-    if not g["opts"].no_verdict and n_chunks == 1:
+    return report
+
+
+def _combined_report(plans: List[Dict], reports: List[Dict]) -> Dict:
+    """One report for several group pairs: the run's entries, then one entry per group."""
+    first = reports[0]
+    groups = []
+    for g, rep in zip(plans, reports):
+        pair = g["group"]
+        entry = {"field": pair.tgt.field, "ref_field_id": pair.ref.key[0],
+                 "target_field_id": pair.tgt.key[0], "ref_spw": pair.ref.spw,
+                 "target_spw": pair.tgt.spw, "ref_freq_hz": pair.ref.freq,
+                 "target_freq_hz": pair.tgt.freq}
+        entry.update({k: v for k, v in rep.items()
+                      if k not in ("ref_ms", "target_ms", "methods", "columns", "flags",
+                                   "time_s", "timings_s")})
+        groups.append(entry)
+    return {"ref_ms": first["ref_ms"], "target_ms": first["target_ms"],
+            "methods": first["methods"], "columns": first["columns"],
+            "ratio": [e["ratio"] for e in groups], "flags": first["flags"],
+            "groups": groups, "time_s": first["time_s"],
+            "timings_s": {k: round(sum(r["timings_s"].get(k, 0.0) for r in reports), 4)
+                          for k in first["timings_s"]}}
+
+
+def _write_report(g: Dict, report: Dict, result, started: float) -> Dict:
+    """The verdict, the calibration table and conversions of a run; the JSON report written."""
+    outputs, target_ms, ref_ms = g["outputs"], g["target_ms"], g["ref_ms"]
+    n_chunks = result[-1] if result is not None else None
+    if g["opts"].no_verdict:
+        pass
+    elif result is None:
+        # the verdict reads both bands whole (hitops/calibrate/verdict.py), every group mixed
+        log.info("no verdict: the sets hold several field/spectral-window groups and the "
+                 "verdict reads each band whole")
+        report["verdict"] = {"skipped": "several groups"}
+    elif n_chunks == 1:
         report["verdict"] = _verdict(g)
-    elif not g["opts"].no_verdict:
-        # the verdict reads both bands whole (hitops/calibrate/verdict.py): not in a run whose
-        # memory is bounded by --chunk-rows
+    else:
+        # the verdict reads both bands whole: not in a run whose memory is bounded by
+        # --chunk-rows
         log.info("no verdict: the sets are larger than --chunk-rows (%d chunks) and the verdict "
                  "reads each band whole; raise --chunk-rows to get one", n_chunks)
         report["verdict"] = {"skipped": f"{n_chunks} chunks"}
@@ -931,16 +987,19 @@ def _finish(g, totals, wrap_events, offsets, offset_report, tracker, setup, tx, 
     report_path.write_text(json.dumps(report, indent=1))
     # ---- issue 13 (hitops/io/convert.py): the input conversions in the report, --export-uvfits
     if g["opts"].caltable:
-        report["caltable"] = _write_caltable(g, tracker)
+        report["caltable"] = _write_caltable(g, result[4])
         report_path.write_text(json.dumps(report, indent=1))
     from ..io.convert import finish_report
-    if finish_report(report, g["opts"], ref_ms, target_ms, outputs, methods):
+    if finish_report(report, g["opts"], ref_ms, target_ms, outputs, g["methods"]):
         report_path.write_text(json.dumps(report, indent=1))
     # ---- end issue 13
+    elapsed = time.perf_counter() - started
     log.info("wrote %s to %s; report %s; %.2f s (%s)", ", ".join(outputs.values()), target_ms,
-             report_path, elapsed, ", ".join(f"{k} {v:.2f}" for k, v in timings.items()))
-    if report["offset_step"]["warning"]:
-        log.warning(report["offset_step"]["warning"])
+             report_path, elapsed, ", ".join(f"{k} {v:.2f}" for k, v in g["timings"].items()))
+    warnings = [report["offset_step"]["warning"]] if "offset_step" in report else \
+        [e["offset_step"]["warning"] for e in report.get("groups", [])]
+    for warning in dict.fromkeys(w for w in warnings if w):
+        log.warning(warning)
     report["report_path"] = str(report_path)
     return report
 

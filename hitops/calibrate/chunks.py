@@ -25,7 +25,7 @@ station and correlation maps), so the result equals the whole-track match.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Dict, List, Optional
 
 import numpy as np

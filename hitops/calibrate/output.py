@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Dict
+from typing import Dict, Optional
 
 import numpy as np
 
@@ -61,13 +61,17 @@ class OutputTransaction:
     """
 
     def __init__(self, target_ms: str, outputs: Dict[str, str], target_column: str,
-                 n_rows: int, chunk_rows: int):
+                 n_rows: Optional[int], chunk_rows: int):
         self.target_ms = target_ms
         self.outputs = dict(outputs)
         self.target_column = target_column
         self.chunk_rows = max(1, int(chunk_rows))
         self.staging = {m: STAGING_PREFIX + col for m, col in outputs.items()}
         self.created = list(self.staging.values()) + [STAGING_FLAG]
+        if n_rows is None:   # every row of the table (a run may cover several groups)
+            from casacore import tables as pt
+            with pt.table(target_ms, ack=False) as t:
+                n_rows = t.nrows()
         self.rows_written = np.zeros(int(n_rows), dtype=bool)
         self.backup_written = False
         self.flag_written = False
@@ -179,6 +183,8 @@ class OutputTransaction:
                 drop = [c for c in self.created if c in t.colnames()]
                 if drop:
                     t.removecols(drop)
+            if not drop:   # stopped before anything was written
+                return
             log.error("calibrate stopped before it finished writing %s: removed its unfinished "
                       "columns; the set is as it was before this run", self.target_ms)
         except Exception as err:  # the original error matters more

@@ -226,12 +226,10 @@ def write_main_columns(ms: str, rows: np.ndarray, arrays: Dict[str, np.ndarray],
     Columns that do not exist are created by dask-ms from the array's dtype and shape.
     """
     import dask
-    import dask.array as da
     import dask.threaded
     from daskms import Dataset, xds_to_table
 
     rows = np.asarray(rows, dtype=np.int64)
-    n = rows.size
     variables = {}
     for name, value in arrays.items():
         variables[name] = (dims[name], _single_block(value))

@@ -1,0 +1,133 @@
+"""Which (field, spectral window) group of the reference band calibrates which of the target band.
+
+A Measurement Set from a VLBI pipeline may hold several fields (sources,
+calibrators) and several spectral windows (IFs).  dask-ms gives one dataset
+per (FIELD_ID, DATA_DESC_ID) group (:func:`hitops.io.read.open_groups`); this
+module pairs the two bands' groups:
+
+* fields by name (FIELD::NAME), since the two sets may number them
+  differently; a set with one field on each side pairs those whatever their
+  names; a field in one band only is left out with a warning;
+* within a field, spectral windows in frequency order (the lowest reference
+  window with the lowest target window, and so on), or every target window
+  with the one reference window when the reference band has one; any other
+  count is refused, naming the windows;
+* each pair has its own R = nu_target / nu_reference (mean channel frequency).
+
+Rows of one group never meet another's: each pair is matched, tracked and
+transferred on its own.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Dict, List, Tuple
+
+import numpy as np
+
+from ..errors import MeasurementSetError
+from ..io import read as msio
+
+log = logging.getLogger("hitops.calibrate")
+
+
+@dataclass(frozen=True)
+class BandGroup:
+    """One (field, data description) group of one band, with what calibration needs of it."""
+
+    key: Tuple[int, int]      # (FIELD_ID, DATA_DESC_ID)
+    field: str                # FIELD::NAME
+    spw: int                  # SPECTRAL_WINDOW_ID
+    freq: float               # mean channel frequency (Hz)
+    n_chan: int
+    corr: Tuple[int, ...]     # CORR_TYPE of the group's polarisation setup
+
+
+@dataclass(frozen=True)
+class GroupPair:
+    """A reference-band group and the target-band group it calibrates."""
+
+    ref: BandGroup
+    tgt: BandGroup
+
+    @property
+    def label(self) -> str:
+        return f"field {self.tgt.field}, spectral windows {self.ref.spw} -> {self.tgt.spw}"
+
+
+def describe_groups(ms: str, keys, role: str, average_channels: bool) -> List[BandGroup]:
+    """The :class:`BandGroup` of each (FIELD_ID, DATA_DESC_ID) key; channels checked."""
+    ddt = msio.read_subtable(ms, "DATA_DESCRIPTION", ["SPECTRAL_WINDOW_ID", "POLARIZATION_ID"])
+    spw_t = msio.read_subtable(ms, "SPECTRAL_WINDOW", ["CHAN_FREQ", "NUM_CHAN"])
+    corr_t = msio.read_subtable(ms, "POLARIZATION", ["CORR_TYPE"])["CORR_TYPE"]
+    names = msio.read_subtable(ms, "FIELD", ["NAME"])["NAME"]
+    groups = []
+    for field_id, ddid in sorted(keys):
+        if ddid >= len(ddt["SPECTRAL_WINDOW_ID"]) or field_id >= max(len(names), 1):
+            raise MeasurementSetError(
+                f"{role} '{ms}': rows refer to DATA_DESC_ID {ddid} / FIELD_ID {field_id}, "
+                "which the DATA_DESCRIPTION / FIELD tables do not hold; the set is damaged")
+        spw = int(ddt["SPECTRAL_WINDOW_ID"][ddid])
+        n_chan = int(spw_t["NUM_CHAN"][spw])
+        if n_chan > 1 and not average_channels:
+            raise MeasurementSetError(
+                f"{role} '{ms}' has {n_chan} channels in spectral window {spw}; FPT works on "
+                "one channel per band: average first (CASA split/mstransform with "
+                "chanaverage) or pass --average-channels to average the unflagged channels "
+                "on the fly")
+        freq = float(np.mean(np.asarray(spw_t["CHAN_FREQ"][spw], dtype=np.float64)))
+        corr = tuple(int(c) for c in corr_t[int(ddt["POLARIZATION_ID"][ddid])])
+        field = str(names[field_id]) if len(names) else ""
+        groups.append(BandGroup((field_id, ddid), field, spw, freq, n_chan, corr))
+    return groups
+
+
+def pair_groups(ref_ms: str, target_ms: str, ref: List[BandGroup],
+                tgt: List[BandGroup]) -> List[GroupPair]:
+    """Pair the bands' groups: fields by name, spectral windows in frequency order."""
+    if len(ref) == 1 and len(tgt) == 1:
+        return [GroupPair(ref[0], tgt[0])]
+    ref_fields = _by_field(ref)
+    tgt_fields = _by_field(tgt)
+    if len(ref_fields) == 1 and len(tgt_fields) == 1:
+        # one source on each side: its name may be spelt differently (M87 / M87*)
+        pairs_of_fields = [(next(iter(ref_fields.values())), next(iter(tgt_fields.values())))]
+    else:
+        common = [f for f in tgt_fields if f in ref_fields]
+        for name in sorted(set(ref_fields) ^ set(tgt_fields)):
+            log.warning("field %s is in %s only: left out", name,
+                        ref_ms if name in ref_fields else target_ms)
+        if not common:
+            raise MeasurementSetError(
+                f"no field of {target_ms} ({', '.join(sorted(tgt_fields))}) is in {ref_ms} "
+                f"({', '.join(sorted(ref_fields))}); fields are paired by FIELD::NAME: "
+                "rename one band's field or split the sets to one field each")
+        pairs_of_fields = [(ref_fields[f], tgt_fields[f]) for f in common]
+    pairs = []
+    for ref_groups, tgt_groups in pairs_of_fields:
+        ref_groups = sorted(ref_groups, key=lambda g: g.freq)
+        tgt_groups = sorted(tgt_groups, key=lambda g: g.freq)
+        if len(ref_groups) == 1:
+            pairs.extend(GroupPair(ref_groups[0], g) for g in tgt_groups)
+        elif len(ref_groups) == len(tgt_groups):
+            pairs.extend(GroupPair(r, t) for r, t in zip(ref_groups, tgt_groups))
+        else:
+            raise MeasurementSetError(
+                f"field {tgt_groups[0].field}: {len(ref_groups)} spectral windows in {ref_ms} "
+                f"({_windows(ref_groups)}) and {len(tgt_groups)} in {target_ms} "
+                f"({_windows(tgt_groups)}); windows are paired in frequency order, so the "
+                "counts must agree (or the reference band have one): split the sets "
+                "(CASA split spw=...) so that they do")
+    return pairs
+
+
+def _by_field(groups: List[BandGroup]) -> Dict[str, List[BandGroup]]:
+    out: Dict[str, List[BandGroup]] = {}
+    for g in groups:
+        out.setdefault(g.field, []).append(g)
+    return out
+
+
+def _windows(groups: List[BandGroup]) -> str:
+    return ", ".join(f"{g.spw} at {g.freq / 1e9:.6g} GHz" for g in groups)

@@ -1,0 +1,156 @@
+"""Sets with two fields and two spectral windows per band are calibrated group by group.
+
+Four synthetic pairs (fields A and B x a low and a high spectral window, each
+with its own troposphere, source phases and R) are merged into one
+reference-band and one target-band Measurement Set with python-casacore, the
+second band's field and window numbers deliberately different from the
+first's.  calibrate must pair the groups by field name and frequency order,
+use each pair's own R, return the truth (CFPT = the source phase), and write
+exactly what calibrating each pair on its own writes: rows of one group
+never meet another's.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from casacore import tables as pt
+
+from hitops.calibrate import calibrate
+from hitops.calibrate.synthetic import make_pair
+from hitops.errors import MeasurementSetError
+
+from ms_columns import col  # tests/ is on sys.path (rootdir-relative)
+
+#: (field, reference frequency, R) of the four pairs
+GROUPS = [("A", 86e9, 228.0 / 86.0), ("A", 88e9, 232.0 / 88.0),
+          ("B", 86e9, 228.0 / 86.0), ("B", 88e9, 232.0 / 88.0)]
+
+
+def _append(base: str, other: str, field_id: int, ddid: int) -> None:
+    """Append ``other``'s main-table rows to ``base`` with the given FIELD_ID / DATA_DESC_ID."""
+    with pt.table(other, ack=False) as src, pt.table(base, readonly=False, ack=False) as dst:
+        start, n = dst.nrows(), src.nrows()
+        dst.addrows(n)
+        for name in src.colnames():
+            if name in ("FIELD_ID", "DATA_DESC_ID") or not src.iscelldefined(name, 0):
+                continue
+            dst.putcol(name, src.getcol(name), start, n)
+        dst.putcol("FIELD_ID", np.full(n, field_id, np.int32), start, n)
+        dst.putcol("DATA_DESC_ID", np.full(n, ddid, np.int32), start, n)
+
+
+def _copy_row(base: str, other: str, subtable: str, **values) -> int:
+    """Append row 0 of ``other``'s subtable to ``base``'s; returns its row number."""
+    with pt.table(f"{other}::{subtable}", ack=False) as src, \
+            pt.table(f"{base}::{subtable}", readonly=False, ack=False) as dst:
+        row = dst.nrows()
+        dst.addrows(1)
+        for name in src.colnames():
+            if src.iscelldefined(name, 0):
+                dst.putcell(name, row, src.getcell(name, 0))
+        for name, value in values.items():
+            dst.putcell(name, row, value)
+        return row
+
+
+def _merge(parts, out: str, order) -> None:
+    """One set from single-group sets: ``order`` lists (part, field name) in the order their
+    field and window get numbers in this set (so the two bands can number them differently)."""
+    first = parts[order[0]]
+    shutil.copytree(first, out)
+    with pt.table(f"{out}::FIELD", readonly=False, ack=False) as t:
+        t.putcell("NAME", 0, GROUPS[order[0]][0])
+    field_ids = {GROUPS[order[0]][0]: 0}
+    spw_ids = {GROUPS[order[0]][1]: 0}
+    with pt.table(out, readonly=False, ack=False) as t:
+        t.putcol("FIELD_ID", np.zeros(t.nrows(), np.int32))
+        t.putcol("DATA_DESC_ID", np.zeros(t.nrows(), np.int32))
+    for k in order[1:]:
+        name, freq, _ = GROUPS[k]
+        if name not in field_ids:
+            field_ids[name] = _copy_row(out, parts[k], "FIELD", NAME=name)
+        if freq not in spw_ids:
+            spw = _copy_row(out, parts[k], "SPECTRAL_WINDOW")
+            spw_ids[freq] = _copy_row(out, parts[k], "DATA_DESCRIPTION", SPECTRAL_WINDOW_ID=spw,
+                                      POLARIZATION_ID=0)
+        _append(out, parts[k], field_ids[name], spw_ids[freq])
+
+
+@pytest.fixture(scope="module")
+def merged(tmp_path_factory):
+    root = tmp_path_factory.mktemp("groups")
+    truths = [make_pair(root / f"part{k}", n_ant=4, n_time=120, ratio=ratio, ref_freq_hz=freq,
+                        n_scans=2, seed=40 + k, phase_offset_rad=1.3)
+              for k, (_, freq, ratio) in enumerate(GROUPS)]
+    ref, tgt = str(root / "ref.ms"), str(root / "target.ms")
+    _merge([str(t.ref_ms) for t in truths], ref, [0, 1, 2, 3])
+    # the target band numbers its fields and windows the other way round
+    _merge([str(t.target_ms) for t in truths], tgt, [3, 2, 1, 0])
+    return truths, ref, tgt, root
+
+
+def test_each_group_gets_its_own_ratio_and_the_truth_back(merged, tmp_path):
+    truths, ref, tgt, _ = merged
+    work = str(tmp_path / "target.ms")
+    shutil.copytree(tgt, work)
+    report = calibrate(ref, work, method="pwc,cfpt")
+    groups = report["groups"]
+    assert len(groups) == 4
+    seen = {(g["field"], round(g["ref_freq_hz"])): g for g in groups}
+    for name, freq, ratio in GROUPS:
+        entry = seen[(name, round(freq))]
+        assert entry["ratio"] == pytest.approx(ratio, rel=1e-12)
+        assert entry["target_freq_hz"] == pytest.approx(freq * ratio, rel=1e-12)
+        assert entry["rows"]["matched"] == entry["rows"]["target"] == 6 * 120
+    # CFPT of each group: the source phase plus R times the reference phase's wraps
+    # (2 pi R n), every row, through the group's own R
+    with pt.table(work, ack=False) as t:
+        field_id, ddid = t.getcol("FIELD_ID"), t.getcol("DATA_DESC_ID")
+    cfpt = col(work, "CFPT_DATA")[:, 0, :]
+    names = {0: "B", 1: "A"}                    # the target's numbering (see merged)
+    freqs = {0: 88e9, 1: 86e9}
+    for k, (name, freq, ratio) in enumerate(GROUPS):
+        fid = [f for f, n in names.items() if n == name][0]
+        dd = [d for d, f in freqs.items() if f == freq][0]
+        rows = (field_id == fid) & (ddid == dd)
+        truth = truths[k]
+        assert rows.sum() == truth.source_phase.shape[0]
+        wraps = truth.ref_phase_true - np.angle(np.exp(1j * truth.ref_phase_true))
+        expected = truth.source_phase + ratio * wraps
+        residual = np.angle(cfpt[rows] * np.exp(-1j * expected))
+        assert np.max(np.abs(residual)) < 1e-5, (name, freq)
+
+
+def test_groups_never_mix(merged, tmp_path):
+    """Each group's output rows equal calibrating that group's own pair alone."""
+    truths, ref, tgt, _ = merged
+    work = str(tmp_path / "target.ms")
+    shutil.copytree(tgt, work)
+    calibrate(ref, work, method="pwc,cfpt,cwu", offset_model="point")
+    with pt.table(work, ack=False) as t:
+        field_id, ddid = t.getcol("FIELD_ID"), t.getcol("DATA_DESC_ID")
+    names, freqs = {"B": 0, "A": 1}, {88e9: 0, 86e9: 1}
+    for k, (name, freq, _) in enumerate(GROUPS):
+        alone = str(tmp_path / f"alone{k}.ms")
+        shutil.copytree(truths[k].target_ms, alone)
+        calibrate(str(truths[k].ref_ms), alone, method="pwc,cfpt,cwu", offset_model="point")
+        rows = (field_id == names[name]) & (ddid == freqs[freq])
+        for column in ("PWC_DATA", "CFPT_DATA", "CWU_DATA", "FLAG"):
+            np.testing.assert_array_equal(col(work, column)[rows], col(alone, column),
+                                          err_msg=f"{name} {freq} {column}")
+
+
+def test_window_counts_that_cannot_pair_are_refused(merged, tmp_path):
+    """Two reference windows against one target window: refused, naming both sets' windows."""
+    truths, ref, _, root = merged
+    tgt = str(tmp_path / "one-window.ms")
+    _merge([str(t.target_ms) for t in truths], tgt, [0, 2])     # fields A, B; low window only
+    before = json.dumps(sorted(pt.table(tgt, ack=False).colnames()))
+    with pytest.raises(MeasurementSetError, match=r"field A: 2 spectral windows in .*ref.ms"
+                                                  r".*and 1 in .*one-window.ms"):
+        calibrate(ref, tgt, method="pwc")
+    assert json.dumps(sorted(pt.table(tgt, ack=False).colnames())) == before
