@@ -88,8 +88,8 @@ def pair_groups(ref_ms: str, target_ms: str, ref: List[BandGroup],
     """Pair the bands' groups: fields by name, spectral windows in frequency order."""
     if len(ref) == 1 and len(tgt) == 1:
         return [GroupPair(ref[0], tgt[0])]
-    ref_fields = _by_field(ref)
-    tgt_fields = _by_field(tgt)
+    ref_fields = _by_field(ref, ref_ms)
+    tgt_fields = _by_field(tgt, target_ms)
     if len(ref_fields) == 1 and len(tgt_fields) == 1:
         # one source on each side: its name may be spelt differently (M87 / M87*)
         pairs_of_fields = [(next(iter(ref_fields.values())), next(iter(tgt_fields.values())))]
@@ -122,10 +122,20 @@ def pair_groups(ref_ms: str, target_ms: str, ref: List[BandGroup],
     return pairs
 
 
-def _by_field(groups: List[BandGroup]) -> Dict[str, List[BandGroup]]:
+def _by_field(groups: List[BandGroup], ms: str) -> Dict[str, List[BandGroup]]:
+    """Groups by field name; two FIELD_IDs of one name cannot be told apart in the other band."""
     out: Dict[str, List[BandGroup]] = {}
+    ids: Dict[str, set] = {}
     for g in groups:
         out.setdefault(g.field, []).append(g)
+        ids.setdefault(g.field, set()).add(g.key[0])
+    for name, field_ids in ids.items():
+        if len(field_ids) > 1:
+            raise MeasurementSetError(
+                f"{ms}: {len(field_ids)} fields named {name!r} (FIELD_ID "
+                f"{', '.join(str(i) for i in sorted(field_ids))}) hold data; fields are paired "
+                "between the bands by name: rename them in the FIELD table or split the set "
+                "(CASA split field=...)")
     return out
 
 
