@@ -93,6 +93,25 @@ def _average(data: np.ndarray, flag: np.ndarray, flag_row: np.ndarray):
     return vis, n_good > 0
 
 
+def _rows_from_budget(budget: int, ref_ms: str, target_ms: str, ref_column: str,
+                      target_column: str, n_methods: int) -> int:
+    """Rows per time chunk that keep the run within ``budget`` bytes (hitops/calibrate/memory.py)."""
+    from casacore import tables as pt
+
+    from .memory import rows_for_budget
+    n_rows, n_corr, n_chan = 0, 1, 1
+    for ms, column in ((ref_ms, ref_column), (target_ms, target_column)):
+        with pt.table(ms, ack=False) as t:
+            n_rows += t.nrows()
+            if t.nrows():
+                shape = t.getcell(column, 0).shape
+                n_chan, n_corr = max(n_chan, int(shape[0])), max(n_corr, int(shape[-1]))
+    rows = rows_for_budget(budget, n_rows, n_corr, n_chan, n_methods)
+    log.info("memory budget %.0f MB: up to %d target rows per time chunk (--chunk-rows "
+             "overrides)", budget / 1e6, rows)
+    return rows
+
+
 def _chunk_bounds(per_time: np.ndarray, chunk_rows: int):
     """Time-index boundaries so that each chunk holds at most ~2 * chunk_rows rows of both
     bands (``per_time``: rows of both bands at each union time; a time is never split)."""
@@ -113,7 +132,7 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
               workdir=None, export_uvfits=None,
               half_window=0, coherence_time=20.0, snr=0.0, max_gap=-1, jump_threshold=-1.0,
               jump_window=0, jump_action="segment", refant=None, solve_half_window=-1,
-              no_elevation_scaling=False, chunk_rows=2_000_000, report=None, scheduler=None,
+              no_elevation_scaling=False, memory_budget="auto", chunk_rows=0, report=None, scheduler=None,
               lock_timeout=60.0, no_verdict=False, verdict_interval=60.0, caltable=None) -> Dict:
     """Frequency phase transfer from ``ref_ms`` (reference band) to ``target_ms``.
 
@@ -197,8 +216,10 @@ def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
                          "number (e.g. 2.6744 for 230/86 GHz); omit it to take R from the sets")
     if int(max_offset_wraps) < 0:
         raise InputError(f"--max-offset-wraps {max_offset_wraps} must be >= 0")
-    if int(chunk_rows) < 1:
-        raise InputError(f"--chunk-rows {chunk_rows} must be >= 1")
+    if int(chunk_rows) < 0:
+        raise InputError(f"--chunk-rows {chunk_rows} must be >= 1 (or 0: from --memory-budget)")
+    from .memory import parse_budget
+    budget = parse_budget(opts.memory_budget)
     from .robust import check_options
     check_options(tracker, half_window, coherence_time, snr, max_gap, jump_threshold,
                   jump_window, jump_action, solve_half_window)
@@ -259,6 +280,9 @@ def _calibrate_locked(opts, methods: List[str], ref_ms: str, target_ms: str,
     ref_meta_cols = tgt_meta_cols = INDEX_COLUMNS
     timings = {"checks": time.perf_counter() - started}
     stage = time.perf_counter()
+    if int(chunk_rows) == 0:
+        chunk_rows = _rows_from_budget(budget, ref_ms, target_ms, ref_column, target_column,
+                                       len(methods))
     # dask row chunks of chunk_rows rows: the metadata blocks of the first pass are
     # slices of these datasets (no dataset per block)
     io_rows = min(int(chunk_rows), 1 << 21)

@@ -1,0 +1,75 @@
+"""How many rows calibrate holds at once, from a memory budget (``--memory-budget``).
+
+The budget defaults to 1 GB or half the machine's available memory, whichever
+is smaller; ``--chunk-rows`` overrides what follows from it.  The model of a
+run's peak resident memory is measured (docs/performance.md, "Memory
+budget"): a fixed part (the interpreter with numba, dask, dask-ms and
+python-casacore loaded: about 160 MB; dask-ms's row order of each band:
+8 bytes per row), and a part per target row of a time chunk (both bands'
+visibilities, flags, the (baseline, time) grids, phasors and outputs):
+about 96 bytes per correlation plus 30 per correlation and method, and the
+per-channel columns again for every further channel.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+
+from ..errors import InputError
+
+#: the default budget's ceiling (bytes)
+DEFAULT_CEILING = 1_000_000_000
+#: resident memory before any row is read (imports, numba kernels, dask), with a margin
+FIXED_BYTES = 300_000_000
+#: bytes per row that dask-ms keeps for the whole run (its row order, ROWID)
+ORDER_BYTES_PER_ROW = 8
+UNITS = {"": 1, "B": 1, "KB": 1e3, "MB": 1e6, "GB": 1e9, "TB": 1e12,
+         "KIB": 2 ** 10, "MIB": 2 ** 20, "GIB": 2 ** 30}
+
+
+def available_bytes() -> int:
+    """MemAvailable of /proc/meminfo (Linux); the physical memory elsewhere."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+
+
+def parse_budget(text) -> int:
+    """Bytes from ``auto`` or a size such as ``800MB``, ``2GB``, ``1.5GiB`` or a number."""
+    value = str(text if text is not None else "auto").strip()
+    if value.lower() == "auto":
+        return int(min(DEFAULT_CEILING, 0.5 * available_bytes()))
+    match = re.fullmatch(r"([0-9]*\.?[0-9]+(?:[eE][0-9]+)?)\s*([A-Za-z]*)", value)
+    unit = match.group(2).upper() if match else None
+    if match is None or unit not in UNITS:
+        raise InputError(f"--memory-budget {text}: give a size such as 800MB, 2GB or 1.5GiB "
+                         "(or auto: 1 GB or half the available memory, whichever is smaller)")
+    budget = int(float(match.group(1)) * UNITS[unit])
+    if budget <= FIXED_BYTES:
+        raise InputError(f"--memory-budget {text}: a run needs about {FIXED_BYTES / 1e6:.0f} MB "
+                         "before it reads a row; give more (e.g. 1GB)")
+    return budget
+
+
+def bytes_per_row(n_corr: int, n_chan: int, n_methods: int) -> int:
+    """Peak bytes per target row of a time chunk (both bands together)."""
+    per_chan = 18 + 9 + 8 * n_methods        # DATA + FLAG of both bands, new FLAG, outputs
+    return n_corr * (96 + 30 * n_methods + per_chan * max(n_chan - 1, 0))
+
+
+def rows_for_budget(budget: int, n_rows_both_bands: int, n_corr: int, n_chan: int,
+                    n_methods: int) -> int:
+    """Target rows per time chunk that keep the run's peak within ``budget`` bytes."""
+    room = budget - FIXED_BYTES - ORDER_BYTES_PER_ROW * n_rows_both_bands
+    per_row = bytes_per_row(n_corr, n_chan, n_methods)
+    if room < 1000 * per_row:
+        raise InputError(f"--memory-budget {budget / 1e6:.0f} MB: the sets' {n_rows_both_bands} "
+                         "rows leave no room for a chunk of data; give a larger budget (or "
+                         "--chunk-rows)")
+    return int(room // per_row)

@@ -1,0 +1,42 @@
+"""--memory-budget: the rows held at once follow from it; the output does not depend on it."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from hitops.calibrate import calibrate
+from hitops.calibrate.memory import bytes_per_row, parse_budget, rows_for_budget
+from hitops.calibrate.synthetic import make_pair
+from hitops.errors import InputError
+
+from ms_columns import col  # tests/ is on sys.path (rootdir-relative)
+
+
+def test_budget_sizes_and_refusals():
+    assert parse_budget("800MB") == 800_000_000
+    assert parse_budget("1.5GiB") == int(1.5 * 2 ** 30)
+    assert 0 < parse_budget("auto") <= 1_000_000_000
+    for bad in ("lots", "12 parsecs", "100MB"):        # the last is below the fixed part
+        with pytest.raises(InputError, match="--memory-budget"):
+            parse_budget(bad)
+    # more correlations, channels or methods: fewer rows per chunk
+    assert bytes_per_row(4, 1, 3) > bytes_per_row(4, 1, 1) > bytes_per_row(2, 1, 1)
+    assert bytes_per_row(4, 8, 1) > bytes_per_row(4, 1, 1)
+    # the rows both bands keep for the whole run come off the budget first
+    assert rows_for_budget(10 ** 9, 10 ** 7, 4, 1, 1) < rows_for_budget(10 ** 9, 10 ** 6, 4, 1, 1)
+
+
+def test_a_small_budget_chunks_the_run_and_changes_nothing(tmp_path):
+    truth = make_pair(tmp_path, n_ant=6, n_time=4000, n_scans=2, seed=8, phase_offset_rad=1.0)
+    other = tmp_path / "copy.ms"
+    shutil.copytree(truth.target_ms, other)
+    whole = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt")
+    # 15 baselines x 4000 times = 60 000 rows per band: a 302 MB budget leaves room for a
+    # few thousand rows per chunk (hitops/calibrate/memory.py)
+    small = calibrate(truth.ref_ms, str(other), method="pwc,cfpt", memory_budget="302MB")
+    assert whole["chunks"] == 1 and small["chunks"] > 3
+    for column in ("PWC_DATA", "CFPT_DATA", "FLAG"):
+        np.testing.assert_array_equal(col(str(other), column), col(truth.target_ms, column))
