@@ -90,7 +90,13 @@ def test_daily_values_are_the_source_values_exactly(site, year, day):
 @pytest.mark.parametrize("site,folder,year,day", [
     ("GLT", "01Jan", 2013, 17), ("KVNYS", "01Jan", 2016, 5), ("SMA", "03Mar", 2015, 4),
     ("KP", "03Mar", 2009, 22), ("APEX", "07Jul", 2011, 7), ("KVNYS", "07Jul", 2014, 10),
-    ("IRAM", "10Oct", 2012, 18), ("NOEMA", "10Oct", 2018, 31)])
+    ("IRAM", "10Oct", 2012, 18), ("NOEMA", "10Oct", 2018, 31),
+    # the seven months added last
+    ("APEX", "02Feb", 2012, 29), ("KVNYS", "02Feb", 2016, 12), ("SMA", "05May", 2011, 3),
+    ("GLT", "05May", 2012, 31), ("JCMT", "06Jun", 2014, 21), ("KP", "06Jun", 2018, 16),
+    ("IRAM", "08Aug", 2010, 8), ("KVNYS", "08Aug", 2011, 16), ("NOEMA", "09Sep", 2013, 26),
+    ("KP", "09Sep", 2009, 1), ("APEX", "11Nov", 2009, 14), ("GLT", "11Nov", 2014, 3),
+    ("SMA", "12Dec", 2018, 2), ("KVNYS", "12Dec", 2018, 3), ("IRAM", "12Dec", 2009, 21)])
 def test_other_months_are_the_source_values_exactly(site, folder, year, day):
     """Daily means of months other than April: 230 GHz (and wind, 2009) to the last digit."""
     month = int(folder[:2])
@@ -113,14 +119,36 @@ def test_other_months_are_the_source_values_exactly(site, folder, year, day):
 
 def test_months_in_the_daily_table():
     months = {int(r["month"]) for r in shipped(DAILY)}
-    assert months == {1, 2, 3, 4, 7, 10}
+    assert months == set(range(1, 13))
     manifest = (SOURCES / "daily" / "manifest.tsv").read_text().splitlines()[1:]
     folders = {line.split("\t")[1] for line in manifest}
-    assert folders == {"01Jan", "02Feb", "03Mar", "04Apr", "07Jul", "10Oct"}
+    assert folders == {"01Jan", "02Feb", "03Mar", "04Apr", "05May", "06Jun", "07Jul", "08Aug",
+                       "09Sep", "10Oct", "11Nov", "12Dec"}
+    # every site has the 230 GHz and wind files of every month
+    for site in ("APEX", "SMA", "JCMT", "IRAM", "GLT", "NOEMA", "KP", "KVNYS"):
+        for folder in folders:
+            names = {line.split("\t")[2] for line in manifest
+                     if line.split("\t")[:2] == [site, folder]}
+            assert {"mean_SEFD_info_230.csv", "mean_wind_speed.csv"} <= names, (site, folder)
     for line in manifest:
         site, folder, name, commit, chars = line.split("\t")
         assert len(commit) == 40
         assert (SOURCES / "daily" / site / folder / name).stat().st_size == int(chars)
+
+
+def test_months_without_wind_take_the_nearest_months_wind_and_say_so():
+    """The source's November and December wind files are header-only."""
+    for site in ("APEX", "KVNYS"):
+        values, months, note = weather.tables.wind_pool(site, 11)
+        assert months == [10] and values.size > 0 and "month 11" in note
+        values, months, note = weather.tables.wind_pool(site, 12)
+        assert months == [1] and values.size > 0 and "month 12" in note
+        values, months, note = weather.tables.wind_pool(site, 4)
+        assert months == [4] and note == ""
+    w = weather.station_weather("AP", [("86", 86e9)], grid("2015-11-10"), date="2015-11-10")
+    assert w.mode == "daily" and "month 11" in w.description and np.all(np.isfinite(w.wind))
+    w = weather.station_weather("PV", [("230", 230e9)], grid(), month=12)
+    assert "wind of month 1 used" in w.description and np.all(w.wind > 0)
 
 
 @pytest.mark.parametrize("site,date,tau86,tb86", [
@@ -261,7 +289,8 @@ def test_scene_weather_for_other_months(month):
 @pytest.mark.parametrize("change,words", [
     ({"weather": {"source": "merra2", "date": "2023-08-10", "fallback": "error"}},
      ["2023-08-10", "nearest", "2018-08-10"]),
-    ({"weather": {"source": "merra2", "month": 8}, "stations": ["AP", "PV", "LM"]},
+    # LMT (only the April 2018 analyses) has no month 8; its tables given for every station
+    ({"weather": {"source": "merra2", "month": 8, "site": "LMT"}},
      ["LMT", "month 8", "months with data: 4"]),
     ({"weather": {"source": "merra2", "date": "2018-04-10", "statistic": "best"}}, ["statistic"]),
     ({"bands": [{"name": "86", "freq_ghz": 86, "bandwidth_ghz": 2},

@@ -97,7 +97,9 @@ def station_samples(code: str, month: int, rng: np.random.Generator) -> Dict[str
     """Weather samples of a station in a month, keyed (year, day, analysis; -1 = daily mean).
 
     Daily means without a tabulated wind take a wind drawn from the site's other
-    wind values of that month (wind assumed independent of opacity there).
+    wind values of that month (wind assumed independent of opacity there), or of the
+    nearest months with wind where the month has none (November, December:
+    :func:`hitops.weather.tables.wind_pool`).
     """
     folder, _ = wt.resolve_site(code, code)
     keys, tau, tb, wind = [], [], [], []
@@ -122,6 +124,9 @@ def station_samples(code: str, month: int, rng: np.random.Generator) -> Dict[str
     missing = ~np.isfinite(wind)
     if missing.any():
         pool = wind[~missing]
+        if not pool.size:
+            # no wind in the source for this month (November, December): nearest months'
+            pool, _, _ = wt.wind_pool(folder, month)
         wind[missing] = rng.choice(pool, size=int(missing.sum())) if pool.size else 5.0
     return {"keys": keys, "tau": np.array(tau), "tb": np.array(tb), "wind": wind}
 

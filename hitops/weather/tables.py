@@ -6,9 +6,10 @@ Two tables (built by :mod:`hitops.weather.build_extract`, described in
 * 3-hourly: the instantaneous MERRA-2 analyses at 00, 03, ..., 21 UT of
   2018-04-07..13 for 10 sites (86 GHz native or derived, 230 GHz, 345 GHz
   scaled from the daily means, wind, PWV);
-* daily: daily means for every day of January, March, April, July and
-  October 2009-2018 for 8 sites (230 GHz tabulated, 86 GHz derived; 345 GHz
-  tabulated for April only; wind for 2009 only).
+* daily: daily means for every day of all twelve months 2009-2018 for 8
+  sites (230 GHz tabulated, 86 GHz derived on loading; 345 GHz tabulated for
+  April only; wind for 2009 only, none for November and December, where the
+  nearest months' wind stands in: :func:`wind_pool`).
 
 :func:`station_weather` turns a request (a date, or a month and a statistic)
 into zenith opacity, sky brightness temperature and wind speed per band on
@@ -258,6 +259,29 @@ def wind_samples(site: str, month: int) -> np.ndarray:
     return values[np.isfinite(values)]
 
 
+def wind_pool(site: str, month: int) -> Tuple[np.ndarray, List[int], str]:
+    """Wind values for a site and month, falling back to the nearest months that have some.
+
+    The source's daily-mean wind files hold 2009 only, and those of November and
+    December are header-only (no rows): for such a month the values of the nearest
+    months with wind (circular distance 1, then 2, ...) are pooled.  Returns
+    (values, months used, a note for the log; '' when the month itself has wind).
+    """
+    values = wind_samples(site, month)
+    if values.size:
+        return values, [month], ""
+    for distance in range(1, 7):
+        near = sorted({(month - 1 + d) % 12 + 1 for d in (-distance, distance)})
+        pooled = [wind_samples(site, m) for m in near]
+        pooled = [v for v in pooled if v.size]
+        if pooled:
+            used = [m for m in near if wind_samples(site, m).size]
+            note = (f"no wind in the source for month {month} at {site}; wind of month"
+                    f"{'s' if len(used) > 1 else ''} {', '.join(map(str, used))} used")
+            return np.concatenate(pooled), used, note
+    return np.zeros(0), [], f"no wind in the tables for site {site}"
+
+
 def parse_date(value) -> dt.date:
     if isinstance(value, dt.datetime):
         return value.date()
@@ -319,10 +343,10 @@ def station_weather(station: str, bands: Sequence[Tuple[str, float]], times: np.
             raise WeatherError(f"station {station}: no merra2 data for site {folder} in month "
                                f"{month}; months with data: "
                                f"{', '.join(map(str, months_with_data(folder)))}")
-        out = _constant(station, folder, columns, times, mask, statistic, "month",
-                        wind_samples(folder, month),
+        winds, _, wind_note = wind_pool(folder, month)
+        out = _constant(station, folder, columns, times, mask, statistic, "month", winds,
                         f"{statistic} of the daily means of month {month}, "
-                        f"{_years(folder, mask)}")
+                        f"{_years(folder, mask)}", wind_note)
     if note:
         out.description = f"{out.description} ({note})"
     _check_finite(out, folder)
@@ -410,9 +434,11 @@ def _from_daily(station, folder, columns, times, used, wanted) -> Optional[Stati
     wind = daily["wind"][index].astype(np.float64)
     wind_note = ""
     if not np.all(np.isfinite(wind)):
-        clim = _statistic(wind_samples(folder, used.month), "median")
+        pool, months, fallback = wind_pool(folder, used.month)
+        clim = _statistic(pool, "median")
         wind = np.where(np.isfinite(wind), wind, clim)
-        wind_note = f"; wind: median of the site's month-{used.month} values ({clim:.1f} m/s)"
+        wind_note = (f"; wind: median of the site's month-{'/'.join(map(str, months))} values "
+                     f"({clim:.1f} m/s){' (' + fallback + ')' if fallback else ''}")
     out.wind = wind
     subst = "" if used == wanted else f" (same day of {used.year} for {wanted.isoformat()})"
     out.description = f"MERRA-2 daily means of {used.isoformat()} at {folder}{subst}{wind_note}"
@@ -430,6 +456,7 @@ def _climatology(station, folder, columns, times, date, statistic) -> StationWea
     if not mask.any():
         raise _date_error(station, folder, date)
     wind = [daily["wind"][mask]]
+    wind_note = ""
     nat = native_table().get(folder)
     if nat is not None:
         nat_dates = [dt.date.fromordinal(int(t // 86400) + MJD_EPOCH.toordinal()) for t in nat["time"]]
@@ -437,14 +464,16 @@ def _climatology(station, folder, columns, times, date, statistic) -> StationWea
                          for d in nat_dates])
         wind.append(nat["wind"][near])
     wind = np.concatenate(wind)
+    if not np.isfinite(wind).any():
+        wind, _, wind_note = wind_pool(folder, date.month)
     return _constant(station, folder, columns, times, mask, statistic, "climatology", wind,
                      f"{date.isoformat()} is not in the tables: {statistic} of the daily means of "
                      f"{date.strftime('%m-%d')} +-{CLIMATOLOGY_HALF_WIDTH_DAYS} d over "
-                     f"{_years(folder, mask)} at {folder} (climatology)")
+                     f"{_years(folder, mask)} at {folder} (climatology)", wind_note)
 
 
 def _constant(station, folder, columns, times, mask, statistic, mode, wind_values,
-              description) -> StationWeather:
+              description, wind_note: str = "") -> StationWeather:
     daily = daily_table()[folder]
     out = StationWeather(station, folder, mode, description)
     for name, col in columns.items():
@@ -455,7 +484,8 @@ def _constant(station, folder, columns, times, mask, statistic, mode, wind_value
     wind = _statistic(wind_values, statistic)
     out.wind = np.full(times.shape, wind)
     out.description += (f"; wind {statistic} {wind:.1f} m/s of {np.isfinite(wind_values).sum()} values "
-                        "(2009 daily means, 2018 analyses: other years have no wind in the extract)")
+                        "(2009 daily means, 2018 analyses: other years have no wind in the extract"
+                        f"{'; ' + wind_note if wind_note else ''})")
     return out
 
 
