@@ -182,6 +182,23 @@ def test_86ghz_derivation_checked_against_published_values():
     assert checks["KVNYS"]["leave_site_out"]["median_abs_frac_err_tau86"] < 0.35
 
 
+def test_external_86ghz_check_is_recorded_honestly():
+    """No published 86 GHz figure was reachable: the record says so, lists what was searched,
+    and its 225 GHz context numbers are the shipped table's own (recomputed here)."""
+    ext = json.loads((DATA / "derivation_86ghz.json").read_text())["external_86ghz_check"]
+    assert ext["published_86ghz_figure_found"] is False
+    assert "No published 86 GHz" in ext["statement"] and len(ext["searched"]) >= 5
+    ctx = ext["context_225ghz"]
+    assert "legacy.nrao.edu/alma/site/compare-225" in ctx["source"]
+    apex = weather.tables.daily_table()["APEX"]["tau230"]
+    apex = apex[np.isfinite(apex)]
+    assert ctx["extract_tau230_quartiles_apex_all_months"] == [
+        round(float(np.percentile(apex, q)), 4) for q in (25, 50, 75)]
+    assert ctx["extract_over_published_median"] == round(float(np.median(apex)) / 0.061, 3)
+    text = (DATA / "PROVENANCE.md").read_text()
+    assert "No published 86 GHz" in text and "compare-225" in text
+
+
 # --------------------------------------------------------------------------- lookups
 
 def grid(date="2018-04-10", hours=12.0, step=600.0):

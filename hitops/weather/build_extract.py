@@ -302,11 +302,56 @@ def build():
                        "(2018-04-07..13), GLT daily means (weight 8)",
         "n_points": len(pts),
         "checks_against_published_86ghz": validate_86(pts, params),
+        "external_86ghz_check": external_check(rows_d),
         "scaling_345": "tau345(segment) = tau230(segment) * tau345_daily / tau230_daily; "
                        "Tb345 = Tb345_daily/(1-exp(-tau345_daily)) * (1-exp(-tau345))",
     }
     (DATA / "derivation_86ghz.json").write_text(json.dumps(derivation, indent=1) + "\n")
     return derivation
+
+
+SEARCHED_86GHZ = [
+    "IRAM 30m ATM opacity page, http://mainwiki.iram.es/AtmOpacity (ATM2009 tau vs frequency "
+    "for pwv 1.5 and 7 mm: figures only, no tabulated 3 mm values)",
+    "ARO 12m (Kitt Peak) receiver Tsys tables, aro.as.arizona.edu/12m_docs/Receiver_tsys.htm "
+    "(225 GHz tau0 only)",
+    "ARO SMT opacity curves, http://aro.as.arizona.edu/smt_docs/opacity_curves.htm (Mt Graham, "
+    "not one of our sites; table not in the text reached)",
+    "NRAO almatau (Chajnantor ATM dry + wet terms, a model, not a measurement), "
+    "http://www.tuc.nrao.edu/~mholdawa/glish/almatau.html",
+    "KVN: Lee et al. 2011 (arXiv:1110.3881, 22/43 GHz only), KVN status reports "
+    "(radio.kasi.re.kr/kvn), Xu et al. 2024 (arXiv:2409.07309, 22/43/88/132 GHz geodetic VLBI; "
+    "no opacity values in the text reached)",
+    "IRAM Newsletters on Pico Veleta / Plateau de Bure winter conditions (no opacity values)",
+]
+
+
+def external_check(rows_d) -> dict:
+    """What was found in published sources for a check of the 86 GHz values (see PROVENANCE.md)."""
+    apex = sorted(float(r[7]) for r in rows_d if r[0] == "APEX" and r[7] != "")
+    years = sorted({int(r[1]) for r in rows_d if r[0] == "APEX"})
+    return {
+        "published_86ghz_figure_found": False,
+        "statement": "No published 86 GHz (3 mm) zenith opacity figure with numbers for any of "
+                     "the 8 sites could be reached from this machine (no network; searches of the "
+                     "stored page and documentation indexes on 2026-11-24). The only 86 GHz check "
+                     "is against the database's own native 86 GHz values "
+                     "(checks_against_published_86ghz, leave-one-site-out).",
+        "searched": SEARCHED_86GHZ,
+        "context_225ghz": {
+            "source": "NRAO ALMA site studies, 'Comparison of zenith optical depth', "
+                      "https://legacy.nrao.edu/alma/site/compare-225 (S. Radford, 2003-12-17): "
+                      "Chajnantor 225 GHz tipper, 1995-04..2003-10, 85% uptime",
+            "published_tau225_quartiles_chajnantor": [0.037, 0.061, 0.122],
+            "extract_tau230_quartiles_apex_all_months": [round(float(np.percentile(apex, q)), 4)
+                                                          for q in (25, 50, 75)],
+            "extract_years": [years[0], years[-1]],
+            "extract_over_published_median": round(float(np.percentile(apex, 50)) / 0.061, 3),
+            "note": "a 225/230 GHz comparison, not an 86 GHz one: different years (1995-2003 vs "
+                    "2009-2018), 225 vs 230 GHz, a measured tipper on the plateau vs MERRA-2 + am "
+                    "at the APEX grid point; no tolerance is claimed",
+        },
+    }
 
 
 def main():
