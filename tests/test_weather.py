@@ -89,7 +89,8 @@ def test_daily_values_are_the_source_values_exactly(site, year, day):
 
 @pytest.mark.parametrize("site,folder,year,day", [
     ("GLT", "01Jan", 2013, 17), ("KVNYS", "01Jan", 2016, 5), ("SMA", "03Mar", 2015, 4),
-    ("KP", "03Mar", 2009, 22), ("APEX", "07Jul", 2011, 7), ("KVNYS", "07Jul", 2014, 10),
+    ("KP", "03Mar", 2009, 22), ("APEX", "03Mar", 2018, 19), ("KVNYS", "03Mar", 2013, 12),
+    ("NOEMA", "03Mar", 2010, 20), ("JCMT", "03Mar", 2016, 26), ("APEX", "07Jul", 2011, 7), ("KVNYS", "07Jul", 2014, 10),
     ("IRAM", "10Oct", 2012, 18), ("NOEMA", "10Oct", 2018, 31),
     # the seven months added last
     ("APEX", "02Feb", 2012, 29), ("KVNYS", "02Feb", 2016, 12), ("SMA", "05May", 2011, 3),
@@ -109,7 +110,13 @@ def test_other_months_are_the_source_values_exactly(site, folder, year, day):
     else:
         tau, tb = source_values(path, 3)[(year, month, day)]
     assert float(row["tau230"]) == float(tau) and float(row["tb230"]) == float(tb)
-    assert row["tau345"] == "" and row["src86"] == "derived"
+    assert row["src86"] == "derived"
+    p345 = SOURCES / "daily" / site / folder / "mean_SEFD_info_345.csv"
+    if p345.exists():           # 345 GHz daily means: April and March
+        tau, tb = source_values(p345, 2)[(year, day)]
+        assert float(row["tau345"]) == float(tau) and float(row["tb345"]) == float(tb)
+    else:
+        assert row["tau345"] == ""
     wind = source_values(SOURCES / "daily" / site / folder / "mean_wind_speed.csv", 3)
     if (year, month, day) in wind:
         assert float(row["wind"]) == float(wind[(year, month, day)][0])
@@ -246,6 +253,11 @@ def test_pyeongchang_uses_yonsei_and_says_so():
     (dict(date="2018-04-10"), "QQ", [("86", 86e9)], ["unknown merra2 site 'QQ'", "nearest name"]),
     (dict(date="2018-04-10"), "AP", [("100", 100e9)], ["100 GHz", "nearest: 86 GHz"]),
     (dict(date="2018-04-10"), "LM", [("345", 345e9)], ["band '345'", "LMT", "86, 230"]),
+    # 345 GHz daily means exist for March and April only: other months name them and 230 GHz
+    (dict(date="2015-07-10"), "AP", [("345", 345e9)],
+     ["band '345'", "APEX", "2015-07-10", "only in months 3, 4", "in month 7: 230 GHz"]),
+    (dict(month=11), "SM", [("345", 345e9)],
+     ["band '345'", "SMA", "month 11", "only in months 3, 4", "in month 11: 230 GHz"]),
 ])
 def test_bad_requests_name_site_date_band_and_nearest(kwargs, station, bands, words):
     with pytest.raises(weather.WeatherError) as err:
@@ -407,3 +419,15 @@ def test_paper_scene_has_all_28_baselines_with_weather():
     assert len(pairs) == 28
     assert all(w.mode == "climatology" for w in obs.weather)
     assert "KVNYS" in obs.weather[6].description
+
+
+def test_345ghz_in_march_from_the_daily_means():
+    """Tri-band merra2 scenes outside April: March has 345 GHz daily means too (8 sites)."""
+    w = weather.station_weather("AP", [("345", 345e9), ("230", 230e9)], grid("2015-03-10"),
+                                date="2015-03-10")
+    src = source_values(SOURCES / "daily" / "APEX" / "03Mar" / "mean_SEFD_info_345.csv", 2)
+    assert w.mode == "daily"
+    assert w.tau["345"][0] == float(src[(2015, 10)][0]) and w.tb["345"][0] == float(src[(2015, 10)][1])
+    for station in ("AP", "SM", "JC", "PV", "GL", "PB", "KP", "KY"):
+        m = weather.station_weather(station, [("345", 345e9)], grid(), month=3)
+        assert np.all(np.isfinite(m.tau["345"])) and np.all(m.tau["345"] > 0)

@@ -8,7 +8,7 @@ Two tables (built by :mod:`hitops.weather.build_extract`, described in
   scaled from the daily means, wind, PWV);
 * daily: daily means for every day of all twelve months 2009-2018 for 8
   sites (230 GHz tabulated, 86 GHz derived on loading; 345 GHz tabulated for
-  April only; wind for 2009 only, none for November and December, where the
+  March and April only; wind for 2009 only, none for November and December, where the
   nearest months' wind stands in: :func:`wind_pool`).
 
 :func:`station_weather` turns a request (a date, or a month and a statistic)
@@ -349,7 +349,11 @@ def station_weather(station: str, bands: Sequence[Tuple[str, float]], times: np.
                         f"{_years(folder, mask)}", wind_note)
     if note:
         out.description = f"{out.description} ({note})"
-    _check_finite(out, folder)
+    if date is not None:
+        req_month = (used if out.mode != "climatology" else wanted).month
+    else:
+        req_month = month
+    _check_finite(out, folder, req_month, columns)
     return out
 
 
@@ -375,23 +379,47 @@ def _date_error(station: str, folder: str, date: dt.date) -> WeatherError:
         f"{nearest}")
 
 
-def _check_finite(out: StationWeather, folder: str) -> None:
+def _check_finite(out: StationWeather, folder: str, month: Optional[int] = None,
+                  columns: Optional[Dict[str, str]] = None) -> None:
     for name in out.tau:
         if not (np.all(np.isfinite(out.tau[name])) and np.all(np.isfinite(out.tb[name]))):
             have = _bands_with_data(folder)
+            col = columns.get(name) if columns else None
+            where = ""
+            if col is not None and month is not None:
+                months = _band_months(folder, col)
+                here = _bands_with_data(folder, month)
+                near = min(here, key=lambda c: abs(float(c) - float(col))) if here else None
+                where = ((f"; band {col} GHz has data at {folder} only in months "
+                          f"{', '.join(map(str, months))}" if months else
+                          f"; band {col} GHz has no data at {folder} in any month")
+                         + (f"; nearest band with data in month {month}: {near} GHz" if near else ""))
             raise WeatherError(
                 f"station {out.station}: the merra2 tables have no values for band '{name}' at "
-                f"site {folder} ({out.description}); bands with data there: "
+                f"site {folder} ({out.description}){where}; bands with data there in some month: "
                 f"{', '.join(have)} GHz; give tau and t_atm for this band explicitly")
 
 
-def _bands_with_data(folder: str) -> List[str]:
+def _bands_with_data(folder: str, month: Optional[int] = None) -> List[str]:
+    """Tabulated bands at a site (in a month, if given)."""
     have = []
     for col in TABLE_BANDS.values():
-        tables = [t[folder] for t in (native_table(), daily_table()) if folder in t]
-        if any(np.isfinite(t[f"tau{col}"]).any() for t in tables):
+        if month in _band_months(folder, col) or (month is None and _band_months(folder, col)):
             have.append(col)
     return have
+
+
+def _band_months(folder: str, col: str) -> List[int]:
+    """Months in which a site has finite values of one band (3-hourly or daily)."""
+    months = set()
+    nat = native_table().get(folder)
+    if nat is not None and np.isfinite(nat[f"tau{col}"]).any():
+        months.add(4)                       # the 3-hourly analyses are April 2018
+    day = daily_table().get(folder)
+    if day is not None:
+        ok = np.isfinite(day[f"tau{col}"])
+        months.update(d.month for d in day["date"][ok])
+    return sorted(months)
 
 
 def _from_native(station, folder, columns, times, used, wanted) -> Optional[StationWeather]:
