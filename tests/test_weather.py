@@ -94,7 +94,7 @@ def test_daily_values_are_the_source_values_exactly(site, year, day):
     ("IRAM", "10Oct", 2012, 18), ("NOEMA", "10Oct", 2018, 31), ("GLT", "01Jan", 2019, 1),
     ("KP", "01Jan", 2015, 8), ("SMA", "01Jan", 2016, 5), ("KVNYS", "02Feb", 2016, 12),
     ("KVNYS", "05May", 2018, 16), ("GLT", "06Jun", 2012, 19), ("KP", "07Jul", 2016, 12),
-    ("NOEMA", "08Aug", 2014, 13),
+    ("NOEMA", "08Aug", 2014, 13), ("IRAM", "09Sep", 2010, 23),
     # the seven months added last
     ("APEX", "02Feb", 2012, 29), ("KVNYS", "02Feb", 2016, 12), ("SMA", "05May", 2011, 3),
     ("GLT", "05May", 2012, 31), ("JCMT", "06Jun", 2014, 21), ("KP", "06Jun", 2018, 16),
