@@ -8,7 +8,7 @@ Two tables (built by :mod:`hitops.weather.build_extract`, described in
   scaled from the daily means, wind, PWV);
 * daily: daily means for every day of all twelve months 2009-2018 for 8
   sites (230 GHz tabulated, 86 GHz derived on loading; 345 GHz tabulated for
-  January-September only; wind for 2009 only, none for November and December, where the
+  January-October only; wind for 2009 only, none for November and December, where the
   nearest months' wind stands in: :func:`wind_pool`).
 
 :func:`station_weather` turns a request (a date, or a month and a statistic)
