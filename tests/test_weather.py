@@ -258,11 +258,9 @@ def test_pyeongchang_uses_yonsei_and_says_so():
     (dict(date="2018-04-10"), "QQ", [("86", 86e9)], ["unknown merra2 site 'QQ'", "nearest name"]),
     (dict(date="2018-04-10"), "AP", [("100", 100e9)], ["100 GHz", "nearest: 86 GHz"]),
     (dict(date="2018-04-10"), "LM", [("345", 345e9)], ["band '345'", "LMT", "86, 230"]),
-    # 345 GHz daily means exist for March and April only: other months name them and 230 GHz
-    (dict(date="2015-12-10"), "AP", [("345", 345e9)],
-     ["band '345'", "APEX", "2015-12-10", "only in months", "in month 12: 230 GHz"]),
-    (dict(month=11), "SM", [("345", 345e9)],
-     ["band '345'", "SMA", "month 11", "only in months", "in month 11: 230 GHz"]),
+    # SMA's December source files end at 2018-12-02: a later December date names the edge
+    (dict(date="2018-12-20", fallback="error"), "SM", [("345", 345e9)],
+     ["SMA", "2018-12-20", "2009-01-01..2018-12-02", "nearest available date: 2017-12-20"]),
 ])
 def test_bad_requests_name_site_date_band_and_nearest(kwargs, station, bands, words):
     with pytest.raises(weather.WeatherError) as err:
@@ -271,6 +269,30 @@ def test_bad_requests_name_site_date_band_and_nearest(kwargs, station, bands, wo
     assert "\n" not in message
     for word in words:
         assert word in message
+
+
+def test_band_missing_in_a_month_names_the_months_and_the_nearest_band(monkeypatch):
+    """All 12 months now have 345 GHz daily means; a site/month without them (simulated
+    by blanking APEX's December 345 GHz values) must still give one clear message."""
+    real = weather.tables.daily_table()
+    patched = {k: dict(v) for k, v in real.items()}
+    ap = patched["APEX"]
+    december = np.array([d.month == 12 for d in ap["date"]])
+    for key in ("tau345", "tb345"):
+        ap[key] = np.where(december, np.nan, ap[key])
+    monkeypatch.setattr(weather.tables, "daily_table", lambda: patched)
+    with pytest.raises(weather.WeatherError) as err:
+        weather.station_weather("AP", [("345", 345e9)], grid("2015-12-10"), date="2015-12-10")
+    message = str(err.value)
+    assert "\n" not in message
+    for word in ("band '345'", "APEX", "2015-12-10",
+                 "only in months 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11", "in month 12: 230 GHz"):
+        assert word in message
+
+
+def test_345ghz_daily_means_cover_all_twelve_months():
+    for site in ("APEX", "SMA", "JCMT", "IRAM", "GLT", "NOEMA", "KP", "KVNYS"):
+        assert weather.tables._band_months(site, "345") == list(range(1, 13))
 
 
 # --------------------------------------------------------------------------- in the simulator
@@ -436,3 +458,17 @@ def test_345ghz_in_march_from_the_daily_means():
     for station in ("AP", "SM", "JC", "PV", "GL", "PB", "KP", "KY"):
         m = weather.station_weather(station, [("345", 345e9)], grid(), month=3)
         assert np.all(np.isfinite(m.tau["345"])) and np.all(m.tau["345"] > 0)
+
+
+@pytest.mark.parametrize("station,site,folder,date", [
+    ("PV", "IRAM", "08Aug", "2015-08-10"), ("SM", "SMA", "11Nov", "2012-11-21"),
+    ("KY", "KVNYS", "12Dec", "2016-12-05"), ("GL", "GLT", "06Jun", "2013-06-14")])
+def test_triband_daily_means_in_other_months(station, site, folder, date):
+    """86 (derived), 230 and 345 GHz together from one day's daily means, any month."""
+    bands = [("86", 86e9), ("230", 230e9), ("345", 345e9)]
+    w = weather.station_weather(station, bands, grid(date), date=date)
+    y, _, d = map(int, date.split("-"))
+    src = source_values(SOURCES / "daily" / site / folder / "mean_SEFD_info_345.csv", 2)
+    assert w.mode == "daily"
+    assert w.tau["345"][0] == float(src[(y, d)][0]) and w.tb["345"][0] == float(src[(y, d)][1])
+    assert 0 < w.tau["86"][0] < w.tau["230"][0] < w.tau["345"][0]

@@ -7,8 +7,8 @@ Two tables (built by :mod:`hitops.weather.build_extract`, described in
   2018-04-07..13 for 10 sites (86 GHz native or derived, 230 GHz, 345 GHz
   scaled from the daily means, wind, PWV);
 * daily: daily means for every day of all twelve months 2009-2018 for 8
-  sites (230 GHz tabulated, 86 GHz derived on loading; 345 GHz tabulated for
-  January-October only; wind for 2009 only, none for November and December, where the
+  sites (230 GHz tabulated, 86 GHz derived on loading; 345 GHz tabulated in
+  all 12 months; wind for 2009 only, none for November and December, where the
   nearest months' wind stands in: :func:`wind_pool`).
 
 :func:`station_weather` turns a request (a date, or a month and a statistic)
