@@ -66,7 +66,7 @@ def figure(path: Path) -> Path:
 
     from hitops.calibrate import calibrate
     from hitops.calibrate.synthetic import make_pair, wrap
-    from hitops.kernels.wraps import count_wraps
+    from hitops.tracking.count import count_wraps
 
     workdir = Path(tempfile.mkdtemp(prefix="fig-calibrate-"))
     truth = make_pair(workdir, n_ant=3, n_time=1800, step_rad=0.04, drift_rad=0.03,

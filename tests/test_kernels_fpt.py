@@ -8,9 +8,8 @@ import numpy as np
 import pytest
 
 from hitops.calibrate.offsets import choose_offset
-from hitops.calibrate.transfer import Carry, track
 from hitops.kernels import fpt
-from hitops.kernels.wraps import TRACKERS, count_wraps, get_tracker
+from hitops.tracking.count import Carry, count_scans, count_wraps
 
 
 def wrap(x):
@@ -59,12 +58,6 @@ def test_count_wraps_edge_cases():
     assert np.array_equal(count_wraps(np.array([-3.0, 3.0, -3.0]), np.ones(3, bool)), [0, 1, 0])
 
 
-def test_tracker_registry():
-    assert get_tracker("count") is count_wraps and "count" in TRACKERS
-    with pytest.raises(Exception, match="unknown wrap tracker 'nope'"):
-        get_tracker("nope")
-
-
 def test_track_carries_across_chunks_and_restarts_per_scan():
     rng = np.random.default_rng(2)
     n_time = 400
@@ -72,11 +65,11 @@ def test_track_carries_across_chunks_and_restarts_per_scan():
     phase = wrap(true)
     valid = rng.random(phase.shape) > 0.1
     scan = np.repeat([0, 1], n_time // 2)
-    whole, _ = track(count_wraps, phase, valid, scan, Carry.empty(2, 3))
+    whole, _ = count_scans(phase, valid, scan, Carry.empty(2, 3))
     carry = Carry.empty(2, 3)
     parts = []
     for a, b in [(0, 57), (57, 200), (200, 201), (201, 400)]:
-        w, carry = track(count_wraps, phase[..., a:b], valid[..., a:b], scan[a:b], carry)
+        w, carry = count_scans(phase[..., a:b], valid[..., a:b], scan[a:b], carry)
         parts.append(w)
     assert np.array_equal(np.concatenate(parts, axis=2), whole)
     # scan 1 starts again at 0 (its first valid sample has count 0)

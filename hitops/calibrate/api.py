@@ -492,7 +492,8 @@ def _run(ctx: Dict, tx: OutputTransaction, client) -> tuple:
 
     from ..kernels import fpt
     from .chunks import ChunkRows
-    from .transfer import Carry, group_inputs, plan_groups, transfer_group
+    from ..tracking.count import Carry
+    from .transfer import group_inputs, plan_groups, transfer_group
 
     g = ctx
     match, methods = g["match"], g["methods"]
@@ -659,7 +660,6 @@ def _run(ctx: Dict, tx: OutputTransaction, client) -> tuple:
                     local_grid, picked = None, gi["tgt_rows"]
                 gi.update(corr_map=match.corr_map, scan_of_time=scan_local, n_scan=n_scan,
                           methods=codes, ratio=ratio, eps=eps,
-                          tracker="count" if tracker is not None else g["tracker"],
                           ref_wraps=None if ref_wraps is None else ref_wraps[bls],
                           ref_model=None if ref_model is None else ref_model[bls],
                           ref_exclude=None if ref_exclude is None else ref_exclude[bls],

@@ -3,87 +3,19 @@
 The driver (:mod:`hitops.calibrate.api`) reads a chunk of rows, calls
 :func:`plan_groups` and runs :func:`transfer_group` on each baseline group
 as a dask task.  Wrap counting continues across chunks through a
-:class:`Carry` (the last valid reference sample of each series and its
+:class:`hitops.tracking.count.Carry` (the last valid reference sample of each series and its
 count), so the result does not depend on the chunk size; it restarts at
 every new scan.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Dict, List, Optional
 
 import numpy as np
 
 from ..kernels import fpt
-from ..kernels.wraps import get_tracker, wrap_events
-
-
-@dataclass
-class Carry:
-    """State of each (baseline, correlation) series at the end of the previous chunk."""
-
-    last_phase: np.ndarray   # (n_bl, n_corr) float64 last valid phase
-    has_last: np.ndarray     # (n_bl, n_corr) bool
-    count: np.ndarray        # (n_bl, n_corr) int64 wrap count at that sample
-    last_scan: int = -1      # scan index of the previous chunk's last time
-
-    @classmethod
-    def empty(cls, n_bl: int, n_corr: int) -> "Carry":
-        return cls(np.zeros((n_bl, n_corr)), np.zeros((n_bl, n_corr), bool),
-                   np.zeros((n_bl, n_corr), np.int64), -1)
-
-    def subset(self, bls) -> "Carry":
-        return Carry(self.last_phase[bls], self.has_last[bls], self.count[bls], self.last_scan)
-
-
-def scan_segments(scan_of_time: np.ndarray):
-    """(start, stop, scan) of each run of equal scan index."""
-    if scan_of_time.size == 0:
-        return []
-    cuts = np.flatnonzero(np.diff(scan_of_time)) + 1
-    starts = np.concatenate([[0], cuts])
-    stops = np.concatenate([cuts, [scan_of_time.size]])
-    return [(int(a), int(b), int(scan_of_time[a])) for a, b in zip(starts, stops)]
-
-
-def track(tracker, phase: np.ndarray, valid: np.ndarray, scan_of_time: np.ndarray,
-          carry: Carry):
-    """Wrap counts (n_bl, n_corr, n_time) of every series, and the carry after them.
-
-    The tracker runs on each scan segment of each series; a segment that
-    continues the previous chunk's scan is prefixed with the carried last
-    valid sample, so the count goes on where it stopped.
-    """
-    n_bl, n_corr, n_time = phase.shape
-    wraps = np.zeros((n_bl, n_corr, n_time), dtype=np.int64)
-    segments = scan_segments(scan_of_time)
-    new = Carry(carry.last_phase.copy(), carry.has_last.copy(), carry.count.copy(),
-                segments[-1][2] if segments else carry.last_scan)
-    for b in range(n_bl):
-        for c in range(n_corr):
-            for i, (start, stop, scan) in enumerate(segments):
-                ph = phase[b, c, start:stop]
-                va = valid[b, c, start:stop]
-                if i == 0 and scan == carry.last_scan and carry.has_last[b, c]:
-                    n = tracker(np.concatenate(([carry.last_phase[b, c]], ph)),
-                                np.concatenate(([True], va)))[1:] + carry.count[b, c]
-                else:
-                    n = tracker(ph, va)
-                wraps[b, c, start:stop] = n
-            if not segments:
-                continue
-            start, stop, scan = segments[-1]
-            last_valid = np.flatnonzero(valid[b, c, start:stop])
-            if last_valid.size:
-                t = start + int(last_valid[-1])
-                new.last_phase[b, c] = phase[b, c, t]
-                new.has_last[b, c] = True
-                new.count[b, c] = wraps[b, c, t]
-            elif not (len(segments) == 1 and scan == carry.last_scan):
-                new.has_last[b, c] = False
-                new.count[b, c] = 0
-    return wraps, new
+from ..tracking.count import count_scans, wrap_events
 
 
 def transfer_group(g: Dict) -> Dict:
@@ -92,7 +24,7 @@ def transfer_group(g: Dict) -> Dict:
     Keys of ``g``: tgt_rows, ref_rows (n_bl, n_time) local row indices;
     tgt_vis, tgt_ok (n_tgt, n_corr); ref_vis, ref_ok (n_ref, n_corr_ref);
     ref_swapped (n_ref,); corr_map (2, n_corr); scan_of_time (n_time,);
-    n_scan; methods (list of method codes); ratio; eps; tracker (name);
+    n_scan; methods (list of method codes); ratio; eps;
     ref_model (n_bl, n_corr, n_time) or None: antenna mode's unwrapped model phase of
     each baseline (NaN where not modelled); it replaces the baseline's own phase;
     ref_wraps, ref_exclude (n_bl, n_corr, n_time) or None: reference wrap counts
@@ -100,7 +32,6 @@ def transfer_group(g: Dict) -> Dict:
     ref_carry, tgt_carry (Carry); offsets (n_bl, n_corr, n_scan) or None;
     off_vis, off_ok (n_tgt, n_corr) or None.
     """
-    tracker = get_tracker(g["tracker"])
     tgt_rows, ref_rows = g["tgt_rows"], g["ref_rows"]
     n_bl, n_time = tgt_rows.shape
     n_corr = g["corr_map"].shape[1]
@@ -131,10 +62,10 @@ def transfer_group(g: Dict) -> Dict:
             ref_phase = np.where(modelled, (model + np.pi) % (2 * np.pi) - np.pi, ref_phase)
             ref_valid = np.where(antenna_corr[None, :, None], ref_valid & modelled, ref_valid)
     else:
-        ref_wraps, ref_carry = track(tracker, ref_phase, ref_valid, scan_of_time, g["ref_carry"])
+        ref_wraps, ref_carry = count_scans(ref_phase, ref_valid, scan_of_time, g["ref_carry"])
     tgt_wraps, tgt_carry = np.zeros((1, 1, 1), np.int64), g["tgt_carry"]
     if fpt.CWU in g["methods"]:
-        tgt_wraps, tgt_carry = track(tracker, tgt_phase, tgt_valid, scan_of_time, g["tgt_carry"])
+        tgt_wraps, tgt_carry = count_scans(tgt_phase, tgt_valid, scan_of_time, g["tgt_carry"])
     offsets = g["offsets"]
     if offsets is None:
         offsets = np.zeros((n_bl, n_corr, g["n_scan"]))
