@@ -86,7 +86,9 @@ def classify(rep_series, d_truth, z_of, flagged):
 
 
 def run_cell(workdir: Path, n_ant: int, rho: float, n_scans: int, seed: int) -> dict:
-    from hitops.calibrate import calibrate, offsets, robust
+    from hitops.calibrate import calibrate
+    from hitops.calibrate import offset_step as offsets
+    from hitops.tracking.antenna import AntennaTracker
     from hitops.calibrate.synthetic import add_column, make_pair
 
     truth = make_pair(workdir, n_ant=n_ant, n_time=600 * n_scans, n_scans=n_scans,
@@ -95,12 +97,12 @@ def run_cell(workdir: Path, n_ant: int, rho: float, n_scans: int, seed: int) -> 
                       sigma_ref=1.1 / rho, sigma_target=1.0 / rho)
     add_column(truth.target_ms, "MODEL_DATA", np.exp(1j * truth.source_phase)[:, None, :])
     captured = {}
-    original_track = robust.ReferenceTracker.track
+    original_track = AntennaTracker.track
     original_solve = offsets.antenna_offsets
 
     def track(self, *args, **kwargs):
         result = original_track(self, *args, **kwargs)
-        captured.update(model=result[3], ant1=self.match.ant1, ant2=self.match.ant2,
+        captured.update(model=result.ref_model, ant1=self.match.ant1, ant2=self.match.ant2,
                         times=self.match.times)
         return result
 
@@ -111,7 +113,7 @@ def run_cell(workdir: Path, n_ant: int, rho: float, n_scans: int, seed: int) -> 
         captured["solve_s"] = time.perf_counter() - t0
         return result
 
-    robust.ReferenceTracker.track = track
+    AntennaTracker.track = track
     offsets.antenna_offsets = solve
     try:
         t0 = time.perf_counter()
@@ -119,7 +121,7 @@ def run_cell(workdir: Path, n_ant: int, rho: float, n_scans: int, seed: int) -> 
                         offset_model="MODEL_DATA", overwrite=True, no_verdict=True)
         wall = time.perf_counter() - t0
     finally:
-        robust.ReferenceTracker.track = original_track
+        AntennaTracker.track = original_track
         offsets.antenna_offsets = original_solve
     if rep["chunks"] != 1:
         raise RuntimeError("one chunk expected")

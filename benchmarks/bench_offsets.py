@@ -59,7 +59,7 @@ def end_to_end(workdir: Path, n_ant: int, rho: float, n_scans: int, seed: int) -
     A segment where d changes inside it has a tracking slip (the tracker's failure).
     """
     from hitops.calibrate import calibrate
-    from hitops.calibrate import robust
+    from hitops.tracking.antenna import AntennaTracker
     from hitops.calibrate.synthetic import add_column, make_pair
 
     truth = make_pair(workdir, n_ant=n_ant, n_time=600 * n_scans, n_scans=n_scans,
@@ -68,22 +68,22 @@ def end_to_end(workdir: Path, n_ant: int, rho: float, n_scans: int, seed: int) -
                       sigma_ref=1.1 / rho, sigma_target=1.0 / rho)
     add_column(truth.target_ms, "MODEL_DATA", np.exp(1j * truth.source_phase)[:, None, :])
     captured = {}
-    original = robust.ReferenceTracker.track
+    original = AntennaTracker.track
 
     def track(self, *args, **kwargs):
         result = original(self, *args, **kwargs)
-        captured.update(model=result[3], ant1=self.match.ant1, ant2=self.match.ant2,
+        captured.update(model=result.ref_model, ant1=self.match.ant1, ant2=self.match.ant2,
                         times=self.match.times)
         return result
 
-    robust.ReferenceTracker.track = track
+    AntennaTracker.track = track
     try:
         t0 = time.perf_counter()
         rep = calibrate(truth.ref_ms, truth.target_ms, tracker="antenna",
                         offset_model="MODEL_DATA", overwrite=True, **_no_verdict())
         wall = time.perf_counter() - t0
     finally:
-        robust.ReferenceTracker.track = original
+        AntennaTracker.track = original
     assert rep["chunks"] == 1
     names = [s["antenna"] for s in rep["tracking"]["antennas"]]
     step = {(e["baseline"], e["correlation"], e["scan"]): e["k"]

@@ -12,6 +12,7 @@ import dataclasses
 from functools import lru_cache
 from typing import Any, Optional
 
+from .errors import InputError
 from .schema import load_schema
 
 _TYPES = {"str": str, "int": int, "float": float, "bool": bool, "MS": str, "File": str,
@@ -36,6 +37,18 @@ def options_class(tool: str) -> type:
 
 
 def make_options(tool: str, values: dict):
-    """Options of ``tool`` from a mapping holding (at least) every schema input."""
+    """Options of ``tool`` from a mapping holding (at least) every schema input.
+
+    The schema's ``choices`` are checked here, so the Python API refuses what
+    the command line's parser refuses, with the same one line.
+    """
     cls = options_class(tool)
+    inputs = load_schema(tool)["inputs"]
+    for name, spec in inputs.items():
+        choices = spec.get("choices")
+        value = values.get(name)
+        if choices and value is not None and value not in choices:
+            flag = "--" + name.replace("_", "-")
+            raise InputError(f"{flag}: unknown value {value!r}; choose one of "
+                             f"{', '.join(map(str, choices))}")
     return cls(**{f.name: values[f.name] for f in dataclasses.fields(cls)})

@@ -99,7 +99,10 @@ def stable(report):
 def run_case(ref: Path, tgt: Path, kwargs: dict, workdir: Path, client_address):
     from hitops.calibrate import calibrate
 
-    copy = workdir / "case-target.ms"
+    # one copy path per scene: dask-ms keeps a table handle of a path open while a cluster
+    # client refers to it, and a table copied to the same path later would be read through
+    # that stale handle (the deleted table's rows)
+    copy = tgt.parent / "case-target.ms"
     shutil.rmtree(copy, ignore_errors=True)
     shutil.copytree(tgt, copy)
     kwargs = dict(kwargs)
@@ -121,7 +124,8 @@ def fingerprint(workdir: Path, scenes, only=None) -> dict:
 
     result = {}
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                      dashboard_address=None) as cluster, Client(cluster) as client:
+                      dashboard_address=None) as cluster, \
+            Client(cluster, set_as_default=False) as client:
         for scene in scenes:
             ref, tgt = simulate(scene, workdir)
             for name, kwargs in cases(scene):

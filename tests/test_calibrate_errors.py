@@ -74,7 +74,7 @@ def test_bad_ratio_and_options(pair):
     check(pair, InputError, r"same set", target_ms=pair.ref_ms)
     check(pair, InputError, r"--time-tolerance 0.0 must be a positive", time_tolerance=0.0)
     check(pair, InputError, r"--max-offset-wraps -1 must be >= 0", max_offset_wraps=-1)
-    check(pair, InputError, r"unknown wrap tracker 'nope'", tracker="nope")
+    check(pair, InputError, r"--tracker: unknown value 'nope'", tracker="nope")
 
 
 def test_existing_output_column_needs_overwrite(tmp_path):

@@ -141,3 +141,31 @@ def test_calibrate_with_scheduler_slurm_matches_threads(tmp_path, monkeypatch):
         with pt.table(str(truth.target_ms), ack=False) as a, \
                 pt.table(str(copy / "target.ms"), ack=False) as b:
             assert np.array_equal(a.getcol(c), b.getcol(c)), c
+
+
+def test_a_default_client_of_the_caller_gets_no_work_without_scheduler(tmp_path):
+    """A Python caller with a dask.distributed Client as the default scheduler: a run
+    without --scheduler keeps every read (dask-ms's own included) on its own threads,
+    and its output is that of a run without the client."""
+    from distributed import Client, LocalCluster
+
+    from hitops.calibrate import calibrate
+    from hitops.calibrate.synthetic import make_pair
+
+    truth = make_pair(tmp_path, n_time=120, seed=43, n_scans=2)
+    copy = tmp_path / "copy"
+    copy.mkdir()
+    shutil.copytree(truth.ref_ms, copy / "ref.ms")
+    shutil.copytree(truth.target_ms, copy / "target.ms")
+    calibrate(truth.ref_ms, truth.target_ms, method="pwc", no_verdict=True)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                      dashboard_address=None) as cluster, Client(cluster) as client:
+        calibrate(copy / "ref.ms", copy / "target.ms", method="pwc", no_verdict=True)
+        # the scheduler keeps a prefix entry for every kind of task it was ever sent
+        received = client.run_on_scheduler(
+            lambda dask_scheduler: sorted(dask_scheduler.task_prefixes))
+    assert received == []
+    for c in ("PWC_DATA", "FLAG"):
+        with pt.table(str(truth.target_ms), ack=False) as a, \
+                pt.table(str(copy / "target.ms"), ack=False) as b:
+            assert np.array_equal(a.getcol(c), b.getcol(c)), c

@@ -117,7 +117,7 @@ def test_segment_run_sums_match_a_direct_sum():
 
 
 def test_apply_segment_offsets_adds_k_on_its_segment_only():
-    from hitops.calibrate.robust import apply_segment_offsets
+    from hitops.tracking.state import apply_segment_offsets
 
     keys = np.array([[[5, 5, 7, 7, -1, 9]]], np.int64)
     counts = np.zeros_like(keys)

@@ -108,6 +108,38 @@ def test_no_import_cycles_in_hitops():
     assert cycles(graph) == []
 
 
+#: the calibrate pipeline's stages (api -> inputs -> plan -> pipeline -> report, with the
+#: modules they call): held to the same limits as hitops/tracking
+PIPELINE_MODULES = ("api", "inputs", "plan", "tracking_setup", "chunk_read", "pipeline",
+                    "offset_step", "report", "transfer", "output", "groups", "memory", "chunks")
+
+
+def _too_long(paths):
+    too_long = []
+    for path in paths:
+        text = path.read_text()
+        if len(text.splitlines()) > MAX_MODULE_LINES:
+            too_long.append(f"{path.name}: {len(text.splitlines())} lines")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                lines = node.end_lineno - node.lineno + 1
+                if lines > MAX_FUNCTION_LINES:
+                    too_long.append(f"{path.name}: {node.name}() {lines} lines")
+    return too_long
+
+
+def test_the_size_check_sees_a_long_function(tmp_path):
+    long = tmp_path / "long.py"
+    long.write_text("def f():\n" + "    x = 1\n" * MAX_FUNCTION_LINES)
+    assert _too_long([long]) == [f"long.py: f() {MAX_FUNCTION_LINES + 1} lines"]
+
+
+def test_calibrate_pipeline_modules_and_functions_are_small():
+    paths = [ROOT / "calibrate" / f"{name}.py" for name in PIPELINE_MODULES]
+    assert all(p.exists() for p in paths)
+    assert _too_long(paths) == []
+
+
 def test_tracking_modules_and_functions_are_small():
     too_long = []
     for path in sorted((ROOT / "tracking").glob("*.py")):

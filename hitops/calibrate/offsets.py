@@ -89,7 +89,7 @@ def choose_offset(z_sum: complex, count: int, eps: float, max_k: int,
 #: ``--offset-model point``: a point source at the phase centre (model phase 0 everywhere)
 POINT_MODEL = "point"
 #: antenna mode: a baseline's segment id is sp * PAIR_KEY + sq, sp and sq the aligned
-#: segment ids of its two antennas (hitops.calibrate.robust.ReferenceTracker.track)
+#: segment ids of its two antennas (hitops.tracking.base.WrapTracker.track)
 PAIR_KEY = 1_000_003
 
 
@@ -205,7 +205,7 @@ def antenna_offsets(seg_sums, antenna_corrs, ant1, ant2, antenna_names, baseline
 
     ``seg_sums``: {(baseline, correlation, key): (z, n)} with z the sum of
     exp(i (Phi_model - Phi_out)) over the samples of that baseline segment
-    (:func:`hitops.calibrate.robust.segment_offset_sums`), key = scan index *
+    (:func:`hitops.calibrate.lattice.segment_run_sums`), key = scan index *
     ``segment_key`` + sp * PAIR_KEY + sq for the correlations in ``antenna_corrs``.
     Per (correlation, scan) the antenna segments are the nodes and the baseline
     segments the edges of one :func:`hitops.calibrate.lattice.solve_lattice`; the
@@ -403,7 +403,7 @@ def offset_shift_rows(tgt_grid, eps: float, segment_k, seg_keys, phasors) -> boo
     Returns whether anything moved.
     """
     from .lattice import shift_rows
-    from .robust import apply_segment_offsets
+    from ..tracking.state import apply_segment_offsets
 
     if seg_keys is None or not any(segment_k.values() if segment_k else ()):
         return False

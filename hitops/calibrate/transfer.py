@@ -1,6 +1,6 @@
 """One time chunk of frequency phase transfer, split over baseline groups.
 
-The driver (:mod:`hitops.calibrate.api`) reads a chunk of rows, calls
+The pipeline (:mod:`hitops.calibrate.pipeline`) reads a chunk of rows, calls
 :func:`plan_groups` and runs :func:`transfer_group` on each baseline group
 as a dask task.  Wrap counting continues across chunks through a
 :class:`hitops.tracking.count.Carry` (the last valid reference sample of each series and its
@@ -28,7 +28,7 @@ def transfer_group(g: Dict) -> Dict:
     ref_model (n_bl, n_corr, n_time) or None: antenna mode's unwrapped model phase of
     each baseline (NaN where not modelled); it replaces the baseline's own phase;
     ref_wraps, ref_exclude (n_bl, n_corr, n_time) or None: reference wrap counts
-    and excluded reference samples from :mod:`hitops.calibrate.robust`;
+    and excluded reference samples from the tracker (:mod:`hitops.tracking`);
     ref_carry, tgt_carry (Carry); offsets (n_bl, n_corr, n_scan) or None;
     off_vis, off_ok (n_tgt, n_corr) or None.
     """
@@ -47,20 +47,10 @@ def transfer_group(g: Dict) -> Dict:
     scan_of_time = g["scan_of_time"]
     robust = g.get("ref_wraps") is not None
     if robust:
-        # counts from hitops.calibrate.robust (whole array, with context across chunks);
-        # reference samples after a jump may be excluded (--jump-action flag)
+        # counts from the smooth/antenna tracker (whole array, with context across chunks)
         ref_wraps, ref_carry = g["ref_wraps"], g["ref_carry"]
-        if g.get("ref_exclude") is not None:
-            ref_valid = ref_valid & ~g["ref_exclude"]
-        model = g.get("ref_model")
-        if model is not None and np.isfinite(model).any():
-            # antenna mode: the baseline's reference phase is its antenna model (the counts
-            # already belong to it), so the transferred phase closes on every triangle;
-            # correlations without a model (cross-hands) keep their own phase
-            modelled = np.isfinite(model)
-            antenna_corr = modelled.any(axis=(0, 2))
-            ref_phase = np.where(modelled, (model + np.pi) % (2 * np.pi) - np.pi, ref_phase)
-            ref_valid = np.where(antenna_corr[None, :, None], ref_valid & modelled, ref_valid)
+        ref_phase, ref_valid = tracked_reference(ref_phase, ref_valid, g.get("ref_exclude"),
+                                                 g.get("ref_model"))
     else:
         ref_wraps, ref_carry = count_scans(ref_phase, ref_valid, scan_of_time, g["ref_carry"])
     tgt_wraps, tgt_carry = np.zeros((1, 1, 1), np.int64), g["tgt_carry"]
@@ -86,21 +76,7 @@ def transfer_group(g: Dict) -> Dict:
         first = ref_wraps[:, :, 0] - np.where(g["ref_carry"].has_last, g["ref_carry"].count, 0)
         steps = steps + np.abs(np.where(g["ref_carry"].has_last, first, 0))
     out["wrap_events"] = steps
-    # why target samples are not calibrated: disjoint causes, in this order, that add up
-    # to the samples left uncalibrated (a sample flagged in the target and without a
-    # reference row counts once, as target-flagged)
-    has_tgt = tgt_rows >= 0
-    has_ref = ref_rows >= 0
-    out["n_samples"] = int(has_tgt.sum()) * n_corr
-    tgt_cell = has_tgt[:, None, :]
-    tgt_bad = tgt_cell & ~tgt_valid
-    no_ref = tgt_cell & tgt_valid & ~has_ref[:, None, :]
-    ref_bad = tgt_cell & tgt_valid & has_ref[:, None, :] & ~ref_valid
-    out["target_invalid"] = int(tgt_bad.sum())
-    out["no_reference_row"] = int(no_ref.sum())
-    out["reference_invalid"] = int(ref_bad.sum())
-    not_calibrated = ~np.swapaxes(calibrated, 1, 2)   # (n_bl, n_time, n_corr) -> (n_bl, n_corr, n_time)
-    out["other_uncalibrated"] = int((tgt_cell & not_calibrated & ~tgt_bad & ~no_ref & ~ref_bad).sum())
+    out.update(sample_causes(tgt_rows, ref_rows, tgt_valid, ref_valid, calibrated, n_corr))
     offset_method = fpt.PWC if fpt.PWC in phasors else (fpt.CWU if fpt.CWU in phasors else None)
     if g.get("off_vis") is not None and offset_method is not None:
         off_phase, off_valid = fpt.gather_phase(tgt_rows, g["off_vis"], g["off_ok"],
@@ -110,12 +86,48 @@ def transfer_group(g: Dict) -> Dict:
             g["n_scan"])
     if g.get("segment_keys") is not None and "offset_sums" in out:
         # robust trackers: the n0 step per segment (segments after long gaps and jumps)
-        from .robust import segment_offset_sums
-        out["segment_sums"] = segment_offset_sums(g["segment_keys"], tgt_phase,
+        from .lattice import segment_run_sums
+        out["segment_sums"] = segment_run_sums(g["segment_keys"], tgt_phase,
                                                   phasors[offset_method], calibrated,
                                                   off_phase, off_valid)
     return out
 
+
+
+def tracked_reference(ref_phase, ref_valid, exclude, model):
+    """The reference phase and validity a robust tracker's output leaves to transfer.
+
+    ``exclude``: reference samples after a jump (--jump-action flag), or None;
+    ``model``: antenna mode's unwrapped model phase (NaN where not modelled), or None.
+    """
+    if exclude is not None:
+        ref_valid = ref_valid & ~exclude
+    if model is not None and np.isfinite(model).any():
+        # antenna mode: the baseline's reference phase is its antenna model (the counts
+        # already belong to it), so the transferred phase closes on every triangle;
+        # correlations without a model (cross-hands) keep their own phase
+        modelled = np.isfinite(model)
+        antenna_corr = modelled.any(axis=(0, 2))
+        ref_phase = np.where(modelled, (model + np.pi) % (2 * np.pi) - np.pi, ref_phase)
+        ref_valid = np.where(antenna_corr[None, :, None], ref_valid & modelled, ref_valid)
+    return ref_phase, ref_valid
+
+
+def sample_causes(tgt_rows, ref_rows, tgt_valid, ref_valid, calibrated, n_corr: int) -> Dict:
+    """Why target samples are not calibrated: disjoint causes, in this order, that add up
+    to the samples left uncalibrated (a sample flagged in the target and without a
+    reference row counts once, as target-flagged)."""
+    has_tgt = tgt_rows >= 0
+    has_ref = ref_rows >= 0
+    tgt_cell = has_tgt[:, None, :]
+    tgt_bad = tgt_cell & ~tgt_valid
+    no_ref = tgt_cell & tgt_valid & ~has_ref[:, None, :]
+    ref_bad = tgt_cell & tgt_valid & has_ref[:, None, :] & ~ref_valid
+    not_calibrated = ~np.swapaxes(calibrated, 1, 2)   # (n_bl, n_time, n_corr) -> (n_bl, n_corr, n_time)
+    return {"n_samples": int(has_tgt.sum()) * n_corr, "target_invalid": int(tgt_bad.sum()),
+            "no_reference_row": int(no_ref.sum()), "reference_invalid": int(ref_bad.sum()),
+            "other_uncalibrated": int((tgt_cell & not_calibrated & ~tgt_bad & ~no_ref
+                                       & ~ref_bad).sum())}
 
 def plan_groups(n_bl: int, n_groups: int) -> List[np.ndarray]:
     """Baseline indices of each group (contiguous, nearly equal sizes)."""

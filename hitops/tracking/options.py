@@ -124,20 +124,28 @@ def parse_refants(refant, antenna_names: List[str]) -> np.ndarray:
     return np.asarray(out, np.int64)
 
 
+#: rows of SIGMA/WEIGHT read to decide whether they are informative
+SIGMA_SAMPLE_ROWS = 100_000
+
+
 def sigma_source(ref_ms: str) -> str:
     """'sigma' or 'weight' when that column of ``ref_ms`` holds informative values, else 'data'.
 
     CASA fills SIGMA and WEIGHT with 1 when nothing better is known; such
     columns say nothing about the SNR, and the SNR is then taken from the data.
+    At most :data:`SIGMA_SAMPLE_ROWS` rows, spread evenly over the table, are
+    looked at, so the check stays within the run's memory budget.
     """
     from casacore import tables as pt
 
     with pt.table(ref_ms, ack=False) as t:
         names = set(t.colnames())
+        n_rows = t.nrows()
+        step = max(1, -(-n_rows // SIGMA_SAMPLE_ROWS))
         for column, kind in (("SIGMA", "sigma"), ("WEIGHT", "weight")):
-            if column not in names or t.nrows() == 0:
+            if column not in names or n_rows == 0:
                 continue
-            values = t.getcol(column)
+            values = t.getcol(column, 0, -(-n_rows // step), step)
             if values.size and np.all(np.isfinite(values)) and np.all(values > 0) \
                     and not np.all(values == 1.0):
                 return kind

@@ -1,0 +1,160 @@
+"""Read one time chunk of both bands onto the (baseline, time) grid.
+
+:func:`read_chunk` reads the chunk's target rows and its reference rows
+(plus the tracker's context on either side), averages channels, and returns
+a :class:`ChunkData`: per-row visibilities and validity, the row grids
+``tgt_grid`` / ``ref_grid`` ((n_bl, n_time) row index or -1) and, for the
+robust trackers, the reference band gridded over the extended time range.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from ..io import read as msio
+from ..tracking.grid import gather_grid
+from .chunks import ROW_COLUMNS, ChunkRows
+
+
+@dataclass
+class ChunkData:
+    """One chunk [t0, t1) of the union time axis, read."""
+
+    t0: int
+    t1: int
+    tgt_rows: np.ndarray            # ROWID of the target rows, in grid order
+    tgt_data: np.ndarray            # (n_row, n_chan, n_corr) the target column as stored
+    tgt_flag: np.ndarray            # (n_row, n_chan, n_corr) the input flags
+    tgt_flag_row: np.ndarray
+    tgt_vis: np.ndarray             # (n_row, n_corr) channel-averaged
+    tgt_ok: np.ndarray
+    ref_vis: np.ndarray             # (n_ref_row, n_corr_ref) reference, inside [t0, t1)
+    ref_ok: np.ndarray
+    ref_swapped: np.ndarray
+    off_vis: Optional[np.ndarray]   # what the n0 step compares with (None without it)
+    off_ok: Optional[np.ndarray]
+    tgt_grid: np.ndarray            # (n_bl, t1 - t0) index into the target rows, or -1
+    ref_grid: np.ndarray
+    ext: Optional[tuple]            # robust trackers: (t_lo, t_hi, vis, valid, sigma) gridded
+
+
+def average(data: np.ndarray, flag: np.ndarray, flag_row: np.ndarray):
+    """(n_row, n_corr) visibility and validity from (n_row, n_chan, n_corr) data.
+
+    One channel: the channel itself.  Several: the mean of unflagged finite
+    channels.  Non-finite and zero values are rejected later by the kernels.
+    """
+    good = ~flag & ~flag_row[:, None, None]
+    if data.shape[1] == 1:
+        return data[:, 0, :], good[:, 0, :]
+    good = good & np.isfinite(data)
+    n_good = good.sum(axis=1)
+    total = np.where(good, data, 0).sum(axis=1)
+    vis = (total / np.maximum(n_good, 1)).astype(np.complex64)
+    return vis, n_good > 0
+
+
+def _keep(rows: ChunkRows, keep: np.ndarray, flag_row: bool) -> ChunkRows:
+    return ChunkRows(rows=rows.rows[keep], bl=rows.bl[keep], time=rows.time[keep],
+                     swapped=rows.swapped[keep],
+                     flag_row=rows.flag_row[keep] if flag_row else None, scan=None)
+
+
+def _sigma(ref: dict, snr_source: str):
+    if snr_source == "sigma":
+        return np.asarray(ref["SIGMA"], dtype=np.float64)
+    if snr_source == "weight":
+        with np.errstate(divide="ignore"):
+            return 1.0 / np.sqrt(np.asarray(ref["WEIGHT"], dtype=np.float64))
+    return None
+
+
+def _grid(n_bl: int, n_time: int, bl, time_index) -> np.ndarray:
+    grid = np.full((n_bl, n_time), -1, dtype=np.int64)
+    grid[bl, time_index] = np.arange(bl.size)
+    return grid
+
+
+def read_target(run, group, k: int, scheduler) -> ChunkData:
+    """Chunk ``k``'s target rows only: what writing a kept output needs."""
+    columns, match = run.columns, group.match
+    t0, t1 = group.bounds[k], group.bounds[k + 1]
+    t_rows = match.row_numbers("tgt", t0, t1)
+    read = list(dict.fromkeys([columns.target_data, columns.flag]
+                              + ([] if match.tgt.whole else ROW_COLUMNS + ["ROWID"])))
+    tgt, = msio.compute_columns([match.chunk_request("tgt", t_rows, read)], scheduler=scheduler)
+    t_idx = match.index_rows("tgt", tgt if not match.tgt.whole else
+                             match.read_meta("tgt", t_rows, ROW_COLUMNS + ["ROWID"]))
+    flag = tgt[columns.flag]
+    return ChunkData(t0=t0, t1=t1, tgt_rows=t_idx.rows, tgt_data=tgt[columns.target_data],
+                     tgt_flag=flag, tgt_flag_row=t_idx.flag_row, tgt_vis=None, tgt_ok=None,
+                     ref_vis=None, ref_ok=None, ref_swapped=None, off_vis=None, off_ok=None,
+                     tgt_grid=_grid(match.n_bl, t1 - t0, t_idx.bl, t_idx.time - t0),
+                     ref_grid=None, ext=None)
+
+
+def read_chunk(run, group, k: int, extent: tuple, scheduler) -> ChunkData:
+    """Chunk ``k`` of ``group`` (a :class:`hitops.calibrate.plan.GroupPlan`).
+
+    ``extent``: (t_lo, t_hi), the reference times the tracker needs (the chunk
+    itself for count); ``scheduler``: the dask scheduler of the reads.
+    """
+    columns, match = run.columns, group.match
+    t0, t1 = group.bounds[k], group.bounds[k + 1]
+    t_lo, t_hi = extent
+    # the chunk's rows and their grid cells; the metadata is read with the data (or reused
+    # from the checks when the whole track is one chunk)
+    first = group.first_chunk if (group.n_chunks == 1 and (t_lo, t_hi) == (t0, t1)) else None
+    t_rows = match.row_numbers("tgt", t0, t1)
+    r_rows = match.row_numbers("ref", t_lo, t_hi)
+    t_read = list(dict.fromkeys(columns.tgt + ([] if first or match.tgt.whole
+                                               else ROW_COLUMNS + ["ROWID"])))
+    r_read = list(dict.fromkeys(columns.ref + columns.snr + ([] if first or match.ref.whole
+                                                             else ROW_COLUMNS + ["ROWID"])))
+    tgt, ref = msio.compute_columns([match.chunk_request("tgt", t_rows, t_read),
+                                     match.chunk_request("ref", r_rows, r_read)],
+                                    scheduler=scheduler)
+    if first:
+        t_idx, r_idx = first
+    else:
+        t_idx = match.index_rows("tgt", tgt if not match.tgt.whole else
+                                 match.read_meta("tgt", t_rows, ROW_COLUMNS + ["ROWID"]))
+        r_idx = match.index_rows("ref", ref if not match.ref.whole else
+                                 match.read_meta("ref", r_rows, ROW_COLUMNS + ["ROWID"]))
+    # reference rows whose station pair has no target baseline take no part
+    keep = r_idx.bl >= 0
+    if not keep.all():
+        ref = {c: v[keep] for c, v in ref.items()}
+        r_idx = _keep(r_idx, keep, flag_row=True)
+    if columns.flag != "FLAG":   # --overwrite: the flags before hitops's first run
+        tgt["FLAG"] = tgt.pop(columns.flag)
+    tvis, tok = average(tgt[columns.target_data], tgt["FLAG"], t_idx.flag_row)
+    rvis, rok = average(ref[columns.ref_data], ref["FLAG"], r_idx.flag_row)
+    if columns.ref_model:
+        mvis, _ = average(ref[columns.ref_model], np.zeros_like(ref["FLAG"]),
+                          np.zeros_like(r_idx.flag_row))
+        rvis = rvis * np.conj(mvis)
+    ext = None
+    if group.tracking is not None:
+        ext_grid = _grid(match.n_bl, t_hi - t_lo, r_idx.bl, r_idx.time - t_lo)
+        ext = (t_lo, t_hi) + gather_grid(ext_grid, rvis, rok, r_idx.swapped, match.corr_map,
+                                         _sigma(ref, group.tracking.snr_source))
+        del ext_grid
+        inner = (r_idx.time >= t0) & (r_idx.time < t1)
+        rvis, rok = rvis[inner], rok[inner]
+        r_idx = _keep(r_idx, inner, flag_row=False)
+    ovis = ook = None
+    if columns.offset and columns.offset_is_model and columns.model is None:
+        ovis = np.ones(tvis.shape, np.complex64)          # --offset-model point
+        ook = np.ones(tvis.shape, bool)
+    elif columns.offset:
+        ovis, ook = average(tgt[columns.offset], tgt["FLAG"], t_idx.flag_row)
+    n_t = t1 - t0
+    return ChunkData(t0=t0, t1=t1, tgt_rows=t_idx.rows, tgt_data=tgt[columns.target_data],
+                     tgt_flag=tgt["FLAG"], tgt_flag_row=t_idx.flag_row, tgt_vis=tvis, tgt_ok=tok,
+                     ref_vis=rvis, ref_ok=rok, ref_swapped=r_idx.swapped, off_vis=ovis,
+                     off_ok=ook, tgt_grid=_grid(match.n_bl, n_t, t_idx.bl, t_idx.time - t0),
+                     ref_grid=_grid(match.n_bl, n_t, r_idx.bl, r_idx.time - t0), ext=ext)

@@ -1,0 +1,146 @@
+"""Stage 1 of ``hitops calibrate``: every option checked against both sets before anything is read.
+
+:func:`check_inputs` turns the typed options into the run's :class:`Columns`
+(what each band reads, what the n0 offset step compares with) and its output
+columns, or raises a typed error naming the option and the remedy.  Nothing
+here writes, so bad input leaves both sets as they were.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional
+
+from ..errors import InputError, OutputExistsError
+from ..io import read as msio
+from ..tracking.options import check_options as check_tracking_numbers
+from .chunks import INDEX_COLUMNS
+from .offsets import is_point_model
+from .output import FLAG_BACKUP, STAGING_PREFIX
+
+log = logging.getLogger("hitops.calibrate")
+
+#: the column each method writes unless --output-column renames it
+DEFAULT_COLUMNS = {"pwc": "PWC_DATA", "cfpt": "CFPT_DATA", "cwu": "CWU_DATA"}
+
+
+@dataclass(frozen=True)
+class Columns:
+    """The columns a run reads, and how the n0 offset step is given.
+
+    ``ref``: reference data, FLAG and the optional reference model column;
+    ``tgt``: target data, the input flags, and the offset step's column if any;
+    ``snr``: SIGMA or WEIGHT read with the reference data (robust trackers);
+    ``flag``: FLAG, or FLAG_HITOPS_BACKUP when --overwrite reruns start from it;
+    ``offset``: what the n0 step compares with (a reference column, a model
+    column or 'point'), None without the step; ``model``: the model column of
+    ``--offset-model COLUMN``; ``snr_from``: 'sigma', 'weight' or 'data'.
+    """
+
+    ref_data: str
+    ref_model: Optional[str]
+    target_data: str
+    flag: str
+    offset: Optional[str]
+    offset_is_model: bool
+    model: Optional[str]
+    ref: List[str] = field(default_factory=list)
+    tgt: List[str] = field(default_factory=list)
+    snr: List[str] = field(default_factory=list)
+    snr_from: str = "data"
+
+
+def parse_methods(method) -> List[str]:
+    """The methods of ``--method`` (a list or a comma-separated string), checked."""
+    items = method if isinstance(method, (list, tuple)) else str(method or "").split(",")
+    methods = [m.strip().lower() for m in items if m and m.strip()]
+    if not methods:
+        raise InputError("--method is empty; give one or more of pwc, cfpt, cwu (e.g. --method pwc,cfpt)")
+    for m in methods:
+        if m not in DEFAULT_COLUMNS:
+            raise InputError(f"--method: unknown method '{m}'; choose from pwc, cfpt, cwu")
+    if len(set(methods)) != len(methods):
+        raise InputError(f"--method lists a method twice: {','.join(methods)}")
+    return methods
+
+
+def check_numbers(opts) -> None:
+    """The numeric options (the schema has checked types and choices)."""
+    ratio = opts.ratio
+    if ratio is not None and not (float(ratio) > 0 and math.isfinite(float(ratio))):
+        raise InputError(f"--ratio {ratio}: R = nu_target / nu_reference must be a positive "
+                         "number (e.g. 2.6744 for 230/86 GHz); omit it to take R from the sets")
+    if int(opts.max_offset_wraps) < 0:
+        raise InputError(f"--max-offset-wraps {opts.max_offset_wraps} must be >= 0")
+    if int(opts.chunk_rows) < 0:
+        raise InputError(f"--chunk-rows {opts.chunk_rows} must be >= 1 (or 0: from --memory-budget)")
+    check_tracking_numbers(half_window=opts.half_window, coherence_time=opts.coherence_time,
+                           snr=opts.snr, max_gap=opts.max_gap,
+                           jump_threshold=opts.jump_threshold, jump_window=opts.jump_window,
+                           solve_half_window=opts.solve_half_window)
+    if opts.time_tolerance is not None and not float(opts.time_tolerance) > 0:
+        raise InputError(f"--time-tolerance {opts.time_tolerance} must be a positive number of "
+                         "seconds; omit it to use half the smallest INTERVAL")
+
+
+def output_columns(opts, methods: List[str]) -> Dict[str, str]:
+    """method -> the column it writes."""
+    if opts.output_column and len(methods) > 1:
+        raise InputError(f"--output-column {opts.output_column} names one column but --method "
+                         f"lists {len(methods)} methods; run one method at a time to rename")
+    return {m: (opts.output_column or DEFAULT_COLUMNS[m]) for m in methods}
+
+
+def check_inputs(opts, methods: List[str], ref_ms: str, target_ms: str) -> tuple:
+    """(outputs, :class:`Columns`) of a run, every column checked in both sets."""
+    check_numbers(opts)
+    outputs = output_columns(opts, methods)
+    present = set(msio.column_names(target_ms))
+    # a rerun with --overwrite starts from the flags hitops found before its first run
+    # (FLAG_HITOPS_BACKUP), so two identical runs give identical FLAG columns; a run that
+    # was killed half-way through writing FLAG is repaired the same way
+    flag_column = FLAG_BACKUP if (opts.overwrite and FLAG_BACKUP in present) else "FLAG"
+    if flag_column == FLAG_BACKUP:
+        log.info("--overwrite: starting from %s (the flags before hitops first ran), not "
+                 "from FLAG, so this run's flags replace the earlier run's", FLAG_BACKUP)
+    offset_model = opts.offset_model or None
+    reference = opts.offset_reference_column or None
+    if offset_model and reference:
+        raise InputError(f"--offset-model {offset_model} and --offset-reference-column "
+                         f"{reference} both set the n0 offset step; give one")
+    # --offset-model: 'point' or a model column of TARGET_MS (hitops/calibrate/offsets.py)
+    model_column = offset_model if offset_model and not is_point_model(offset_model) else None
+    ref_cols = [opts.ref_column, "FLAG"] + ([opts.ref_model_column] if opts.ref_model_column else [])
+    tgt_cols = ([opts.target_column, flag_column] + ([reference] if reference else [])
+                + ([model_column] if model_column else []))
+    msio.require_columns(ref_ms, ref_cols + INDEX_COLUMNS, "reference-band Measurement Set",
+                         "check --ref-column / --ref-model-column")
+    msio.require_columns(target_ms, tgt_cols + INDEX_COLUMNS, "target-band Measurement Set",
+                         "check --target-column / --offset-reference-column / --offset-model")
+    protected = {opts.target_column, "FLAG", FLAG_BACKUP, "DATA", reference, model_column} - {None}
+    for col in outputs.values():
+        if col.startswith(STAGING_PREFIX):
+            raise InputError(f"output column {col}: names starting with {STAGING_PREFIX} are "
+                             "hitops's own unfinished columns; choose another --output-column")
+        if col in protected:
+            raise InputError(f"output column {col} of {target_ms} is an input or flag column; "
+                             "choose another --output-column (e.g. PWC_DATA)")
+        if col in present and not opts.overwrite:
+            raise OutputExistsError(f"column {col} already exists in {target_ms}; pass "
+                                    "--overwrite to replace it or --output-column to write "
+                                    "another column")
+    # the robust trackers take the per-sample SNR from SIGMA or WEIGHT where they are
+    # informative (hitops/tracking/options.py): that column is read with the data
+    snr_from = "data"
+    if opts.tracker != "count" and not (float(opts.snr) > 0 or int(opts.half_window) > 0):
+        from ..tracking.options import sigma_source
+        snr_from = sigma_source(ref_ms)
+    columns = Columns(ref_data=opts.ref_column, ref_model=opts.ref_model_column or None,
+                      target_data=opts.target_column, flag=flag_column,
+                      offset=reference or offset_model, offset_is_model=bool(offset_model),
+                      model=model_column, ref=ref_cols, tgt=tgt_cols,
+                      snr=[snr_from.upper()] if snr_from in ("sigma", "weight") else [],
+                      snr_from=snr_from)
+    return outputs, columns

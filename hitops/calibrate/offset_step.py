@@ -1,0 +1,168 @@
+"""The n0 offset step: which 2 pi eps k each scan or segment of PWC/CWU carries.
+
+Given the first pass's sums of the calibrated phase against the offset
+reference (``--offset-reference-column``: a reference calibration;
+``--offset-model``: ``point`` or a model column):
+
+* count tracker: per baseline, correlation and scan, the lattice point nearest
+  the circular mean (:func:`hitops.calibrate.offsets.choose_offset`), applied
+  as a phase offset by the writing pass;
+* smooth tracker: the same per segment, added to the segment's wrap count;
+* antenna tracker: integers per antenna and segment for the parallel hands,
+  from one lattice solve over every baseline and both hands
+  (:func:`hitops.calibrate.offsets.antenna_offsets`), so closure phases are
+  kept; the cross hands per baseline.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from ..tracking.state import SEGMENT_KEY
+from .offsets import antenna_offsets, choose_offset
+
+log = logging.getLogger("hitops.calibrate")
+
+
+@dataclass
+class OffsetSolution:
+    """The step's result (all empty when no step ran).
+
+    ``offsets``: (n_bl, n_corr, n_scan) phase offsets of the count tracker (zeros
+    for the robust trackers, whose integers are in ``segment_k``), None without a
+    step; ``segment_k``: {(baseline, correlation, segment key): k}; ``antennas``
+    and ``solves``: the antenna lattice's per-antenna entries and per-solve
+    summaries (None when no lattice solve ran); ``series``: the report's entries.
+    """
+
+    offsets: Optional[np.ndarray] = None
+    segment_k: Optional[Dict[tuple, int]] = None
+    antennas: List[dict] = field(default_factory=list)
+    solves: Optional[List[dict]] = None
+    series: List[dict] = field(default_factory=list)
+
+    @property
+    def ran(self) -> bool:
+        return self.offsets is not None
+
+
+def solve_offsets(run, group, first) -> OffsetSolution:
+    """The integers from the first pass (:class:`hitops.calibrate.pipeline.PassResult`)."""
+    stage = time.perf_counter()
+    match, eps, setup = group.match, group.eps, group.tracking
+    max_k, ambiguity = int(run.opts.max_offset_wraps), float(run.opts.offset_ambiguity_deg)
+    solution = OffsetSolution(offsets=np.zeros((match.n_bl, group.n_corr, match.scans.size)))
+    if setup is None:
+        _per_scan(solution, group, first.scan_sums, first.scan_counts, max_k, ambiguity)
+    else:
+        # robust trackers: the n0 step per segment (every scan starts one; long gaps and
+        # jumps start more); k is added to the segment's wrap count
+        sums = first.segment_sums
+        solution.segment_k = {}
+        if setup.tracker == "antenna":
+            sums = _antenna_lattice(solution, group, sums, first.tracker, max_k, ambiguity)
+        _per_segment(solution, group, sums, max_k, ambiguity)
+    chosen = [e for e in solution.series if e.get("samples") and e.get("solve") != "antenna"]
+    if chosen or solution.solves is None:
+        log.info("offset step: n0 chosen per baseline for %d series (|k| <= %d); %d "
+                 "ambiguous; k values: %s", len(chosen), max_k,
+                 sum(bool(e.get("ambiguous")) for e in chosen),
+                 ", ".join(f"{e['baseline']} {e['correlation']} s{e['scan']}"
+                           + (f"/{e['segment']}" if "segment" in e else "")
+                           + f": {e['k']}" for e in chosen[:12])
+                 + (" ..." if len(chosen) > 12 else ""))
+    run.timings["offset_solve"] = time.perf_counter() - stage
+    return solution
+
+
+def _antenna_lattice(solution, group, sums, tracker, max_k, ambiguity):
+    """Integers per antenna and segment for the parallel hands; returns the other sums."""
+    match = group.match
+    antenna_corrs = {c for c, name in enumerate(match.corr_names)
+                     if len(name) == 2 and name[0] == name[1]}
+    # the first pass's antenna phases tie the two hands
+    hands = None if getattr(tracker, "antenna_phase", None) is None else {
+        "phase": tracker.antenna_phase, "segment": tracker.antenna_segment,
+        "scan_of_time": match.scan_of_time}
+    seg_k, antennas, solves, series = antenna_offsets(
+        sums, antenna_corrs, match.ant1, match.ant2, list(group.antenna_names),
+        match.baseline_names, match.corr_names, match.scans, group.eps, max_k, ambiguity,
+        refants=group.tracking.refants, segment_key=int(SEGMENT_KEY), hands=hands)
+    solution.segment_k.update(seg_k)
+    solution.series.extend(series)
+    solution.antennas, solution.solves = antennas, solves
+    _log_antenna_offsets(antennas, solves)
+    return {key: v for key, v in sums.items() if key[1] not in antenna_corrs}
+
+
+def _entry(choice, base: dict, segment: bool) -> dict:
+    entry = dict(base)
+    if choice is None:
+        entry.update(k=0, samples=0, note="no sample to compare; offset 0")
+        return entry
+    entry.update(choice.as_dict())
+    if choice.ambiguous:
+        where = f"scan {entry['scan']}" + (f" segment {entry['segment']}" if segment else "")
+        log.warning("offset step %s %s %s ambiguous: k = %d (residual %.2f deg) vs k = %d "
+                    "(%.2f deg)%s", entry["baseline"], entry["correlation"], where, choice.k,
+                    choice.residual_deg, choice.runner_up_k, choice.runner_up_residual_deg,
+                    "" if segment else "; bound --max-offset-wraps or use a better offset "
+                    "reference")
+    return entry
+
+
+def _per_segment(solution, group, sums, max_k, ambiguity) -> None:
+    match = group.match
+    for (b, c, key), (z, n) in sorted(sums.items()):
+        choice = choose_offset(complex(z), int(n), group.eps, max_k, ambiguity)
+        base = {"baseline": match.baseline_names[b], "correlation": match.corr_names[c],
+                "scan": int(match.scans[key // SEGMENT_KEY]), "segment": int(key % SEGMENT_KEY)}
+        if choice is not None:
+            solution.segment_k[(b, c, key)] = choice.k
+        solution.series.append(_entry(choice, base, segment=True))
+
+
+def _per_scan(solution, group, sums, counts, max_k, ambiguity) -> None:
+    match = group.match
+    for b in range(match.n_bl):
+        for c in range(group.n_corr):
+            for s in range(match.scans.size):
+                choice = choose_offset(complex(sums[b, c, s]), int(counts[b, c, s]), group.eps,
+                                       max_k, ambiguity)
+                base = {"baseline": match.baseline_names[b], "correlation": match.corr_names[c],
+                        "scan": int(match.scans[s])}
+                if choice is not None:
+                    solution.offsets[b, c, s] = 2 * math.pi * group.eps * choice.k
+                solution.series.append(_entry(choice, base, segment=False))
+
+
+def _log_antenna_offsets(antennas, solves) -> None:
+    """One line per lattice solve (correlation, scan), warnings for ambiguous antennas."""
+    for sv in solves:
+        members = [e for e in antennas if e["correlation"] == sv["correlation"]
+                   and e["scan"] == sv["scan"]]
+        log.info("offset step %s scan %d (antenna lattice, %s, reference %s): %s; coherence "
+                 "%.4f, baseline mismatch rms %.2f deg, worst %s %.2f deg",
+                 sv["correlation"], sv["scan"], sv["method"], sv["reference"],
+                 ", ".join(f"{e['antenna']}/{e['segment']} k={e['k']}"
+                           + (f" (margin {e['margin_deg']:.1f} deg)"
+                              if e.get("margin_deg") is not None else "") for e in members[:16])
+                 + (" ..." if len(members) > 16 else ""),
+                 sv["coherence"], sv["residual_rms_deg"] or 0.0, sv["worst_baseline"],
+                 sv["worst_residual_deg"] or 0.0)
+    for e in antennas:
+        if e.get("ambiguous"):
+            log.warning("offset step %s %s scan %d segment %d ambiguous: k = %d (residual "
+                        "%.2f deg) vs k = %d (%.2f deg); margin %.2f deg < "
+                        "--offset-ambiguity-deg", e["antenna"], e["correlation"], e["scan"],
+                        e["segment"], e["k"], e["residual_deg"], e["runner_up_k"],
+                        e["runner_up_residual_deg"], e["margin_deg"])
+    log.info("offset step: %d antenna segments solved on the 2 pi eps k lattice in %d solves; "
+             "%d ambiguous", len(antennas), len(solves),
+             sum(bool(e.get("ambiguous")) for e in antennas))

@@ -1,0 +1,247 @@
+"""Stage 2 of ``hitops calibrate``: the plan, built once from both bands' metadata.
+
+A :class:`RunPlan` holds what the whole run shares (options, columns, chunk
+size, the open dask-ms datasets); a :class:`GroupPlan` holds one (field,
+spectral window) pair of groups: the matched stations, correlations and times
+(:class:`hitops.calibrate.chunks.ChunkMatch`), the chunk bounds, R and its
+split r + eps, and the resolved tracking setup.  Every chunk's cells are
+checked here, so a plan that builds is one the pipeline can write.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from ..errors import InputError, MeasurementSetError
+from ..io import read as msio
+from ..io.match import parse_antenna_map
+from ..io.stations import read_stations
+from .chunks import INDEX_COLUMNS, ROW_COLUMNS, BandIndex, ChunkMatch, index_bands
+from .groups import GroupPair, describe_groups, pair_groups
+from .inputs import Columns
+
+log = logging.getLogger("hitops.calibrate")
+
+
+@dataclass
+class GroupPlan:
+    """One (field, spectral window) group pair, matched and checked."""
+
+    pair: GroupPair
+    label: str                      # '' when the sets hold one group
+    match: ChunkMatch
+    bounds: List[int]               # chunk k covers union times [bounds[k], bounds[k+1])
+    first_chunk: Optional[tuple]    # the checks' rows of a one-chunk run, reused by the read
+    ratio: float                    # R = nu_target / nu_reference
+    r: int
+    eps: float                      # R = r + eps
+    ratio_source: str
+    tracking: Optional[object]      # hitops.tracking.options.TrackingSetup; None for count
+    n_target_rows: int
+    antenna_names: List[str]        # station codes of the target set, by antenna index
+
+    @property
+    def n_chunks(self) -> int:
+        return len(self.bounds) - 1
+
+    @property
+    def n_corr(self) -> int:
+        return len(self.match.corr_names)
+
+
+@dataclass
+class RunPlan:
+    """What every group of a run shares, and the groups."""
+
+    opts: object                    # CalibrateOptions (hitops/options.py)
+    methods: List[str]
+    outputs: Dict[str, str]         # method -> column
+    ref_ms: str
+    target_ms: str
+    columns: Columns
+    chunk_rows: int
+    groups: List[GroupPlan] = field(default_factory=list)
+    timings: Dict[str, float] = field(default_factory=dict)
+
+
+def split_ratio(ratio: float):
+    """(r, eps) with R = r + eps; R within 1e-9 of an integer counts as that integer."""
+    nearest = round(ratio)
+    if abs(ratio - nearest) < 1e-9:
+        return int(nearest), 0.0
+    r = math.floor(ratio)
+    return int(r), float(ratio - r)
+
+
+def chunk_bounds(per_time: np.ndarray, chunk_rows: int) -> List[int]:
+    """Time-index boundaries so that each chunk holds at most ~2 * chunk_rows rows of both
+    bands (``per_time``: rows of both bands at each union time; a time is never split)."""
+    n_time = per_time.size
+    cum = np.cumsum(per_time)
+    bounds = [0]
+    while bounds[-1] < n_time:
+        start_count = cum[bounds[-1] - 1] if bounds[-1] > 0 else 0
+        stop = int(np.searchsorted(cum, start_count + 2 * chunk_rows, side="right"))
+        bounds.append(min(max(stop, bounds[-1] + 1), n_time))
+    return bounds
+
+
+def rows_from_budget(budget: int, ref_ms: str, target_ms: str, columns: Columns,
+                     n_methods: int) -> int:
+    """Rows per time chunk that keep the run within ``budget`` bytes (hitops/calibrate/memory.py)."""
+    from casacore import tables as pt
+
+    from .memory import rows_for_budget
+    n_rows, n_corr, n_chan = 0, 1, 1
+    for ms, column in ((ref_ms, columns.ref_data), (target_ms, columns.target_data)):
+        with pt.table(ms, ack=False) as t:
+            n_rows += t.nrows()
+            if t.nrows():
+                shape = t.getcell(column, 0).shape
+                n_chan, n_corr = max(n_chan, int(shape[0])), max(n_corr, int(shape[-1]))
+    rows = rows_for_budget(budget, n_rows, n_corr, n_chan, n_methods)
+    log.info("memory budget %.0f MB: up to %d target rows per time chunk (--chunk-rows "
+             "overrides)", budget / 1e6, rows)
+    return rows
+
+
+def build_plan(opts, methods: List[str], outputs: Dict[str, str], ref_ms: str,
+               target_ms: str, columns: Columns, timings: Dict[str, float]) -> RunPlan:
+    """Open both bands, pair their groups and plan each pair (nothing written yet)."""
+    from .memory import parse_budget
+
+    budget = parse_budget(opts.memory_budget)
+    antenna_map = parse_antenna_map(opts.antenna_map)
+    stage = time.perf_counter()
+    chunk_rows = int(opts.chunk_rows)
+    if chunk_rows == 0:
+        chunk_rows = rows_from_budget(budget, ref_ms, target_ms, columns, len(methods))
+    # dask row chunks of chunk_rows rows: the metadata blocks of the first pass are
+    # slices of these datasets (no dataset per block); a field/spectral-window group is a
+    # dataset of its own, so FIELD_ID and DATA_DESC_ID are not read per row
+    io_rows = min(chunk_rows, 1 << 21)
+    ref_groups = msio.open_groups(ref_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.ref + columns.snr)),
+                                  io_rows, grouped=bool(msio.selection_columns(ref_ms)))
+    tgt_groups = msio.open_groups(target_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.tgt)),
+                                  io_rows, grouped=bool(msio.selection_columns(target_ms)))
+    timings["open"] = time.perf_counter() - stage
+    ref_stations = read_stations(ref_ms, "reference-band Measurement Set")
+    tgt_stations = read_stations(target_ms, "target-band Measurement Set")
+    pairs = pair_groups(ref_ms, target_ms,
+                        describe_groups(ref_ms, ref_groups, "reference-band Measurement Set",
+                                        opts.average_channels),
+                        describe_groups(target_ms, tgt_groups, "target-band Measurement Set",
+                                        opts.average_channels))
+    if len(pairs) > 1:
+        log.info("%d (field, spectral window) groups calibrated one by one: %s", len(pairs),
+                 "; ".join(p.label for p in pairs))
+        if opts.caltable:
+            raise InputError(f"--caltable {opts.caltable}: the sets hold {len(pairs)} field/"
+                             "spectral-window groups and the table holds one; split them "
+                             "(CASA split field=/spw=) and write one table per group")
+    run = RunPlan(opts=opts, methods=methods, outputs=outputs, ref_ms=ref_ms,
+                  target_ms=target_ms, columns=columns, chunk_rows=chunk_rows, timings=timings)
+    for pair in pairs:
+        ref_band = _band(ref_ms, ref_groups, pair.ref.key, ref_stations.n_ant)
+        tgt_band = _band(target_ms, tgt_groups, pair.tgt.key, tgt_stations.n_ant)
+        run.groups.append(plan_group(run, pair, ref_band, tgt_band, ref_stations, tgt_stations,
+                                     antenna_map, label=pair.label if len(pairs) > 1 else ""))
+    return run
+
+
+def _band(ms: str, datasets: Dict, key, n_ant: int) -> BandIndex:
+    ds = datasets[key]
+    return BandIndex(ms=ms, ds=ds, n_ant=n_ant, n_row=int(ds.sizes["row"]), key=key,
+                     grouped=len(datasets) > 1)
+
+
+def _ratio(opts, pair: GroupPair, label: str):
+    """(R, r, eps, where R came from), logged."""
+    ref_freq, tgt_freq = pair.ref.freq, pair.tgt.freq
+    if opts.ratio is None:
+        if not (ref_freq > 0 and tgt_freq > 0):
+            raise MeasurementSetError(f"cannot take R from the spectral windows ({ref_freq} Hz, "
+                                      f"{tgt_freq} Hz); pass --ratio")
+        ratio = tgt_freq / ref_freq
+        source = f"from the spectral windows: {tgt_freq / 1e9:.6g} GHz / {ref_freq / 1e9:.6g} GHz"
+    else:
+        ratio, source = float(opts.ratio), "from --ratio"
+    r, eps = split_ratio(ratio)
+    log.info("%sR = %.10g (%s): r = %d, eps = %.10g; a reference wrap moves CFPT by %.2f deg",
+             f"{label}: " if label else "", ratio, source, r, eps,
+             math.degrees(math.remainder(2 * math.pi * eps, 2 * math.pi)))
+    if ratio < 1:
+        log.warning("R = %.6g < 1: the target band is below the reference band; FPT scales "
+                    "the reference phases down (PWC still applies, eps = R)", ratio)
+    return ratio, r, eps, source
+
+
+def plan_group(run: RunPlan, pair: GroupPair, ref_band: BandIndex, tgt_band: BandIndex,
+               ref_stations, tgt_stations, antenna_map, label: str) -> GroupPlan:
+    """Index, match and check one group pair before anything is written."""
+    opts, columns, timings = run.opts, run.columns, run.timings
+    if ref_band.n_row == 0 or tgt_band.n_row == 0:
+        empty = run.ref_ms if ref_band.n_row == 0 else run.target_ms
+        raise MeasurementSetError(f"{empty} has no rows ({pair.label}); nothing to calibrate")
+    stage = time.perf_counter()
+    # per-row metadata in blocks of at most chunk_rows rows; only summaries stay (and TIME
+    # for tables not in time order), see hitops/calibrate/chunks.py
+    index_bands([ref_band, tgt_band], [INDEX_COLUMNS, INDEX_COLUMNS], run.chunk_rows)
+    timings["metadata"] = time.perf_counter() - stage
+    ratio, r, eps, source = _ratio(opts, pair, label)
+
+    stage = time.perf_counter()
+    match = ChunkMatch(ref_band, tgt_band, ref_stations, tgt_stations, list(pair.ref.corr),
+                       list(pair.tgt.corr), antenna_map, opts.time_tolerance)
+    log.info("stations paired by code (%s: ANTENNA::%s, %s: ANTENNA::%s): %s", run.ref_ms,
+             ref_stations.column, run.target_ms, tgt_stations.column,
+             ", ".join(f"{e['reference'] or '-'}->{e['target'] or '-'}" for e in match.pairing))
+    bounds = chunk_bounds(match.time_counts(), run.chunk_rows)
+    if len(bounds) > 2:
+        # one dataset per band whose row blocks are the chunks, read by both passes; the
+        # robust trackers read reference context beyond each chunk: finer blocks there
+        match.use_chunk_datasets(bounds, {"tgt": ROW_COLUMNS + ["ROWID"] + columns.tgt,
+                                          "ref": ROW_COLUMNS + ["ROWID"] + columns.ref + columns.snr},
+                                 split={"ref": 1 if opts.tracker == "count" else 8})
+    # every chunk's cells are checked (duplicates, matches, scans) before anything is written
+    first_chunk = match.check(bounds)
+    _split_long_gaps(match, float(opts.coherence_time))
+    timings["match"] = time.perf_counter() - stage
+    from .tracking_setup import tracking_setup
+    setup = tracking_setup(opts, match, run.target_ms, tgt_stations.codes, columns.snr_from)
+    _log_match(run, match, tgt_band.n_row)
+    return GroupPlan(pair=pair, label=label, match=match, bounds=bounds, first_chunk=first_chunk,
+                     ratio=ratio, r=r, eps=eps, ratio_source=source, tracking=setup,
+                     n_target_rows=tgt_band.n_row, antenna_names=list(tgt_stations.codes))
+
+
+def _split_long_gaps(match: ChunkMatch, coherence_time: float) -> None:
+    """No wrap is counted across a stretch without data, whatever SCAN_NUMBER says."""
+    steps = np.diff(match.times)
+    min_gap = max(5.0 * float(np.median(steps)) if steps.size else 0.0, coherence_time)
+    splits = match.split_at_gaps(min_gap)
+    if splits:
+        log.info("%d time gap(s) longer than %.0f s inside scans start new tracking scans "
+                 "(SCAN_NUMBER %s)", len(splits), min_gap,
+                 ", ".join(f"{n} at +{t - match.times[0]:.0f} s after {g:.0f} s"
+                           for n, t, g in splits[:6]) + (" ..." if len(splits) > 6 else ""))
+
+
+def _log_match(run: RunPlan, match: ChunkMatch, n_target_rows: int) -> None:
+    for c, name in enumerate(match.corr_names):
+        if match.corr_map[0, c] < 0:
+            log.warning("correlation %s of %s has no counterpart in %s: flagged in the output",
+                        name, run.target_ms, run.ref_ms)
+    log.info("matched %d of %d target rows to %s (time tolerance %.3g s, %d baselines, "
+             "%d times, %d scans); %d reference rows unused",
+             match.n_matched, n_target_rows, run.ref_ms, match.tolerance, match.n_bl,
+             match.n_time, match.scans.size, match.n_ref_unused)
+    if match.n_matched < n_target_rows:
+        log.warning("%d target rows have no reference row (time/station) and are flagged",
+                    n_target_rows - match.n_matched)

@@ -1,0 +1,70 @@
+"""The robust trackers' resolved parameters for one group pair (part of the plan).
+
+The numbers (half-windows, gaps, jump thresholds, chunk context) follow from
+the options, the group's time step and, unless switched off, each station's
+elevation (hitops/tracking/options.py, docs/tracking.md).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+from ..geometry import station_sin_elevation
+from ..tracking.grid import grid_positions
+from ..tracking.options import ANTENNA_TRACK_HALF_WINDOW, setup_tracking
+
+log = logging.getLogger("hitops.calibrate")
+
+#: the tracking options and their defaults (a count run says which of them it ignores)
+_ROBUST_DEFAULTS = {"half_window": 0, "coherence_time": 20.0, "snr": 0.0, "max_gap": -1,
+                    "jump_threshold": -1.0, "jump_window": 0, "jump_action": "segment",
+                    "refant": None, "solve_half_window": -1, "no_elevation_scaling": False}
+
+
+def tracking_setup(opts, match, target_ms: str, antenna_names, snr_from: str):
+    """The TrackingSetup of ``--tracker smooth|antenna`` (None for count); checks --refant."""
+    if opts.tracker == "count":
+        changed = [k for k, v in _ROBUST_DEFAULTS.items()
+                   if getattr(opts, k) != v and not (v is None and not getattr(opts, k))]
+        if changed:
+            log.warning("--tracker count ignores %s (they tune --tracker smooth/antenna)",
+                        ", ".join("--" + k.replace("_", "-") for k in changed))
+        return None
+    if opts.refant and opts.tracker != "antenna":
+        log.warning("--refant is used by --tracker antenna only; ignored")
+    _, dt = grid_positions(match.times, match.scan_of_time)
+    fixed = float(opts.snr) > 0 or int(opts.half_window) > 0
+    sin_el = None
+    if not opts.no_elevation_scaling:
+        sin_el = station_sin_elevation(target_ms, match.times)
+        if sin_el is None:
+            log.info("no station geometry in %s (ANTENNA positions off the Earth's surface): "
+                     "--coherence-time is used without elevation scaling", target_ms)
+    setup = setup_tracking(opts.tracker, opts.half_window, opts.coherence_time, opts.snr,
+                           opts.max_gap, opts.jump_threshold, opts.jump_window, opts.jump_action,
+                           opts.refant, opts.solve_half_window, dt, list(antenna_names),
+                           "fixed" if fixed else snr_from, sin_elevation=sin_el)
+    _log_setup(setup)
+    return setup
+
+
+def _log_setup(setup) -> None:
+    if setup.tracker == "antenna":
+        windows = f"{ANTENNA_TRACK_HALF_WINDOW} on antenna tracks"
+    elif setup.half_window > 0:
+        windows = setup.half_window
+    else:
+        windows = f"per sample <= {setup.max_half_window}"
+    jumps = (f"window {setup.jump_window}, threshold {math.degrees(setup.jump_threshold):.1f} deg"
+             if setup.jump_threshold > 0 else "off")
+    solve = ""
+    if setup.tracker == "antenna":
+        solve = ("; solve half-window "
+                 f"{setup.solve_half_window if setup.solve_half_window >= 0 else 'per time'}")
+    log.info("tracker %s: dt %.4g s, t_c %.4g s%s, half-window %s (SNR %s), max gap %d, jumps %s "
+             "(action %s)%s; context %d samples per chunk side", setup.tracker, setup.dt,
+             setup.coherence_time,
+             " (zenith, x sin(el)^(3/5) per station)" if setup.elevation_scaling else "",
+             windows, f"{setup.snr:.3g}" if setup.snr > 0 else f"from {setup.snr_source}",
+             setup.max_gap, jumps, setup.jump_action, solve, setup.context)
