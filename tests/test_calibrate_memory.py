@@ -40,3 +40,17 @@ def test_a_small_budget_chunks_the_run_and_changes_nothing(tmp_path):
     assert whole["chunks"] == 1 and small["chunks"] > 3
     for column in ("PWC_DATA", "CFPT_DATA", "FLAG"):
         np.testing.assert_array_equal(col(str(other), column), col(truth.target_ms, column))
+
+
+def test_several_chunks_leave_room_for_the_next_chunks_read():
+    """A run that fits one chunk gets it whole; one that does not also holds the next
+    chunk's read (hitops/calibrate/pipeline.py reads ahead), so its chunks are smaller."""
+    from hitops.calibrate.memory import FIXED_BYTES, read_bytes_per_row
+
+    per_row = bytes_per_row(4, 1, 1)
+    budget = FIXED_BYTES + 1000 * per_row * 1000
+    fits = rows_for_budget(budget, 1000, 4, 1, 1)
+    assert fits == (budget - FIXED_BYTES - 8 * 1000) // per_row
+    big = 2 * 10 ** 7
+    room = budget - FIXED_BYTES - 8 * big
+    assert rows_for_budget(budget, big, 4, 1, 1) == room // (per_row + read_bytes_per_row(4, 1))

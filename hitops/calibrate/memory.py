@@ -63,13 +63,26 @@ def bytes_per_row(n_corr: int, n_chan: int, n_methods: int) -> int:
     return n_corr * (96 + 30 * n_methods + per_chan * max(n_chan - 1, 0))
 
 
+def read_bytes_per_row(n_corr: int, n_chan: int) -> int:
+    """Bytes per target row of one chunk as read (both bands' data and flags, the row
+    grids and the tracker's gridded reference): what reading the next chunk while this
+    one is worked on adds (hitops/calibrate/pipeline.py)."""
+    return n_corr * (18 * n_chan + 26) + 64
+
+
 def rows_for_budget(budget: int, n_rows_both_bands: int, n_corr: int, n_chan: int,
                     n_methods: int) -> int:
-    """Target rows per time chunk that keep the run's peak within ``budget`` bytes."""
+    """Target rows per time chunk that keep the run's peak within ``budget`` bytes.
+
+    A run that fits in one chunk holds one; a run of several chunks also holds the
+    next chunk's read while it works on one, and its chunks are smaller by that.
+    """
     room = budget - FIXED_BYTES - ORDER_BYTES_PER_ROW * n_rows_both_bands
     per_row = bytes_per_row(n_corr, n_chan, n_methods)
     if room < 1000 * per_row:
         raise InputError(f"--memory-budget {budget / 1e6:.0f} MB: the sets' {n_rows_both_bands} "
                          "rows leave no room for a chunk of data; give a larger budget (or "
                          "--chunk-rows)")
-    return int(room // per_row)
+    if 2 * (room // per_row) >= n_rows_both_bands:
+        return int(room // per_row)
+    return int(room // (per_row + read_bytes_per_row(n_corr, n_chan)))

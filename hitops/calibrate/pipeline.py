@@ -125,6 +125,26 @@ class GroupPipeline:
         self.timings["read"] += time.perf_counter() - stage
         return chunk
 
+    def chunks(self, keep: bool):
+        """(k, chunk k, the read of chunk k+1 or None), in time order.
+
+        Chunk k+1 is read in a background thread while chunk k is tracked and
+        transferred (casacore and the nogil numba kernels release the GIL); the
+        memory budget counts that second chunk's columns (hitops/calibrate/memory.py).
+        """
+        from concurrent.futures import ThreadPoolExecutor
+
+        n_chunks = self.group.n_chunks
+        if n_chunks == 1:
+            yield 0, self.read(0, keep), None
+            return
+        with ThreadPoolExecutor(1, thread_name_prefix="hitops-read") as pool:
+            pending = pool.submit(self.read, 0, keep)
+            for k in range(n_chunks):
+                chunk = pending.result()
+                pending = pool.submit(self.read, k + 1, keep) if k + 1 < n_chunks else None
+                yield k, chunk, pending
+
     def transfer(self, chunk: ChunkData, tracked, offsets, segment_k, carries, sum_in_groups):
         """The chunk's baseline groups as dask tasks; (phasor_rows, calibrated, task results)."""
         import dask
@@ -209,8 +229,7 @@ class GroupPipeline:
                             scan_sums=np.zeros((match.n_bl, n_corr, n_scan), dtype=np.complex128),
                             scan_counts=np.zeros((match.n_bl, n_corr, n_scan), dtype=np.int64),
                             tracker=tracker)
-        for k in range(self.group.n_chunks):
-            chunk = self.read(k, keep=keep_reads)
+        for k, chunk, next_read in self.chunks(keep_reads):
             stage = time.perf_counter()
             tracked = (None, None, None, None)
             if tracker is not None:
@@ -231,6 +250,10 @@ class GroupPipeline:
                 if offsets is None and off_col:
                     self._sum_kept(result, chunk, tracked[2], phasor_rows, calibrated)
             self.timings["transfer"] += time.perf_counter() - stage
+            if next_read is not None:
+                # the next chunk's read ends before this chunk's write starts: the two never
+                # touch the target table at the same time
+                next_read.result()
             if write:
                 self.write(chunk, phasor_rows, calibrated)
         if tracker is not None:

@@ -201,8 +201,8 @@ def read_main_columns(ms: str, columns: Sequence[str], rows: Optional[np.ndarray
     return compute_columns([(ds, list(columns), rows)], scheduler)[0]
 
 
-def _single_block(value: np.ndarray):
-    """A one-chunk dask array holding ``value`` itself.
+def _single_block(value: np.ndarray, prefix: str = "hitops-write"):
+    """A one-chunk dask array holding ``value`` itself (its graph layer named ``prefix-<uuid>``).
 
     ``da.from_array`` copies numpy input (dask >= 2024) and hashes it unless
     named: about 0.1 s for one 1.2 M-row, 4-correlation output column.  The
@@ -213,7 +213,7 @@ def _single_block(value: np.ndarray):
     import dask.array as da
 
     value = np.asarray(value)
-    name = f"hitops-write-{uuid.uuid4().hex}"
+    name = f"{prefix}-{uuid.uuid4().hex}"
     key = (name,) + (0,) * value.ndim
     return da.Array({key: value}, name, chunks=tuple((s,) for s in value.shape),
                     dtype=value.dtype)
@@ -233,7 +233,9 @@ def write_main_columns(ms: str, rows: np.ndarray, arrays: Dict[str, np.ndarray],
     variables = {}
     for name, value in arrays.items():
         variables[name] = (dims[name], _single_block(value))
-    ds = Dataset(variables, coords={"ROWID": ("row", _single_block(rows))})
+    # dask-ms expects the ROWID graph of a dataset it made ('row-...' layers) and warns
+    # about any other; these row numbers are plain numbers, named the way it expects
+    ds = Dataset(variables, coords={"ROWID": ("row", _single_block(rows, "row-hitops"))})
     writes = xds_to_table(ds, ms, columns=list(arrays))
     writes = writes if isinstance(writes, (list, tuple)) else [writes]
     # compute the write arrays, not the datasets: a dask-ms Dataset does not survive
