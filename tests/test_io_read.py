@@ -72,6 +72,32 @@ def test_open_groups_gives_time_order_with_row_numbers(pair):
     np.testing.assert_array_equal(got_data, data[rowid])
 
 
+def test_time_ordered_tables_are_read_in_storage_order(pair, tmp_path):
+    """is_time_ordered sees the shuffled table and a time-sorted copy (also across its
+    read blocks); the sorted copy opens without dask-ms's sort, in storage order."""
+    import dask
+    from casacore import tables as pt
+
+    ms = str(pair.target_ms)
+    assert not msio.is_time_ordered(ms)
+    sorted_ms = str(tmp_path / "sorted.ms")
+    with pt.table(ms, ack=False) as t:
+        t.sort("TIME").copy(sorted_ms, deep=True).close()
+    assert msio.is_time_ordered(sorted_ms) and msio.is_time_ordered(sorted_ms, block_rows=7)
+    with pt.table(sorted_ms, readonly=False, ack=False) as t:   # one step back at row 200
+        times = t.getcol("TIME")
+        times[200] = times[199] - 1.0
+        t.putcol("TIME", times)
+    assert not msio.is_time_ordered(sorted_ms, block_rows=200)
+    times[200] = times[199]
+    with pt.table(sorted_ms, readonly=False, ack=False) as t:
+        t.putcol("TIME", times)
+    (key, ds), = msio.open_groups(sorted_ms, ["TIME"], chunks=(100, 200), grouped=False).items()
+    rowid, got = dask.compute(ds.ROWID.data, ds.TIME.data, scheduler="sync")
+    np.testing.assert_array_equal(rowid, np.arange(300))
+    np.testing.assert_array_equal(got, times)
+
+
 def test_read_rows_subset_and_write_back(pair, tmp_path):
     import shutil
 

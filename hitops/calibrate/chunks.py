@@ -58,6 +58,7 @@ class BandIndex:
     n_ant: int
     key: tuple = (0, 0)                   # (FIELD_ID, DATA_DESC_ID) of the group
     grouped: bool = False                 # the set holds several groups (open_groups)
+    time_ordered: bool = False            # stored in time order: no sort when reopened
     last_time: float = -np.inf
     unique_time: np.ndarray = None        # sorted distinct TIME values
     time_rows: np.ndarray = None          # rows at each distinct TIME value
@@ -257,8 +258,7 @@ class ChunkMatch:
                              if p > 0)
             if len(sizes) > 1:
                 datasets = msio.open_groups(band.ms, [c for c in dict.fromkeys(cols) if c != "ROWID"],
-                                            tuple(sizes),
-                                            band.grouped)
+                                            tuple(sizes), band.grouped, band.time_ordered)
                 self.blocks[which] = datasets[band.key]
 
     def time_counts(self) -> np.ndarray:

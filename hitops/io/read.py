@@ -92,7 +92,28 @@ def open_main(ms: str, columns: Sequence[str], chunk_rows: int = 1 << 21):
     return ds
 
 
-def open_groups(ms: str, columns: Sequence[str], chunks, grouped: bool) -> Dict[tuple, object]:
+def is_time_ordered(ms: str, block_rows: int = 1 << 20) -> bool:
+    """Whether the main table's TIME never decreases in storage order (read in blocks).
+
+    Correlators and CASA write Measurement Sets in time order; such a table needs
+    no sort to be read time chunk by time chunk.
+    """
+    from casacore import tables as pt
+
+    last = -np.inf
+    with pt.table(ms, ack=False) as t:
+        n_row = t.nrows()
+        for start in range(0, n_row, block_rows):
+            times = t.getcol("TIME", start, min(block_rows, n_row - start))
+            if times.size and (times[0] < last or np.any(times[1:] < times[:-1])):
+                return False
+            if times.size:
+                last = times[-1]
+    return True
+
+
+def open_groups(ms: str, columns: Sequence[str], chunks, grouped: bool,
+                time_ordered: Optional[bool] = None) -> Dict[tuple, object]:
     """Lazy dask-ms datasets of the main table, one per (FIELD_ID, DATA_DESC_ID), in time order.
 
     dask-ms's own grouping and ordering (``xds_from_ms`` with ``group_cols``
@@ -103,10 +124,15 @@ def open_groups(ms: str, columns: Sequence[str], chunks, grouped: bool) -> Dict[
     one field and one data description, see :func:`selection_columns`) skips
     the grouping query and returns the single group under (0, 0).  ``chunks``:
     rows per dask block, or a tuple of block sizes (one block per time chunk).
+    ``time_ordered``: the table is stored in time order (:func:`is_time_ordered`;
+    checked when None), so the storage order is already the time order and
+    dask-ms's sort (a TaQL query, ~0.4 s per 10^6 rows) is skipped.
     """
     from daskms import xds_from_ms
 
-    datasets = xds_from_ms(ms, columns=list(columns), index_cols=["TIME"],
+    if time_ordered is None:
+        time_ordered = is_time_ordered(ms)
+    datasets = xds_from_ms(ms, columns=list(columns), index_cols=[] if time_ordered else ["TIME"],
                            group_cols=list(GROUP_COLUMNS) if grouped else [],
                            chunks={"row": chunks})
     out = {}
