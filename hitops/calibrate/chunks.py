@@ -259,7 +259,9 @@ class ChunkMatch:
             if len(sizes) > 1:
                 datasets = msio.open_groups(band.ms, [c for c in dict.fromkeys(cols) if c != "ROWID"],
                                             tuple(sizes), band.grouped, band.time_ordered)
-                self.blocks[which] = datasets[band.key]
+                # the band's only dataset from now on: the first one (and the row order
+                # dask-ms keeps for it, 8 bytes per row) can go
+                self.blocks[which] = band.ds = datasets[band.key]
 
     def time_counts(self) -> np.ndarray:
         """Rows of both bands per union time (for cutting chunks)."""
