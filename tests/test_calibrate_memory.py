@@ -34,9 +34,9 @@ def test_a_small_budget_chunks_the_run_and_changes_nothing(tmp_path):
     other = tmp_path / "copy.ms"
     shutil.copytree(truth.target_ms, other)
     whole = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt")
-    # 15 baselines x 4000 times = 60 000 rows per band: a 302 MB budget leaves room for a
+    # 15 baselines x 4000 times = 60 000 rows per band: a 306 MB budget leaves room for a
     # few thousand rows per chunk (hitops/calibrate/memory.py)
-    small = calibrate(truth.ref_ms, str(other), method="pwc,cfpt", memory_budget="302MB")
+    small = calibrate(truth.ref_ms, str(other), method="pwc,cfpt", memory_budget="306MB")
     assert whole["chunks"] == 1 and small["chunks"] > 3
     for column in ("PWC_DATA", "CFPT_DATA", "FLAG"):
         np.testing.assert_array_equal(col(str(other), column), col(truth.target_ms, column))
@@ -44,13 +44,20 @@ def test_a_small_budget_chunks_the_run_and_changes_nothing(tmp_path):
 
 def test_several_chunks_leave_room_for_the_next_chunks_read():
     """A run that fits one chunk gets it whole; one that does not also holds the next
-    chunk's read (hitops/calibrate/pipeline.py reads ahead), so its chunks are smaller."""
-    from hitops.calibrate.memory import FIXED_BYTES, read_bytes_per_row
+    chunk's read (hitops/calibrate/pipeline.py reads ahead), so its chunks are smaller;
+    a table dask-ms must sort costs more per row; the default budget never refuses."""
+    from hitops.calibrate.memory import (FIXED_BYTES, MIN_CHUNK_ROWS, ORDER_BYTES_PER_ROW,
+                                         read_bytes_per_row)
 
     per_row = bytes_per_row(4, 1, 1)
     budget = FIXED_BYTES + 1000 * per_row * 1000
     fits = rows_for_budget(budget, 1000, 4, 1, 1)
-    assert fits == (budget - FIXED_BYTES - 8 * 1000) // per_row
-    big = 2 * 10 ** 7
-    room = budget - FIXED_BYTES - 8 * big
+    assert fits == (budget - FIXED_BYTES - ORDER_BYTES_PER_ROW * 1000) // per_row
+    big = 2 * 10 ** 6
+    room = budget - FIXED_BYTES - ORDER_BYTES_PER_ROW * big
     assert rows_for_budget(budget, big, 4, 1, 1) == room // (per_row + read_bytes_per_row(4, 1))
+    assert rows_for_budget(budget, big, 4, 1, 1, time_ordered=False) < room // (
+        per_row + read_bytes_per_row(4, 1))
+    with pytest.raises(InputError, match="leave no room"):
+        rows_for_budget(budget, 10 ** 8, 4, 1, 1)
+    assert rows_for_budget(budget, 10 ** 8, 4, 1, 1, strict=False) == MIN_CHUNK_ROWS

@@ -2,13 +2,21 @@
 
 The budget defaults to 1 GB or half the machine's available memory, whichever
 is smaller; ``--chunk-rows`` overrides what follows from it.  The model of a
-run's peak resident memory is measured (docs/performance.md, "Memory
-budget"): a fixed part (the interpreter with numba, dask, dask-ms and
-python-casacore loaded: about 160 MB; dask-ms's row order of each band:
-8 bytes per row), and a part per target row of a time chunk (both bands'
-visibilities, flags, the (baseline, time) grids, phasors and outputs):
-about 96 bytes per correlation plus 30 per correlation and method, and the
-per-channel columns again for every further channel.
+run's peak resident memory is fitted to peaks measured on this machine
+(docs/performance.md, "Memory budget"):
+
+* a fixed part: the interpreter with numba, dask, dask-ms and python-casacore
+  loaded (about 160 MB; 300 MB with a margin);
+* a part per row of both bands for the whole run: the row numbers dask-ms
+  keeps for each band and the TaQL selection behind them, 24 bytes per row for
+  a table stored in time order (21 measured at 10^7 rows per band) and 32 for
+  one dask-ms must sort (37 measured at 10^7 rows; 32 keeps the paper-size pair,
+  whose peak is 750 MB, in one chunk);
+* a part per target row of a time chunk (both bands' visibilities, flags, the
+  (baseline, time) grids, phasors and outputs): about 96 bytes per correlation
+  plus 30 per correlation and method, and the per-channel columns again for
+  every further channel; with several chunks also the next chunk's read
+  (:func:`read_bytes_per_row`).
 """
 
 from __future__ import annotations
@@ -22,8 +30,12 @@ from ..errors import InputError
 DEFAULT_CEILING = 1_000_000_000
 #: resident memory before any row is read (imports, numba kernels, dask), with a margin
 FIXED_BYTES = 300_000_000
-#: bytes per row that dask-ms keeps for the whole run (its row order, ROWID)
-ORDER_BYTES_PER_ROW = 8
+#: bytes per row (both bands) that dask-ms keeps for the whole run: its row numbers and
+#: the TaQL selection behind them, for a table in time order and for one it sorts
+ORDER_BYTES_PER_ROW = 24
+UNSORTED_ORDER_BYTES_PER_ROW = 32
+#: the fewest target rows per chunk a run uses when the default budget cannot be kept
+MIN_CHUNK_ROWS = 100_000
 UNITS = {"": 1, "B": 1, "KB": 1e3, "MB": 1e6, "GB": 1e9, "TB": 1e12,
          "KIB": 2 ** 10, "MIB": 2 ** 20, "GIB": 2 ** 30}
 
@@ -67,22 +79,29 @@ def read_bytes_per_row(n_corr: int, n_chan: int) -> int:
     """Bytes per target row of one chunk as read (both bands' data and flags, the row
     grids and the tracker's gridded reference): what reading the next chunk while this
     one is worked on adds (hitops/calibrate/pipeline.py)."""
-    return n_corr * (18 * n_chan + 26) + 64
+    return n_corr * (18 * n_chan + 60) + 64
 
 
 def rows_for_budget(budget: int, n_rows_both_bands: int, n_corr: int, n_chan: int,
-                    n_methods: int) -> int:
+                    n_methods: int, time_ordered: bool = True, strict: bool = True) -> int:
     """Target rows per time chunk that keep the run's peak within ``budget`` bytes.
 
     A run that fits in one chunk holds one; a run of several chunks also holds the
     next chunk's read while it works on one, and its chunks are smaller by that.
+    ``strict``: a budget too small for a chunk of 1000 rows is an error (a budget
+    the user gave); otherwise (the default budget) chunks have at least
+    :data:`MIN_CHUNK_ROWS` rows, even where that exceeds the budget.
     """
-    room = budget - FIXED_BYTES - ORDER_BYTES_PER_ROW * n_rows_both_bands
+    order = ORDER_BYTES_PER_ROW if time_ordered else UNSORTED_ORDER_BYTES_PER_ROW
+    room = budget - FIXED_BYTES - order * n_rows_both_bands
     per_row = bytes_per_row(n_corr, n_chan, n_methods)
-    if room < 1000 * per_row:
+    if 2 * (max(room, 0) // per_row) >= n_rows_both_bands:
+        return int(room // per_row)
+    rows = int(max(room, 0) // (per_row + read_bytes_per_row(n_corr, n_chan)))
+    if not strict:
+        return max(rows, MIN_CHUNK_ROWS)
+    if rows < 1000:
         raise InputError(f"--memory-budget {budget / 1e6:.0f} MB: the sets' {n_rows_both_bands} "
                          "rows leave no room for a chunk of data; give a larger budget (or "
                          "--chunk-rows)")
-    if 2 * (room // per_row) >= n_rows_both_bands:
-        return int(room // per_row)
-    return int(room // (per_row + read_bytes_per_row(n_corr, n_chan)))
+    return rows

@@ -93,11 +93,15 @@ def chunk_bounds(per_time: np.ndarray, chunk_rows: int) -> List[int]:
 
 
 def rows_from_budget(budget: int, ref_ms: str, target_ms: str, columns: Columns,
-                     n_methods: int) -> int:
-    """Rows per time chunk that keep the run within ``budget`` bytes (hitops/calibrate/memory.py)."""
+                     n_methods: int, time_ordered: bool, strict: bool) -> int:
+    """Rows per time chunk that keep the run within ``budget`` bytes (hitops/calibrate/memory.py).
+
+    ``time_ordered``: both sets are stored in time order; ``strict``: the budget was
+    given (not the default), so a budget too small is an error.
+    """
     from casacore import tables as pt
 
-    from .memory import rows_for_budget
+    from .memory import MIN_CHUNK_ROWS, rows_for_budget
     n_rows, n_corr, n_chan = 0, 1, 1
     for ms, column in ((ref_ms, columns.ref_data), (target_ms, columns.target_data)):
         with pt.table(ms, ack=False) as t:
@@ -105,7 +109,13 @@ def rows_from_budget(budget: int, ref_ms: str, target_ms: str, columns: Columns,
             if t.nrows():
                 shape = t.getcell(column, 0).shape
                 n_chan, n_corr = max(n_chan, int(shape[0])), max(n_corr, int(shape[-1]))
-    rows = rows_for_budget(budget, n_rows, n_corr, n_chan, n_methods)
+    rows = rows_for_budget(budget, n_rows, n_corr, n_chan, n_methods, time_ordered, strict)
+    if rows == MIN_CHUNK_ROWS and not strict:
+        log.warning("the default memory budget (%.0f MB) cannot hold %d rows%s and a chunk: "
+                    "chunks of %d rows; give --memory-budget or --chunk-rows to choose",
+                    budget / 1e6, n_rows, "" if time_ordered else
+                    " (a table not stored in time order: dask-ms sorts it and keeps the order)",
+                    rows)
     log.info("memory budget %.0f MB: up to %d target rows per time chunk (--chunk-rows "
              "overrides)", budget / 1e6, rows)
     return rows
@@ -119,15 +129,17 @@ def build_plan(opts, methods: List[str], outputs: Dict[str, str], ref_ms: str,
     budget = parse_budget(opts.memory_budget)
     antenna_map = parse_antenna_map(opts.antenna_map)
     stage = time.perf_counter()
+    # a table stored in time order is read in that order; any other is sorted by dask-ms
+    ordered = {ms: msio.is_time_ordered(ms) for ms in (ref_ms, target_ms)}
     chunk_rows = int(opts.chunk_rows)
     if chunk_rows == 0:
-        chunk_rows = rows_from_budget(budget, ref_ms, target_ms, columns, len(methods))
+        explicit = str(opts.memory_budget or "auto").strip().lower() != "auto"
+        chunk_rows = rows_from_budget(budget, ref_ms, target_ms, columns, len(methods),
+                                      all(ordered.values()), strict=explicit)
     # dask row chunks of chunk_rows rows: the metadata blocks of the first pass are
     # slices of these datasets (no dataset per block); a field/spectral-window group is a
     # dataset of its own, so FIELD_ID and DATA_DESC_ID are not read per row
     io_rows = min(chunk_rows, 1 << 21)
-    # a table stored in time order is read in that order; any other is sorted by dask-ms
-    ordered = {ms: msio.is_time_ordered(ms) for ms in (ref_ms, target_ms)}
     ref_groups = msio.open_groups(ref_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.ref + columns.snr)),
                                   io_rows, grouped=bool(msio.selection_columns(ref_ms)),
                                   time_ordered=ordered[ref_ms])
