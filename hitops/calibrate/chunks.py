@@ -59,6 +59,9 @@ class BandIndex:
     key: tuple = (0, 0)                   # (FIELD_ID, DATA_DESC_ID) of the group
     grouped: bool = False                 # the set holds several groups (open_groups)
     time_ordered: bool = False            # stored in time order: no sort when reopened
+    # ``ds`` holds the rows in time order (dask-ms sorted them, or they are stored so);
+    # False only for a band read whole in one chunk, whose order then does not matter
+    ds_in_time_order: bool = True
     last_time: float = -np.inf
     unique_time: np.ndarray = None        # sorted distinct TIME values
     time_rows: np.ndarray = None          # rows at each distinct TIME value
@@ -70,6 +73,9 @@ class BandIndex:
 
     def rows_in(self, lo: float, hi: float) -> slice:
         """Dataset positions of the rows with lo <= TIME < hi (they follow each other)."""
+        if not self.ds_in_time_order:
+            raise RuntimeError(f"{self.ms}: a part of the track was asked of a band read in "
+                               "storage order (one chunk only); this is a hitops bug")
         u0, u1 = np.searchsorted(self.unique_time, [lo, hi])
         return slice(int(self.row_start[u0]), int(self.row_start[u1]))
 
@@ -116,7 +122,12 @@ def _summarise_block(band: BandIndex, a: int, b: int, meta: Dict[str, np.ndarray
         raise MeasurementSetError(f"{band.ms}: TIME of row {row} is {t[bad]}; rows without "
                                   "a valid time cannot be matched: remove them (CASA split "
                                   "with a time range) or repair the TIME column")
-    if t.size and (np.any(t[1:] < t[:-1]) or t[0] < band.last_time):
+    if not band.ds_in_time_order:
+        if not (a == 0 and b == band.n_row):
+            raise RuntimeError(f"{band.ms}: a band read in storage order must be one block; "
+                               "this is a hitops bug")
+        t = np.sort(t)   # the band's only block: its summaries need the times in order
+    elif t.size and (np.any(t[1:] < t[:-1]) or t[0] < band.last_time):
         # dask-ms sorted the group by TIME (open_groups); anything else is a changed table
         raise MeasurementSetError(f"{band.ms}: TIME changed while it was being read; run "
                                   "again when nothing else writes to the set")

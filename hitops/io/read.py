@@ -92,6 +92,14 @@ def open_main(ms: str, columns: Sequence[str], chunk_rows: int = 1 << 21):
     return ds
 
 
+def row_count(ms: str) -> int:
+    """Rows of the main table."""
+    from casacore import tables as pt
+
+    with pt.table(ms, ack=False) as t:
+        return int(t.nrows())
+
+
 def is_time_ordered(ms: str, block_rows: int = 1 << 20) -> bool:
     """Whether the main table's TIME never decreases in storage order (read in blocks).
 
