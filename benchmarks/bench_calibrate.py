@@ -170,9 +170,10 @@ The step adds {100 * (pairwise - 1):.1f} % (median of the run-by-run ratios; tar
 and the per-baseline choices (cross hands) {stage.get("offset_solve", float("nan")):.3f} s, the
 shift of the kept output {stage.get("offset_apply", float("nan")):.3f} s; the rest is the sums of
 output against model per baseline segment (one numba pass over the rows) and the larger
-report.  With one chunk the first pass's output is kept and shifted by 2 pi eps k per
-segment (no second transfer); with several chunks (`--chunk-rows`) the whole transfer, tracking included, runs
-twice, as the per-baseline step against `--offset-reference-column` always did.
+report.  With the smooth and antenna trackers the first pass's output is kept (when it
+fits in a fifth of `--memory-budget`, one chunk or several) and shifted by 2 pi eps k
+per segment: no second tracking or transfer; the count tracker's per-baseline step
+runs the transfer again.
 
 Run: `python -m benchmarks.bench_calibrate --offset-step [--workdir DIR] [--repeats N]`."""
     replace_section("calibrate-offset-step", markdown, ROOT / "docs" / "calibrate.md")
