@@ -59,9 +59,7 @@ class BandIndex:
     key: tuple = (0, 0)                   # (FIELD_ID, DATA_DESC_ID) of the group
     grouped: bool = False                 # the set holds several groups (open_groups)
     time_ordered: bool = False            # stored in time order: no sort when reopened
-    # ``ds`` holds the rows in time order (dask-ms sorted them, or they are stored so);
-    # False only for a band read whole in one chunk, whose order then does not matter
-    ds_in_time_order: bool = True
+    ds_in_time_order: bool = True         # False: read whole in one chunk, storage order
     last_time: float = -np.inf
     unique_time: np.ndarray = None        # sorted distinct TIME values
     time_rows: np.ndarray = None          # rows at each distinct TIME value
