@@ -180,7 +180,7 @@ def render_memory(points, load) -> str:
     """The ``scaling-memory`` section from memory_point results."""
     lines, by_chunk = [], {}
     for p in sorted(points, key=lambda p: (p["rows"], p["chunk_rows"] is None)):
-        chunk = f"{p['chunk_rows']:,}" if p["chunk_rows"] else "default (2,000,000)"
+        chunk = f"{p['chunk_rows']:,}" if p["chunk_rows"] else "default (from --memory-budget auto)"
         lines.append(f"| {p['rows']:,} | {chunk} | {p['chunks']} | {p['wall_s']:.2f} | "
                      f"{p['peak_rss_mb']:.0f} |")
         by_chunk.setdefault(p["chunk_rows"], []).append(p)
@@ -203,13 +203,15 @@ baseline by baseline, i.e. not in time order); `python -m benchmarks.bench_scali
 With --chunk-rows {CHUNK_ROWS:,} the peak grows by {slope:.0f} bytes per row per band
 between the two largest tracks (peak RSS ~ rows^{e_rss[0]:.2f} over all points,
 {e_rss[1]:.2f} between the two largest).  calibrate reads and matches the per-row
-metadata chunk by chunk (hitops/calibrate/chunks.py): what stays for the whole track is
-per time (the union time axis, each time's scan and row count: ~100 bytes per time,
-~3.5 bytes per row at 28 baselines) and, only for tables not stored in time order like these, the TIME
-column of each band and an int32 row order by chunk (12 bytes per row per band) to find
-each chunk's rows.  A time-ordered table (as correlators and CASA write them) keeps no
-per-row array (docs/calibrate.md, Memory).  The rest of the peak is the chunk itself (the default chunk holds up
-to 2 x 2,000,000 rows of both bands) and the ~200 MB of imported libraries.  Several
+metadata chunk by chunk (hitops/calibrate/chunks.py); what stays for the whole track is
+per time (the union time axis, each time's scan and row count) and what dask-ms keeps
+per row of each band it opens (its row numbers and the TaQL selection behind them,
+and for a table not stored in time order like these the sort of it: about 37 bytes
+per row of both bands here, 21 for a table in time order).  The default chunk follows
+from the memory budget (1 GB here; hitops/calibrate/memory.py): a run that fits in
+one chunk is read in storage order without the sort; a larger one is cut so that its
+peak stays within the budget, down to a floor of 100,000 rows per chunk with a warning
+when the whole-run part alone leaves no room (the 10^7-row baseline-major pair).  Several
 chunks cost time: each chunk's metadata are read twice (the checks before any write,
 then with the data) and a baseline-major table is read in many short runs.
 """

@@ -9,9 +9,9 @@ run's peak resident memory is fitted to peaks measured on this machine
   loaded (about 160 MB; 300 MB with a margin);
 * a part per row of both bands for the whole run: the row numbers dask-ms
   keeps for each band and the TaQL selection behind them, 24 bytes per row for
-  a table stored in time order (21 measured at 10^7 rows per band) and 32 for
-  one dask-ms must sort (37 measured at 10^7 rows; 32 keeps the paper-size pair,
-  whose peak is 750 MB, in one chunk);
+  a table stored in time order or read whole in one chunk (21 measured at 10^7
+  rows per band) and 40 for one dask-ms must sort to cut it into chunks (37-38
+  measured at 4 x 10^6 and 10^7 rows);
 * a part per target row of a time chunk (both bands' visibilities, flags, the
   (baseline, time) grids, phasors and outputs): about 96 bytes per correlation
   plus 30 per correlation and method, and the per-channel columns again for
@@ -33,7 +33,7 @@ FIXED_BYTES = 300_000_000
 #: bytes per row (both bands) that dask-ms keeps for the whole run: its row numbers and
 #: the TaQL selection behind them, for a table in time order and for one it sorts
 ORDER_BYTES_PER_ROW = 24
-UNSORTED_ORDER_BYTES_PER_ROW = 32
+UNSORTED_ORDER_BYTES_PER_ROW = 40
 #: the fewest target rows per chunk a run uses when the default budget cannot be kept
 MIN_CHUNK_ROWS = 100_000
 UNITS = {"": 1, "B": 1, "KB": 1e3, "MB": 1e6, "GB": 1e9, "TB": 1e12,
@@ -92,11 +92,13 @@ def rows_for_budget(budget: int, n_rows_both_bands: int, n_corr: int, n_chan: in
     the user gave); otherwise (the default budget) chunks have at least
     :data:`MIN_CHUNK_ROWS` rows, even where that exceeds the budget.
     """
-    order = ORDER_BYTES_PER_ROW if time_ordered else UNSORTED_ORDER_BYTES_PER_ROW
-    room = budget - FIXED_BYTES - order * n_rows_both_bands
     per_row = bytes_per_row(n_corr, n_chan, n_methods)
+    # a run in one chunk reads every set in storage order: no sort, whatever the layout
+    room = budget - FIXED_BYTES - ORDER_BYTES_PER_ROW * n_rows_both_bands
     if 2 * (max(room, 0) // per_row) >= n_rows_both_bands:
         return int(room // per_row)
+    if not time_ordered:
+        room = budget - FIXED_BYTES - UNSORTED_ORDER_BYTES_PER_ROW * n_rows_both_bands
     rows = int(max(room, 0) // (per_row + read_bytes_per_row(n_corr, n_chan)))
     if not strict:
         return max(rows, MIN_CHUNK_ROWS)
