@@ -604,3 +604,22 @@ def test_a_time_gap_inside_one_scan_restarts_the_count(tmp_path, caplog):
     assert "1 time gap(s) longer than" in caplog.text and "SCAN_NUMBER 1" in caplog.text
     # the truth of the two-scan pair: the count restarts after the gap
     assert np.max(np.abs(wrap(out_phase(truth.target_ms) - expected_pwc_phase(truth)))) < 1e-5
+
+
+def test_cluster_rerun_with_overwrite_of_its_own_output(tmp_path):
+    """A column a cluster run created (through a staging column, renamed at the commit)
+    keeps its data manager's name; a second cluster run with --overwrite stages the
+    column again and must pick a data manager name that is free (it once collided)."""
+    from distributed import LocalCluster
+
+    truth = make_pair(tmp_path, n_time=100, seed=33)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                      dashboard_address=None) as cluster:
+        calibrate(truth.ref_ms, truth.target_ms, method="pwc", no_verdict=True,
+                  scheduler=cluster.scheduler_address)
+        first = col(truth.target_ms, "PWC_DATA")
+        calibrate(truth.ref_ms, truth.target_ms, method="pwc", no_verdict=True, overwrite=True,
+                  scheduler=cluster.scheduler_address)
+    np.testing.assert_array_equal(col(truth.target_ms, "PWC_DATA"), first)
+    with pt.table(str(truth.target_ms), ack=False) as t:
+        assert not [c for c in t.colnames() if c.startswith("HITOPS_PARTIAL_")]

@@ -29,14 +29,31 @@ STAGING_FLAG = STAGING_PREFIX + "FLAG"
 VIS_DIMS = ("row", "chan", "corr")
 
 
-def like_dminfo(dminfo: Dict, name: str) -> Dict:
-    """A data manager of the same kind as ``dminfo`` (a column's) for new column ``name``."""
+def like_dminfo(dminfo: Dict, name: str, taken=()) -> Dict:
+    """A data manager of the same kind as ``dminfo`` (a column's) for new column ``name``.
+
+    ``taken``: data manager names the table already uses.  A column keeps its data
+    manager's name when it is renamed, so the column a run staged as
+    HITOPS_PARTIAL_PWC_DATA and renamed to PWC_DATA still owns
+    'HITOPS_PARTIAL_PWC_DATA_TSM' when the next run stages it again.
+    """
     kind = dminfo.get("TYPE", "StandardStMan")
     spec = dminfo.get("SPEC", {})
     if kind.startswith("Tiled"):
         keep = {"DEFAULTTILESHAPE": spec["DEFAULTTILESHAPE"]} if "DEFAULTTILESHAPE" in spec else {}
-        return {"TYPE": "TiledShapeStMan", "NAME": f"{name}_TSM", "SPEC": keep}
-    return {"TYPE": "StandardStMan", "NAME": f"{name}_SSM", "SPEC": {}}
+        kind, suffix, spec = "TiledShapeStMan", "TSM", keep
+    else:
+        kind, suffix, spec = "StandardStMan", "SSM", {}
+    dm_name, n = f"{name}_{suffix}", 1
+    while dm_name in set(taken):
+        n += 1
+        dm_name = f"{name}_{suffix}{n}"
+    return {"TYPE": kind, "NAME": dm_name, "SPEC": spec}
+
+
+def dm_names(table) -> set:
+    """The data manager names an open casacore table uses."""
+    return {dm.get("NAME") for dm in table.getdminfo().values()}
 
 
 def drop_stale_columns(target_ms: str) -> None:
@@ -108,7 +125,8 @@ class OutputTransaction:
             for name, like in new:
                 desc = t.getcoldesc(like)
                 desc["name"] = name
-                t.addcols(pt.makecoldesc(name, desc), like_dminfo(t.getdminfo(like), name))
+                t.addcols(pt.makecoldesc(name, desc),
+                          like_dminfo(t.getdminfo(like), name, dm_names(t)))
         log.info("created %s in %s before sending work to the cluster",
                  ", ".join(n for n, _ in new), self.target_ms)
 
@@ -155,7 +173,7 @@ class OutputTransaction:
                 desc = t.getcoldesc("FLAG")
                 desc["name"] = FLAG_BACKUP
                 t.addcols(pt.makecoldesc(FLAG_BACKUP, desc),
-                          like_dminfo(t.getdminfo("FLAG"), FLAG_BACKUP))
+                          like_dminfo(t.getdminfo("FLAG"), FLAG_BACKUP, dm_names(t)))
                 for start in range(0, n_row, step):
                     n = min(step, n_row - start)
                     t.putcol(FLAG_BACKUP, t.getcol("FLAG", start, n), start, n)
