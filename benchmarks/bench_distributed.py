@@ -112,10 +112,13 @@ Machine: {machine_line()}; 1-minute load average {load[0]:.1f} before and {load[
 after.  Pair: 8 stations, 43 200 s of 1 s, 4 correlations (1 209 600 rows per band).
 A `distributed.LocalCluster` (worker processes, one thread each) is started by the
 benchmark; `hitops calibrate --method pwc --scheduler tcp://127.0.0.1:PORT` is a separate
-process that connects to it: the dask-ms read tasks, the FPT kernel tasks (one per
-baseline group) and the dask-ms write tasks run in the workers, while the calibrate
-process gathers the columns, matches the bands, grids each chunk and ships each
-baseline group's arrays to a worker.  Wall and CPU: the `hitops calibrate` process (median of {args.repeats}, after
+process that connects to it: the FPT kernel tasks (one per baseline group) run in the
+workers, while the calibrate process reads the columns (dask-ms, on its own threads),
+matches the bands, grids each chunk, ships each baseline group's arrays to a worker and
+writes the outputs.  The table reads and writes stay in the calibrate process: a
+graph of dask-ms reads sent to a cluster is unpickled by its scheduler, whose copies of
+the table handles kept the table read-locked after the run (the next run's commit
+then waited on them).  Wall and CPU: the `hitops calibrate` process (median of {args.repeats}, after
 one warm-up run per cluster); the CPU of the workers is not in that column.
 
 | run | wall (s) | CPU of the calibrate process (s) | its peak RSS (MB) | worker peak RSS (MB) |

@@ -367,10 +367,11 @@ def test_distributed_local_cluster_gives_identical_output(tmp_path):
                   overwrite=True, scheduler=cluster.scheduler_address, chunk_rows=400)
         report = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu",
                            overwrite=True, scheduler=cluster.scheduler_address, chunk_rows=400)
-        # the work really went to the cluster: kernel tasks, dask-ms reads and writes
+        # the kernel tasks went to the cluster, the table reads and writes did not (a
+        # scheduler that unpickles dask-ms handles keeps the table open after the run)
         prefixes = set(cluster.scheduler.task_prefixes)
         assert "transfer_group" in prefixes, prefixes
-        assert len(prefixes) > 3
+        assert prefixes <= {"transfer_group", "finalize"}, prefixes
     for c, value in threads.items():
         assert np.array_equal(col(truth.target_ms, c), value), c
     assert report["rows"]["matched"] == truth.time.size

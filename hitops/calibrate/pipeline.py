@@ -85,7 +85,12 @@ class GroupPipeline:
         import dask.threaded
 
         self.run, self.group, self.tx, self.client = run, group, tx, client
+        # --scheduler sends the transfer tasks to the cluster; the tables are read and
+        # written here, on this process's threads: a graph holding dask-ms table handles
+        # would be unpickled by the cluster's scheduler, whose copies keep the table open
+        # (and read-locked) after the run, so that the next run's commit waits on them
         self.scheduler = client.get if client is not None else dask.threaded.get
+        self.io_scheduler = dask.threaded.get
         self.codes = [fpt.METHOD_CODES[m] for m in run.methods]
         n_workers = (len(client.scheduler_info()["workers"]) if client is not None
                      else (os.cpu_count() or 1))
@@ -119,7 +124,7 @@ class GroupPipeline:
         t0, t1 = self.group.bounds[k], self.group.bounds[k + 1]
         tracker = self._extent_tracker
         extent = tracker.extended(t0, t1) if tracker is not None else (t0, t1)
-        chunk = read_chunk(self.run, self.group, k, extent, self.scheduler)
+        chunk = read_chunk(self.run, self.group, k, extent, self.io_scheduler)
         if keep:
             self._cache[k] = chunk
         self.timings["read"] += time.perf_counter() - stage
@@ -211,7 +216,7 @@ class GroupPipeline:
         new_flag = chunk.tgt_flag | chunk.tgt_flag_row[:, None, None] | ~calibrated[:, None, :]
         self.tx.write_chunk(chunk.tgt_rows, chunk.tgt_data,
                             {names[c]: phasor_rows[c] for c in self.codes}, new_flag,
-                            self.scheduler)
+                            self.io_scheduler)
         self.timings["write"] += time.perf_counter() - stage
 
     # ---- the passes
@@ -282,7 +287,7 @@ class GroupPipeline:
                 chunk = self._cache[k]
             else:   # the target rows only: the reference band has done its work
                 stage = time.perf_counter()
-                chunk = read_target(self.run, self.group, k, self.scheduler)
+                chunk = read_target(self.run, self.group, k, self.io_scheduler)
                 self.timings["read"] += time.perf_counter() - stage
             part = kept.pop(k)
             stage = time.perf_counter()
