@@ -141,17 +141,7 @@ def test_calibrate_pipeline_modules_and_functions_are_small():
 
 
 def test_tracking_modules_and_functions_are_small():
-    too_long = []
-    for path in sorted((ROOT / "tracking").glob("*.py")):
-        text = path.read_text()
-        if len(text.splitlines()) > MAX_MODULE_LINES:
-            too_long.append(f"{path.name}: {len(text.splitlines())} lines")
-        for node in ast.walk(ast.parse(text)):
-            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
-                lines = node.end_lineno - node.lineno + 1
-                if lines > MAX_FUNCTION_LINES:
-                    too_long.append(f"{path.name}: {node.name}() {lines} lines")
-    assert too_long == []
+    assert _too_long(sorted((ROOT / "tracking").glob("*.py"))) == []
 
 
 def test_wrap_tracking_lives_in_hitops_tracking():
