@@ -88,23 +88,12 @@ def classify(rep_series, d_truth, z_of, flagged):
 def run_cell(workdir: Path, n_ant: int, rho: float, n_scans: int, seed: int) -> dict:
     from hitops.calibrate import calibrate
     from hitops.calibrate import offset_step as offsets
-    from hitops.tracking.antenna import AntennaTracker
-    from hitops.calibrate.synthetic import add_column, make_pair
 
-    truth = make_pair(workdir, n_ant=n_ant, n_time=600 * n_scans, n_scans=n_scans,
-                      corr_types=("RR", "LL"), step_rad=0.05, drift_rad=0.02,
-                      phase_offset_rad=1.0, ref_offset_scale=0.0, seed=seed,
-                      sigma_ref=1.1 / rho, sigma_target=1.0 / rho)
-    add_column(truth.target_ms, "MODEL_DATA", np.exp(1j * truth.source_phase)[:, None, :])
+    from .bench_offsets import antenna_scene, capture_antenna_model
+
+    truth = antenna_scene(workdir, n_ant, rho, n_scans, seed)
     captured = {}
-    original_track = AntennaTracker.track
     original_solve = offsets.antenna_offsets
-
-    def track(self, *args, **kwargs):
-        result = original_track(self, *args, **kwargs)
-        captured.update(model=result.ref_model, ant1=self.match.ant1, ant2=self.match.ant2,
-                        times=self.match.times)
-        return result
 
     def solve(*args, **kwargs):
         captured.update(args=args, kwargs=dict(kwargs))
@@ -113,15 +102,14 @@ def run_cell(workdir: Path, n_ant: int, rho: float, n_scans: int, seed: int) -> 
         captured["solve_s"] = time.perf_counter() - t0
         return result
 
-    AntennaTracker.track = track
     offsets.antenna_offsets = solve
     try:
-        t0 = time.perf_counter()
-        rep = calibrate(truth.ref_ms, truth.target_ms, tracker="antenna",
-                        offset_model="MODEL_DATA", overwrite=True, no_verdict=True)
-        wall = time.perf_counter() - t0
+        with capture_antenna_model(captured):
+            t0 = time.perf_counter()
+            rep = calibrate(truth.ref_ms, truth.target_ms, tracker="antenna",
+                            offset_model="MODEL_DATA", overwrite=True, no_verdict=True)
+            wall = time.perf_counter() - t0
     finally:
-        AntennaTracker.track = original_track
         offsets.antenna_offsets = original_solve
     if rep["chunks"] != 1:
         raise RuntimeError("one chunk expected")

@@ -27,6 +27,7 @@ Run: ``python -m benchmarks.bench_offsets [--scans N] [--trials N]``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import shutil
 import sys
@@ -48,6 +49,40 @@ def _no_verdict() -> dict:
 HALF = 360 / 43 / 2
 
 
+def antenna_scene(workdir: Path, n_ant: int, rho: float, n_scans: int, seed: int):
+    """The synthetic RR/LL pair of these benchmarks: 10-minute scans at per-sample SNR
+    ``rho``, a 1 rad phase offset, and the point-source model in MODEL_DATA."""
+    from hitops.calibrate.synthetic import add_column, make_pair
+
+    truth = make_pair(workdir, n_ant=n_ant, n_time=600 * n_scans, n_scans=n_scans,
+                      corr_types=("RR", "LL"), step_rad=0.05, drift_rad=0.02,
+                      phase_offset_rad=1.0, ref_offset_scale=0.0, seed=seed,
+                      sigma_ref=1.1 / rho, sigma_target=1.0 / rho)
+    add_column(truth.target_ms, "MODEL_DATA", np.exp(1j * truth.source_phase)[:, None, :])
+    return truth
+
+
+@contextlib.contextmanager
+def capture_antenna_model(captured: dict):
+    """Within the block, every AntennaTracker.track call stores its baselines' model phase
+    (what the target receives) and the match's ant1/ant2/times in ``captured``."""
+    from hitops.tracking.antenna import AntennaTracker
+
+    original = AntennaTracker.track
+
+    def track(self, *args, **kwargs):
+        result = original(self, *args, **kwargs)
+        captured.update(model=result.ref_model, ant1=self.match.ant1, ant2=self.match.ant2,
+                        times=self.match.times)
+        return result
+
+    AntennaTracker.track = track
+    try:
+        yield captured
+    finally:
+        AntennaTracker.track = original
+
+
 def end_to_end(workdir: Path, n_ant: int, rho: float, n_scans: int, seed: int) -> dict:
     """One calibrate run; every (scan, correlation) segment classified against the truth.
 
@@ -59,31 +94,14 @@ def end_to_end(workdir: Path, n_ant: int, rho: float, n_scans: int, seed: int) -
     A segment where d changes inside it has a tracking slip (the tracker's failure).
     """
     from hitops.calibrate import calibrate
-    from hitops.tracking.antenna import AntennaTracker
-    from hitops.calibrate.synthetic import add_column, make_pair
 
-    truth = make_pair(workdir, n_ant=n_ant, n_time=600 * n_scans, n_scans=n_scans,
-                      corr_types=("RR", "LL"), step_rad=0.05, drift_rad=0.02,
-                      phase_offset_rad=1.0, ref_offset_scale=0.0, seed=seed,
-                      sigma_ref=1.1 / rho, sigma_target=1.0 / rho)
-    add_column(truth.target_ms, "MODEL_DATA", np.exp(1j * truth.source_phase)[:, None, :])
+    truth = antenna_scene(workdir, n_ant, rho, n_scans, seed)
     captured = {}
-    original = AntennaTracker.track
-
-    def track(self, *args, **kwargs):
-        result = original(self, *args, **kwargs)
-        captured.update(model=result.ref_model, ant1=self.match.ant1, ant2=self.match.ant2,
-                        times=self.match.times)
-        return result
-
-    AntennaTracker.track = track
-    try:
+    with capture_antenna_model(captured):
         t0 = time.perf_counter()
         rep = calibrate(truth.ref_ms, truth.target_ms, tracker="antenna",
                         offset_model="MODEL_DATA", overwrite=True, **_no_verdict())
         wall = time.perf_counter() - t0
-    finally:
-        AntennaTracker.track = original
     assert rep["chunks"] == 1
     names = [s["antenna"] for s in rep["tracking"]["antennas"]]
     step = {(e["baseline"], e["correlation"], e["scan"]): e["k"]
