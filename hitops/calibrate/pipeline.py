@@ -341,9 +341,7 @@ def run_group(run, group, tx, client) -> GroupResult:
                            group.n_chunks)
     # with a robust tracker the first pass's output is kept when it fits (a fifth of the
     # budget), and the writing pass shifts it; otherwise the writing pass runs again
-    from .memory import parse_budget
-    keep = (group.tracking is not None
-            and kept_bytes(group, len(codes)) <= parse_budget(run.opts.memory_budget) // 5)
+    keep = group.tracking is not None and kept_bytes(group, len(codes)) <= run.budget // 5
     kept = {} if keep else None
     first = pipeline.run_pass(write=False, kept=kept, keep_reads=group.n_chunks == 1)
     solution = solve_offsets(run, group, first)

@@ -66,6 +66,7 @@ class RunPlan:
     target_ms: str
     columns: Columns
     chunk_rows: int
+    budget: int                     # --memory-budget in bytes (auto resolved once)
     groups: List[GroupPlan] = field(default_factory=list)
     timings: Dict[str, float] = field(default_factory=dict)
 
@@ -167,7 +168,8 @@ def build_plan(opts, methods: List[str], outputs: Dict[str, str], ref_ms: str,
                              "spectral-window groups and the table holds one; split them "
                              "(CASA split field=/spw=) and write one table per group")
     run = RunPlan(opts=opts, methods=methods, outputs=outputs, ref_ms=ref_ms,
-                  target_ms=target_ms, columns=columns, chunk_rows=chunk_rows, timings=timings)
+                  target_ms=target_ms, columns=columns, chunk_rows=chunk_rows, budget=budget,
+                  timings=timings)
     for pair in pairs:
         ref_band = _band(ref_ms, ref_groups, pair.ref.key, ref_stations.n_ant, ordered[ref_ms],
                          in_time_order[ref_ms])
