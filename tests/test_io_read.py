@@ -57,8 +57,7 @@ def test_open_groups_gives_time_order_with_row_numbers(pair):
     from casacore import tables as pt
 
     ms = str(pair.target_ms)
-    (key, ds), = msio.open_groups(ms, ["TIME", "DATA"], chunks=(100, 150, 50),
-                                  grouped=False).items()
+    (key, ds), = msio.open_groups(ms, ["TIME", "DATA"], chunks=(100, 150, 50)).items()
     assert key == (0, 0)
     with pt.table(ms, ack=False) as t:
         time, data = t.getcol("TIME"), t.getcol("DATA")
@@ -92,7 +91,7 @@ def test_time_ordered_tables_are_read_in_storage_order(pair, tmp_path):
     times[200] = times[199]
     with pt.table(sorted_ms, readonly=False, ack=False) as t:
         t.putcol("TIME", times)
-    (key, ds), = msio.open_groups(sorted_ms, ["TIME"], chunks=(100, 200), grouped=False).items()
+    (key, ds), = msio.open_groups(sorted_ms, ["TIME"], chunks=(100, 200)).items()
     rowid, got = dask.compute(ds.ROWID.data, ds.TIME.data, scheduler="sync")
     np.testing.assert_array_equal(rowid, np.arange(300))
     np.testing.assert_array_equal(got, times)

@@ -142,7 +142,12 @@ def _run(run, client, started: float) -> Dict:
     tx.check_space()
     if client is not None:
         release_cluster_tables(client)   # stale handles of an earlier run on this cluster
-        tx.create_columns()
+    # a target not stored in time order and cut into chunks is written in scattered rows
+    created = tx.create_columns(scattered=any(g.n_chunks > 1 and not g.match.tgt.time_ordered
+                                              for g in run.groups))
+    if client is not None:
+        log.info("created %s in %s before sending work to the cluster", ", ".join(created),
+                 run.target_ms)
     try:
         results = [run_group(run, group, tx, client) for group in run.groups]
         if client is not None:

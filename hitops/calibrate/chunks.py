@@ -57,7 +57,6 @@ class BandIndex:
     n_row: int
     n_ant: int
     key: tuple = (0, 0)                   # (FIELD_ID, DATA_DESC_ID) of the group
-    grouped: bool = False                 # the set holds several groups (open_groups)
     time_ordered: bool = False            # stored in time order: no sort when reopened
     ds_in_time_order: bool = True         # False: read whole in one chunk, storage order
     last_time: float = -np.inf
@@ -267,7 +266,7 @@ class ChunkMatch:
                              if p > 0)
             if len(sizes) > 1:
                 datasets = msio.open_groups(band.ms, [c for c in dict.fromkeys(cols) if c != "ROWID"],
-                                            tuple(sizes), band.grouped, band.time_ordered)
+                                            tuple(sizes), band.time_ordered)
                 # the band's only dataset from now on: the first one (and the row order
                 # dask-ms keeps for it, 8 bytes per row) can go
                 self.blocks[which] = band.ds = datasets[band.key]

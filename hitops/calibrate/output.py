@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Dict, Optional
+from typing import Dict, List, Optional
 
 import numpy as np
 
@@ -27,10 +27,16 @@ FLAG_BACKUP = "FLAG_HITOPS_BACKUP"
 STAGING_PREFIX = "HITOPS_PARTIAL_"
 STAGING_FLAG = STAGING_PREFIX + "FLAG"
 VIS_DIMS = ("row", "chan", "corr")
+#: bucket size of a StandardStMan output column (that of the simulator's and CASA's
+#: small columns)
+SSM_BUCKET_BYTES = 1 << 18
 
 
-def like_dminfo(dminfo: Dict, name: str, taken=()) -> Dict:
+def like_dminfo(dminfo: Dict, name: str, taken=(), tiled: bool = True) -> Dict:
     """A data manager of the same kind as ``dminfo`` (a column's) for new column ``name``.
+
+    ``tiled=False``: a StandardStMan whatever ``dminfo`` is (see
+    :meth:`OutputTransaction.create_columns`).
 
     ``taken``: data manager names the table already uses.  A column keeps its data
     manager's name when it is renamed, so the column a run staged as
@@ -39,11 +45,12 @@ def like_dminfo(dminfo: Dict, name: str, taken=()) -> Dict:
     """
     kind = dminfo.get("TYPE", "StandardStMan")
     spec = dminfo.get("SPEC", {})
-    if kind.startswith("Tiled"):
+    if kind.startswith("Tiled") and tiled:
         keep = {"DEFAULTTILESHAPE": spec["DEFAULTTILESHAPE"]} if "DEFAULTTILESHAPE" in spec else {}
         kind, suffix, spec = "TiledShapeStMan", "TSM", keep
     else:
-        kind, suffix, spec = "StandardStMan", "SSM", {}
+        # casacore's default bucket is 256 bytes: millions of buckets for a large table
+        kind, suffix, spec = "StandardStMan", "SSM", {"BUCKETSIZE": SSM_BUCKET_BYTES}
     dm_name, n = f"{name}_{suffix}", 1
     while dm_name in set(taken):
         n += 1
@@ -108,13 +115,21 @@ class OutputTransaction:
         access.require_free_space(self.target_ms, n_bytes,
                                   f"{', '.join(self.outputs.values())} and FLAG")
 
-    def create_columns(self) -> None:
-        """Create the staging columns now (before a cluster opens the table).
+    def create_columns(self, scattered: bool = False) -> List[str]:
+        """Create the staging columns before anything is read or written.
 
-        dask-ms adds a missing column while it builds the write graph, in this
-        process; a dask.distributed scheduler and its workers that still hold the
-        table open from the reads keep the old column list, and casacore then
-        refuses to open it again ("another process changed the number of columns").
+        Each takes the description of the column it copies and a data manager of
+        the same kind (:func:`like_dminfo`): a tiled DATA gives tiled outputs, which
+        take a time-ordered table's chunks as sequential writes (10^7 rows: 0.46 s
+        against 2.06 s for the StandardStMan column dask-ms would add).
+        ``scattered``: the chunks' rows are spread over the whole table (a table
+        not stored in time order, cut into several chunks); a tiled column would
+        then rewrite, and cache, every tile for each chunk (1.6 GB peak against
+        1.4 GB measured at 10^7 rows), so the outputs take a StandardStMan.
+        Created here rather than by dask-ms's write: a dask.distributed scheduler
+        and its workers that hold the table open keep the old column list, and
+        casacore then refuses to open it again ("another process changed the
+        number of columns").
         """
         from casacore import tables as pt
 
@@ -126,9 +141,9 @@ class OutputTransaction:
                 desc = t.getcoldesc(like)
                 desc["name"] = name
                 t.addcols(pt.makecoldesc(name, desc),
-                          like_dminfo(t.getdminfo(like), name, dm_names(t)))
-        log.info("created %s in %s before sending work to the cluster",
-                 ", ".join(n for n, _ in new), self.target_ms)
+                          like_dminfo(t.getdminfo(like), name, dm_names(t),
+                                      tiled=not scattered))
+        return [n for n, _ in new]
 
     def write_chunk(self, rows: np.ndarray, data: np.ndarray, phasors: Dict[str, np.ndarray],
                     new_flag: np.ndarray, scheduler=None) -> None:

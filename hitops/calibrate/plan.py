@@ -147,11 +147,9 @@ def build_plan(opts, methods: List[str], outputs: Dict[str, str], ref_ms: str,
     one_chunk = sum(n_rows.values()) <= 2 * chunk_rows and max(n_rows.values()) <= chunk_rows
     in_time_order = {ms: not (one_chunk and not ordered[ms]) for ms in ordered}
     ref_groups = msio.open_groups(ref_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.ref + columns.snr)),
-                                  io_rows, grouped=bool(msio.selection_columns(ref_ms)),
-                                  time_ordered=ordered[ref_ms] or one_chunk)
+                                  io_rows, time_ordered=ordered[ref_ms] or one_chunk)
     tgt_groups = msio.open_groups(target_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.tgt)),
-                                  io_rows, grouped=bool(msio.selection_columns(target_ms)),
-                                  time_ordered=ordered[target_ms] or one_chunk)
+                                  io_rows, time_ordered=ordered[target_ms] or one_chunk)
     timings["open"] = time.perf_counter() - stage
     ref_stations = read_stations(ref_ms, "reference-band Measurement Set")
     tgt_stations = read_stations(target_ms, "target-band Measurement Set")
@@ -184,7 +182,7 @@ def _band(ms: str, datasets: Dict, key, n_ant: int, time_ordered: bool,
           in_time_order: bool) -> BandIndex:
     ds = datasets[key]
     return BandIndex(ms=ms, ds=ds, n_ant=n_ant, n_row=int(ds.sizes["row"]), key=key,
-                     grouped=len(datasets) > 1, time_ordered=time_ordered,
+                     time_ordered=time_ordered,
                      ds_in_time_order=in_time_order)
 
 
