@@ -154,3 +154,22 @@ def test_window_counts_that_cannot_pair_are_refused(merged, tmp_path):
                                                   r".*and 1 in .*one-window.ms"):
         calibrate(ref, tgt, method="pwc")
     assert json.dumps(sorted(pt.table(tgt, ack=False).colnames())) == before
+
+
+def test_one_group_of_a_set_with_two_field_rows_in_several_chunks(tmp_path):
+    """A set whose FIELD table has two rows but whose rows all use the second (a split
+    that kept the FIELD table) is one group; cut into chunks and sorted by TIME it is
+    reopened under the same group key (the reopen once dropped the grouping and asked
+    for field 0) and gives what the plain set gives."""
+    truth = make_pair(tmp_path / "plain", n_ant=4, n_time=600, seed=3)
+    ref, tgt = str(tmp_path / "ref.ms"), str(tmp_path / "tgt.ms")
+    shutil.copytree(truth.ref_ms, ref)
+    shutil.copytree(truth.target_ms, tgt)
+    for ms in (ref, tgt):
+        _copy_row(ms, ms, "FIELD", NAME="M87")
+        with pt.table(ms, readonly=False, ack=False) as t:
+            t.putcol("FIELD_ID", np.ones(t.nrows(), np.int32))
+    plain = calibrate(truth.ref_ms, truth.target_ms, method="pwc", chunk_rows=1000)
+    moved = calibrate(ref, tgt, method="pwc", chunk_rows=1000)
+    assert plain["chunks"] == moved["chunks"] > 2
+    np.testing.assert_array_equal(col(tgt, "PWC_DATA"), col(truth.target_ms, "PWC_DATA"))

@@ -128,24 +128,32 @@ def open_groups(ms: str, columns: Sequence[str], chunks,
     and ``index_cols=["TIME"]``): each dataset holds the rows of one field and
     spectral window sorted by TIME, with their row numbers in ``ROWID``, so a
     time chunk is a contiguous slice of it whatever the table's storage order
-    (baseline-major, shuffled or time-ordered).  A set with one field and one
-    spectral window is grouped too: dask-ms's grouping query costs less than its
-    plain ordering query (measured on 10^7 rows: 0.7 s against 1.45 s in storage
-    order, 1.2 s against 4.6 s sorted by TIME; docs/performance.md).  ``chunks``:
-    rows per dask block, or a tuple of block sizes (one block per time chunk).
+    (baseline-major, shuffled or time-ordered).  ``chunks``: rows per dask
+    block, or a tuple of block sizes (one block per time chunk).
     ``time_ordered``: the table is stored in time order (:func:`is_time_ordered`;
     checked when None), so the storage order is already the time order and
     dask-ms's sort is skipped.
+
+    Which dask-ms query (measured on 10^7 rows per band, docs/performance.md):
+    in storage order the grouping query costs less than the plain one (0.7 s
+    against 1.45 s), so every set is grouped; sorted by TIME the grouping query
+    is faster (1.2 s against 4.6 s) but holds more for the whole run (1.34-1.57 GB
+    peak against 1.15 GB for the 10^7-row baseline-major pair, and 1138 MB
+    against 964 MB at 4 x 10^6 rows, over the 1 GB default budget), so a set
+    with one field and one spectral window (:func:`selection_columns`) is sorted
+    by the plain query and returned under (0, 0).
     """
     from daskms import xds_from_ms
 
     if time_ordered is None:
         time_ordered = is_time_ordered(ms)
+    grouped = time_ordered or bool(selection_columns(ms))
     datasets = xds_from_ms(ms, columns=list(columns), index_cols=[] if time_ordered else ["TIME"],
-                           group_cols=list(GROUP_COLUMNS), chunks={"row": chunks})
+                           group_cols=list(GROUP_COLUMNS) if grouped else [],
+                           chunks={"row": chunks})
     out = {}
     for ds in datasets:
-        key = (int(ds.attrs["FIELD_ID"]), int(ds.attrs["DATA_DESC_ID"]))
+        key = (int(ds.attrs.get("FIELD_ID", 0)), int(ds.attrs.get("DATA_DESC_ID", 0)))
         _SOURCES[ds] = ms
         out[key] = ds
     return out
