@@ -110,7 +110,7 @@ def test_no_import_cycles_in_hitops():
 
 #: the calibrate pipeline's stages (api -> inputs -> plan -> pipeline -> report, with the
 #: modules they call): held to the same limits as hitops/tracking
-PIPELINE_MODULES = ("api", "inputs", "plan", "tracking_setup", "chunk_read", "pipeline",
+PIPELINE_MODULES = ("api", "inputs", "plan", "tracking_setup", "band_index", "chunk_read", "pipeline",
                     "offset_step", "report", "transfer", "output", "groups", "memory", "chunks")
 
 

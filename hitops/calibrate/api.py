@@ -31,7 +31,7 @@ from ..errors import InputError
 from ..io import access
 from ..io import read as msio
 from ..options import make_options
-from .chunks import INDEX_COLUMNS
+from .band_index import INDEX_COLUMNS
 from .inputs import check_inputs, parse_methods
 from .output import OutputTransaction, drop_stale_columns, release_cluster_tables
 

@@ -16,7 +16,8 @@ import numpy as np
 
 from ..io import read as msio
 from ..tracking.grid import gather_grid
-from .chunks import ROW_COLUMNS, ChunkRows
+from .band_index import ROW_COLUMNS
+from .chunks import ChunkRows
 
 
 @dataclass

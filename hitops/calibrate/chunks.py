@@ -1,21 +1,21 @@
 """Matching the two bands chunk by chunk, so memory is bounded by ``--chunk-rows``.
 
 Matching every row at once would hold each row's metadata and index
-(~120 bytes per row and band, measured); here nothing per row stays in memory for
-tables stored in time order (the rows of a time chunk follow each other and
-are found from each time's row count), and only the TIME column (8 bytes per
-row and band) for tables that are not (baseline-major or shuffled).  The rest
-is per block of rows or per time chunk:
+(~120 bytes per row and band, measured); here what stays per row is each row's
+antenna pair (2 bytes per row and band, for a band read in several blocks) and
+what dask-ms keeps for the datasets it opens.  The rest is per block of rows or
+per time chunk:
 
-1. :func:`index_bands` reads the per-row metadata in blocks of at most
-   ``block_rows`` rows and keeps small summaries (distinct times, antenna
-   pairs, scans, smallest INTERVAL, data descriptions and fields);
+1. :func:`hitops.calibrate.band_index.index_bands` reads the per-row metadata
+   in blocks of at most ``block_rows`` rows and keeps small summaries (distinct
+   times, antenna pairs, scans, smallest INTERVAL) and the rows' pair keys;
 2. :class:`ChunkMatch` builds the union time axis, the target baselines and
    the reference-pair tables from those summaries (sizes n_time, n_bl,
-   n_ant^2, none per row);
-3. :meth:`ChunkMatch.check` reads each time chunk's TIME/ANTENNA1/ANTENNA2/
-   SCAN_NUMBER, checks for duplicate cells, counts matched rows and fills the
-   scan of each time, all before anything is written;
+   n_ant^2);
+3. :meth:`ChunkMatch.check` takes each time chunk's baselines and times (from
+   the pair keys and the rows' positions, or read again when they were not
+   kept), checks for duplicate cells, counts matched rows and fills the scan
+   of each time, all before anything is written;
 4. :meth:`ChunkMatch.row_numbers` and :meth:`ChunkMatch.index_rows` give a
    chunk's row numbers, baseline and time indices when it is processed.
 
@@ -26,139 +26,17 @@ station and correlation maps), so the result equals the whole-track match.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, List, Optional
+from typing import Dict, List
 
 import numpy as np
 
 from ..errors import MeasurementSetError
 from ..io import read as msio
 from ..io.layout import unique_times
-from ..io.match import (correlation_map, distinct_counts, distinct_ints, pair_antennas,
-                        pairing_table)
+from ..io.match import correlation_map, pair_antennas, pairing_table
 from ..io.stations import Stations
 from ..io.ms_create import CORR_NAMES
-
-#: per-row columns read in the first (index) pass
-INDEX_COLUMNS = ["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER", "INTERVAL", "FLAG_ROW"]
-#: per-row columns a chunk needs
-ROW_COLUMNS = ["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER", "FLAG_ROW"]
-
-
-@dataclass
-class BandIndex:
-    """Summary of one band's (field, spectral window) group; nothing is kept per row.
-
-    ``ds`` is the group's dask-ms dataset in time order (:func:`hitops.io.read.open_groups`),
-    so the rows of any time range are one contiguous slice of it.
-    """
-
-    ms: str
-    ds: object
-    n_row: int
-    n_ant: int
-    key: tuple = (0, 0)                   # (FIELD_ID, DATA_DESC_ID) of the group
-    time_ordered: bool = False            # stored in time order: no sort when reopened
-    ds_in_time_order: bool = True         # False: read whole in one chunk, storage order
-    last_time: float = -np.inf
-    unique_time: np.ndarray = None        # sorted distinct TIME values
-    time_rows: np.ndarray = None          # rows at each distinct TIME value
-    row_start: np.ndarray = None          # first row (dataset position) of each distinct TIME
-    pair_present: np.ndarray = None       # (n_ant * n_ant,) ANTENNA1 * n_ant + ANTENNA2 used
-    scans: np.ndarray = None
-    min_interval: float = np.inf
-    whole: Optional[Dict[str, np.ndarray]] = None   # every row's metadata, when one block
-
-    def rows_in(self, lo: float, hi: float) -> slice:
-        """Dataset positions of the rows with lo <= TIME < hi (they follow each other)."""
-        if not self.ds_in_time_order:
-            raise RuntimeError(f"{self.ms}: a part of the track was asked of a band read in "
-                               "storage order (one chunk only); this is a hitops bug")
-        u0, u1 = np.searchsorted(self.unique_time, [lo, hi])
-        return slice(int(self.row_start[u0]), int(self.row_start[u1]))
-
-
-def index_bands(bands: List[BandIndex], columns: List[List[str]], block_rows: int,
-                scheduler=None) -> None:
-    """Fill each :class:`BandIndex` from blocks of at most ``block_rows`` rows.
-
-    Blocks of both bands are read in one dask call (the tables concurrently),
-    as slices of each band's dataset (whose dask blocks are ``block_rows``
-    long).  A band that fits in one block keeps that block's metadata in
-    ``whole`` (it is bounded by ``block_rows`` and saves reading it again).
-    """
-    for band in bands:
-        band.pair_present = np.zeros(band.n_ant * band.n_ant, dtype=bool)
-    parts = {id(b): {"unique": np.zeros(0), "counts": np.zeros(0, np.int64), "scans": []}
-             for b in bands}
-    n_blocks = max(-(-b.n_row // block_rows) for b in bands)
-    for k in range(n_blocks):
-        requests, which = [], []
-        for band, cols in zip(bands, columns):
-            a, b = k * block_rows, min(band.n_row, (k + 1) * block_rows)
-            if a < b:
-                one_block = a == 0 and b == band.n_row
-                requests.append((band.ds, list(cols) + (["ROWID"] if one_block else []),
-                                 slice(a, b)))
-                which.append((band, a, b))
-        for (band, a, b), meta in zip(which, msio.compute_columns(requests, scheduler)):
-            _summarise_block(band, a, b, meta, parts[id(band)])
-            if a == 0 and b == band.n_row:
-                band.whole = {c: meta[c] for c in ROW_COLUMNS + ["ROWID"]}
-    for band in bands:
-        p = parts[id(band)]
-        band.unique_time, band.time_rows = p["unique"], p["counts"]
-        band.scans = np.unique(np.concatenate(p["scans"]))
-        band.row_start = np.concatenate([[0], np.cumsum(band.time_rows)])
-
-
-def _summarise_block(band: BandIndex, a: int, b: int, meta: Dict[str, np.ndarray], p) -> None:
-    t = np.asarray(meta["TIME"], dtype=np.float64)
-    if not np.all(np.isfinite(t)):
-        bad = int(np.flatnonzero(~np.isfinite(t))[0])
-        row = int(meta["ROWID"][bad]) if "ROWID" in meta else a + bad
-        raise MeasurementSetError(f"{band.ms}: TIME of row {row} is {t[bad]}; rows without "
-                                  "a valid time cannot be matched: remove them (CASA split "
-                                  "with a time range) or repair the TIME column")
-    if not band.ds_in_time_order:
-        if not (a == 0 and b == band.n_row):
-            raise RuntimeError(f"{band.ms}: a band read in storage order must be one block; "
-                               "this is a hitops bug")
-        t = np.sort(t)   # the band's only block: its summaries need the times in order
-    elif t.size and (np.any(t[1:] < t[:-1]) or t[0] < band.last_time):
-        # dask-ms sorted the group by TIME (open_groups); anything else is a changed table
-        raise MeasurementSetError(f"{band.ms}: TIME changed while it was being read; run "
-                                  "again when nothing else writes to the set")
-    if t.size:
-        band.last_time = float(t[-1])
-    values, counts = distinct_counts(t)   # one pass: the block is in time order
-    p["unique"], p["counts"] = _merge_time_counts(p["unique"], p["counts"], values, counts)
-    key = meta["ANTENNA1"].astype(np.int64) * band.n_ant + meta["ANTENNA2"]
-    if key.size and (key.min() < 0 or key.max() >= band.pair_present.size):
-        raise MeasurementSetError(f"{band.ms}: ANTENNA1/ANTENNA2 hold indices outside the "
-                                  f"ANTENNA table ({band.n_ant} rows); the set is damaged")
-    band.pair_present |= np.bincount(key, minlength=band.pair_present.size) > 0
-    p["scans"].append(distinct_ints(meta["SCAN_NUMBER"]))
-    iv = np.asarray(meta["INTERVAL"], dtype=np.float64)
-    iv = iv[np.isfinite(iv) & (iv > 0)]
-    if iv.size:
-        band.min_interval = min(band.min_interval, float(iv.min()))
-
-
-def _merge_time_counts(known, known_counts, values, counts):
-    """Distinct times and rows per time, merged block by block.
-
-    The merged list stays n_time long: a baseline-major table has nearly every
-    time in every block, so keeping each block's own list would cost ~n_row.
-    """
-    at = np.searchsorted(known, values)
-    if known.size and at[-1] < known.size and np.array_equal(known[at], values):
-        # every time of the block was seen before (baseline-major tables after the
-        # first baseline): add the counts in place of a new sort
-        return known, known_counts + np.bincount(at, weights=counts,
-                                                 minlength=known.size).astype(np.int64)
-    merged, inverse = np.unique(np.concatenate([known, values]), return_inverse=True)
-    return merged, np.bincount(inverse, weights=np.concatenate([known_counts, counts]),
-                               minlength=merged.size).astype(np.int64)
+from .band_index import ROW_COLUMNS, BandIndex
 
 
 @dataclass
@@ -314,9 +192,14 @@ class ChunkMatch:
         """
         kept = None
         cols = ["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER"]
+        from_index = self.tgt.pair_key is not None and self.ref.pair_key is not None
         for t0, t1 in zip(bounds[:-1], bounds[1:]):
             t_rows = self.row_numbers("tgt", t0, t1)
             r_rows = self.row_numbers("ref", t0, t1)
+            if from_index:   # nothing to read (hitops/calibrate/band_index.py)
+                self._check_chunk(self._indexed_rows("tgt", t_rows),
+                                  self._indexed_rows("ref", r_rows), t0, t1)
+                continue
             if self.tgt.whole is not None and self.ref.whole is not None:
                 t_meta = self.read_meta("tgt", t_rows, ROW_COLUMNS + ["ROWID"])
                 r_meta = self.read_meta("ref", r_rows, ROW_COLUMNS + ["ROWID"])
@@ -329,6 +212,9 @@ class ChunkMatch:
             self._check_chunk(tgt, ref, t0, t1)
             if len(bounds) == 2 and keep_single and "FLAG_ROW" in t_meta:
                 kept = (tgt, ref)
+        if from_index:   # the last row's scan at each time wins, as row by row
+            for band, group in ((self.ref, self.ref_group), (self.tgt, self.tgt_group)):
+                self.scan_of_time[group] = np.searchsorted(self.scans, band.time_scan)
         if self.n_matched == 0:
             raise MeasurementSetError(
                 f"no row of {self.tgt.ms} has a counterpart in {self.ref.ms} at the same time "
@@ -355,8 +241,21 @@ class ChunkMatch:
         self.n_matched += int(np.count_nonzero(has_ref[t_cells]))
         self.n_ref_unused += int(ref.bl.size - np.count_nonzero(has_tgt[r_cells]))
         # target's SCAN_NUMBER where the target has a row at that time, else the reference's
-        self.scan_of_time[ref.time] = np.searchsorted(self.scans, ref.scan)
-        self.scan_of_time[tgt.time] = np.searchsorted(self.scans, tgt.scan)
+        if tgt.scan is not None:
+            self.scan_of_time[ref.time] = np.searchsorted(self.scans, ref.scan)
+            self.scan_of_time[tgt.time] = np.searchsorted(self.scans, tgt.scan)
+
+    def _indexed_rows(self, which: str, rows: slice) -> ChunkRows:
+        """A chunk's baselines and times from the index pass's pair keys (no read)."""
+        band, group = (self.tgt, self.tgt_group) if which == "tgt" else (self.ref, self.ref_group)
+        u0, u1 = np.searchsorted(band.row_start, [rows.start, rows.stop])
+        time = group[np.repeat(np.arange(u0, u1), band.time_rows[u0:u1])].astype(np.int32)
+        key = band.pair_key[rows]
+        if which == "tgt":
+            return ChunkRows(rows=None, bl=self.tgt_pair_bl[key], time=time, swapped=None,
+                             flag_row=None, scan=None)
+        return ChunkRows(rows=None, bl=self.ref_pair_bl[key], time=time,
+                         swapped=self.ref_pair_swapped[key], flag_row=None, scan=None)
 
     def split_at_gaps(self, min_gap_s: float) -> List[tuple]:
         """Start a new tracking scan at every time gap longer than ``min_gap_s``.

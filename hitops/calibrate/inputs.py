@@ -16,7 +16,7 @@ from typing import Dict, List, Optional
 from ..errors import InputError, OutputExistsError
 from ..io import read as msio
 from ..tracking.options import check_options as check_tracking_numbers
-from .chunks import INDEX_COLUMNS
+from .band_index import INDEX_COLUMNS
 from .offsets import is_point_model
 from .output import FLAG_BACKUP, STAGING_PREFIX
 

@@ -8,11 +8,13 @@ run's peak resident memory is fitted to peaks measured on this machine
 * a fixed part: the interpreter with numba, dask, dask-ms and python-casacore
   loaded (about 160 MB; 300 MB with a margin);
 * a part per row of both bands for the whole run: the row numbers dask-ms
-  keeps for each band and the TaQL selection behind them, 24 bytes per row for
-  a table stored in time order or read whole in one chunk (21 measured at 10^7
-  rows per band) and 40 for one dask-ms must sort to cut it into chunks (37-38
-  measured at 4 x 10^6 and 10^7 rows; see :func:`hitops.io.read.open_groups`
-  for why that sort does not use dask-ms's grouping query);
+  keeps for each band and the TaQL selection behind them, and each row's
+  antenna pair kept by the index pass (2 bytes; hitops/calibrate/band_index.py):
+  26 bytes per row for a table stored in time order or read whole in one chunk
+  (21 measured at 10^7 rows per band before the pair keys were kept) and 42 for
+  one dask-ms must sort to cut it into chunks (37-38 measured before; see
+  :func:`hitops.io.read.open_groups` for why that sort does not use dask-ms's
+  grouping query);
 * a part per target row of a time chunk (both bands' visibilities, flags, the
   (baseline, time) grids, phasors and outputs): about 96 bytes per correlation
   plus 30 per correlation and method, and the per-channel columns again for
@@ -33,8 +35,8 @@ DEFAULT_CEILING = 1_000_000_000
 FIXED_BYTES = 300_000_000
 #: bytes per row (both bands) that dask-ms keeps for the whole run: its row numbers and
 #: the TaQL selection behind them, for a table in time order and for one it sorts
-ORDER_BYTES_PER_ROW = 24
-UNSORTED_ORDER_BYTES_PER_ROW = 40
+ORDER_BYTES_PER_ROW = 26
+UNSORTED_ORDER_BYTES_PER_ROW = 42
 #: the fewest target rows per chunk a run uses when the default budget cannot be kept
 MIN_CHUNK_ROWS = 100_000
 UNITS = {"": 1, "B": 1, "KB": 1e3, "MB": 1e6, "GB": 1e9, "TB": 1e12,

@@ -22,7 +22,8 @@ from ..errors import InputError, MeasurementSetError
 from ..io import read as msio
 from ..io.match import parse_antenna_map
 from ..io.stations import read_stations
-from .chunks import INDEX_COLUMNS, ROW_COLUMNS, BandIndex, ChunkMatch, index_bands
+from .band_index import INDEX_COLUMNS, ROW_COLUMNS, BandIndex, index_bands
+from .chunks import ChunkMatch
 from .groups import GroupPair, describe_groups, pair_groups
 from .inputs import Columns
 
