@@ -203,8 +203,9 @@ baseline by baseline, i.e. not in time order); `python -m benchmarks.bench_scali
 With --chunk-rows {CHUNK_ROWS:,} the peak grows by {slope:.0f} bytes per row per band
 between the two largest tracks (peak RSS ~ rows^{e_rss[0]:.2f} over all points,
 {e_rss[1]:.2f} between the two largest).  calibrate reads and matches the per-row
-metadata chunk by chunk (hitops/calibrate/chunks.py); what stays for the whole track is
-per time (the union time axis, each time's scan and row count) and what dask-ms keeps
+metadata chunk by chunk (hitops/calibrate/band_index.py, chunks.py); what stays for the whole
+track is per time (the union time axis, each time's scan and row count), each row's antenna
+pair (2 bytes per row and band) and what dask-ms keeps
 per row of each band it opens (its row numbers and the TaQL selection behind them,
 and for a table not stored in time order like these the sort of it: about 37 bytes
 per row of both bands here, 21 for a table in time order).  The default chunk follows
@@ -212,8 +213,9 @@ from the memory budget (1 GB here; hitops/calibrate/memory.py): a run that fits 
 one chunk is read in storage order without the sort; a larger one is cut so that its
 peak stays within the budget, down to a floor of 100,000 rows per chunk with a warning
 when the whole-run part alone leaves no room (the 10^7-row baseline-major pair).  Several
-chunks cost time: each chunk's metadata are read twice (the checks before any write,
-then with the data) and a baseline-major table is read in many short runs.
+chunks cost time: each chunk's metadata are read again with its data (the checks before
+any write take them from the index pass) and a baseline-major table is read in many short
+runs.
 """
 
 
