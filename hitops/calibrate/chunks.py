@@ -117,9 +117,13 @@ class ChunkMatch:
         hi = band.unique_time[u1] if u1 < group.size else np.inf
         return lo, hi
 
+    def _side(self, which: str):
+        """("tgt" or "ref") -> that band's index and its distinct times' union time indices."""
+        return (self.tgt, self.tgt_group) if which == "tgt" else (self.ref, self.ref_group)
+
     def row_numbers(self, which: str, t0: int, t1: int) -> slice:
         """Dataset positions of a band's rows whose union time index is in [t0, t1)."""
-        band, group = (self.tgt, self.tgt_group) if which == "tgt" else (self.ref, self.ref_group)
+        band, group = self._side(which)
         if t0 <= 0 and t1 >= self.n_time:
             return slice(0, band.n_row)
         return band.rows_in(*self._time_range(band, group, t0, t1))
@@ -167,7 +171,7 @@ class ChunkMatch:
         return msio.compute_columns([(band.ds, columns, rows)], scheduler)[0]
 
     def index_rows(self, which, meta) -> ChunkRows:
-        band, group = (self.tgt, self.tgt_group) if which == "tgt" else (self.ref, self.ref_group)
+        band, group = self._side(which)
         from ..kernels.sorted_runs import lookup_sorted
 
         # every TIME is one of the band's distinct times (read from the same column)
@@ -175,14 +179,30 @@ class ChunkMatch:
         if at.size and at.min() < 0:
             raise MeasurementSetError(f"{band.ms}: TIME changed while it was being read; "
                                       "run again when nothing else writes to the set")
-        time = group.astype(np.int32)[at]
         key = meta["ANTENNA1"].astype(np.int64) * band.n_ant + meta["ANTENNA2"]
+        return self._on_grid(which, key, group.astype(np.int32)[at], meta.get("SCAN_NUMBER"),
+                             rows=meta.get("ROWID"), flag_row=meta.get("FLAG_ROW"))
+
+    def _on_grid(self, which: str, key, time, scan, rows=None, flag_row=None) -> ChunkRows:
+        """:class:`ChunkRows` of a band's rows from their antenna-pair keys and union times."""
         if which == "tgt":
             bl, swapped = self.tgt_pair_bl[key], None
         else:
             bl, swapped = self.ref_pair_bl[key], self.ref_pair_swapped[key]
-        return ChunkRows(rows=meta.get("ROWID"), bl=bl, time=time, swapped=swapped,
-                         flag_row=meta.get("FLAG_ROW"), scan=meta.get("SCAN_NUMBER"))
+        return ChunkRows(rows=rows, bl=bl, time=time, swapped=swapped, flag_row=flag_row,
+                         scan=scan)
+
+    def _indexed_rows(self, which: str, rows: slice) -> ChunkRows:
+        """A chunk's baselines, times and scans from the index pass (nothing read).
+
+        Each row takes the scan of the last row at its time, which is what
+        filling ``scan_of_time`` row by row leaves there.
+        """
+        band, group = self._side(which)
+        u0, u1 = np.searchsorted(band.row_start, [rows.start, rows.stop])
+        at = np.repeat(np.arange(u0, u1), band.time_rows[u0:u1])
+        return self._on_grid(which, band.pair_key[rows], group[at].astype(np.int32),
+                             band.time_scan[at])
 
     def check(self, bounds: List[int], scheduler=None, keep_single: bool = True):
         """Check every chunk's cells, count matches, fill scan_of_time (before any write).
@@ -212,9 +232,6 @@ class ChunkMatch:
             self._check_chunk(tgt, ref, t0, t1)
             if len(bounds) == 2 and keep_single and "FLAG_ROW" in t_meta:
                 kept = (tgt, ref)
-        if from_index:   # the last row's scan at each time wins, as row by row
-            for band, group in ((self.ref, self.ref_group), (self.tgt, self.tgt_group)):
-                self.scan_of_time[group] = np.searchsorted(self.scans, band.time_scan)
         if self.n_matched == 0:
             raise MeasurementSetError(
                 f"no row of {self.tgt.ms} has a counterpart in {self.ref.ms} at the same time "
@@ -241,21 +258,8 @@ class ChunkMatch:
         self.n_matched += int(np.count_nonzero(has_ref[t_cells]))
         self.n_ref_unused += int(ref.bl.size - np.count_nonzero(has_tgt[r_cells]))
         # target's SCAN_NUMBER where the target has a row at that time, else the reference's
-        if tgt.scan is not None:
-            self.scan_of_time[ref.time] = np.searchsorted(self.scans, ref.scan)
-            self.scan_of_time[tgt.time] = np.searchsorted(self.scans, tgt.scan)
-
-    def _indexed_rows(self, which: str, rows: slice) -> ChunkRows:
-        """A chunk's baselines and times from the index pass's pair keys (no read)."""
-        band, group = (self.tgt, self.tgt_group) if which == "tgt" else (self.ref, self.ref_group)
-        u0, u1 = np.searchsorted(band.row_start, [rows.start, rows.stop])
-        time = group[np.repeat(np.arange(u0, u1), band.time_rows[u0:u1])].astype(np.int32)
-        key = band.pair_key[rows]
-        if which == "tgt":
-            return ChunkRows(rows=None, bl=self.tgt_pair_bl[key], time=time, swapped=None,
-                             flag_row=None, scan=None)
-        return ChunkRows(rows=None, bl=self.ref_pair_bl[key], time=time,
-                         swapped=self.ref_pair_swapped[key], flag_row=None, scan=None)
+        self.scan_of_time[ref.time] = np.searchsorted(self.scans, ref.scan)
+        self.scan_of_time[tgt.time] = np.searchsorted(self.scans, tgt.scan)
 
     def split_at_gaps(self, min_gap_s: float) -> List[tuple]:
         """Start a new tracking scan at every time gap longer than ``min_gap_s``.

@@ -60,8 +60,8 @@ def like_dminfo(dminfo: Dict, name: str, taken=(), scattered: bool = False) -> D
         kind, suffix, spec = "TiledShapeStMan", "TSM", keep
     else:
         kind, suffix, spec = "StandardStMan", "SSM", {"BUCKETSIZE": SSM_BUCKET_BYTES}
-    dm_name, n = f"{name}_{suffix}", 1
-    while dm_name in set(taken):
+    taken, dm_name, n = set(taken), f"{name}_{suffix}", 1
+    while dm_name in taken:
         n += 1
         dm_name = f"{name}_{suffix}{n}"
     return {"TYPE": kind, "NAME": dm_name, "SPEC": spec}
