@@ -28,7 +28,8 @@ from hitops.calibrate import calibrate
 from hitops.calibrate.synthetic import make_pair
 from hitops.errors import InputError, OutputExistsError, StationError
 from hitops.io import convert
-from hitops.io.uvfits import _bintable, _card, export_uvfits, read_headers
+from hitops.io.fits import bintable as _bintable, card as _card, read_headers
+from hitops.io.uvfits import export_uvfits
 
 REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "eht2017-m87"
 EHT_LO = REALDATA / "SR1_M87_2017_095_lo_hops_netcal_StokesI.uvfits"

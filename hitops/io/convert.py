@@ -117,7 +117,7 @@ def detect_format(path, role: str = "input") -> str:
 
 def _hdus(path: str, role: str):
     """Headers of every HDU with their data offsets and sizes (data not read)."""
-    from .uvfits import read_headers
+    from .fits import read_headers
 
     size = os.path.getsize(path)
     try:
