@@ -152,3 +152,37 @@ def test_wrap_tracking_lives_in_hitops_tracking():
     calibrate_side = [n for n in graph if n.startswith(("hitops.calibrate", "hitops.tracking"))]
     assert not [n for n in calibrate_side if "hitops.simulate.geometry" in graph[n]]
     assert "hitops.geometry" in graph["hitops.simulate.geometry"]
+
+
+#: issue 25: hitops/io held to 450 lines a module and 100 a function
+IO_MAX_MODULE_LINES = 450
+IO_MAX_FUNCTION_LINES = 100
+
+
+def _over_limits(paths, max_module_lines: int, max_function_lines: int):
+    """'<file>: N lines' / '<file>: f() N lines' for every module and function over the limits."""
+    over = []
+    for path in paths:
+        text = path.read_text()
+        n_lines = len(text.splitlines())
+        if n_lines > max_module_lines:
+            over.append(f"{path.name}: {n_lines} lines")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                lines = node.end_lineno - node.lineno + 1
+                if lines > max_function_lines:
+                    over.append(f"{path.name}: {node.name}() {lines} lines")
+    return over
+
+
+def test_the_io_size_check_sees_a_long_module_and_function(tmp_path):
+    long = tmp_path / "long.py"
+    long.write_text("def f():\n" + "    x = 1\n" * IO_MAX_MODULE_LINES)
+    assert _over_limits([long], IO_MAX_MODULE_LINES, IO_MAX_FUNCTION_LINES) == [
+        f"long.py: {IO_MAX_MODULE_LINES + 1} lines", f"long.py: f() {IO_MAX_MODULE_LINES + 1} lines"]
+
+
+def test_io_modules_and_functions_are_small():
+    paths = sorted((ROOT / "io").glob("*.py"))
+    assert len(paths) > 10
+    assert _over_limits(paths, IO_MAX_MODULE_LINES, IO_MAX_FUNCTION_LINES) == []
