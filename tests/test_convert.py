@@ -24,11 +24,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate, rules
 from hitops.calibrate.synthetic import make_pair
 from hitops.errors import InputError, OutputExistsError, StationError
 from hitops.io import convert
-from hitops.io.uvfits import _bintable, _card, export_uvfits, read_headers
+from hitops.io.fits import bintable as _bintable, card as _card, read_headers
+from hitops.io.uvfits import export_uvfits
 
 REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "eht2017-m87"
 EHT_LO = REALDATA / "SR1_M87_2017_095_lo_hops_netcal_StokesI.uvfits"
@@ -367,10 +368,10 @@ def test_caltable_checks_for_the_lead(demo, tmp_path):
     # --caltable is wired): the antenna tracker is needed, an existing table needs --overwrite
     _, _, files = demo
     with pytest.raises(InputError, match=r"--caltable '.*x\.G' needs --tracker antenna"):
-        convert.prepare_inputs(files["86"], files["230"], str(tmp_path / "w"),
-                               caltable=str(tmp_path / "x.G"), tracker="count")
+        rules.prepare_inputs(files["86"], files["230"], str(tmp_path / "w"),
+                             caltable=str(tmp_path / "x.G"), tracker="count")
     (tmp_path / "old.G").mkdir()
     with pytest.raises(OutputExistsError, match=r"--caltable '.*old\.G' exists; pass --overwrite"):
-        convert.prepare_inputs(files["86"], files["230"], str(tmp_path / "w"),
-                               caltable=str(tmp_path / "old.G"), tracker="antenna")
+        rules.prepare_inputs(files["86"], files["230"], str(tmp_path / "w"),
+                             caltable=str(tmp_path / "old.G"), tracker="antenna")
     assert not (tmp_path / "w").exists()

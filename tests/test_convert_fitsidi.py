@@ -17,7 +17,8 @@ from hitops.calibrate import calibrate
 from hitops.calibrate.synthetic import expected_pwc_phase, make_pair, wrap
 from hitops.errors import InputError
 from hitops.io import convert
-from hitops.io.uvfits import _bintable, _card, _gst0_deg, _header_bytes
+from hitops.io.fits import bintable as _bintable, card as _card, gst0_deg as _gst0_deg
+from hitops.io.fits import header_bytes as _header_bytes
 
 
 def write_fitsidi(path, ms, n_band=1):

@@ -66,7 +66,8 @@ def test_recipe_runs_on_a_uvfits_pair_and_reruns_as_skips(tmp_path):
     from casacore import tables as pt
 
     from hitops.calibrate.synthetic import make_pair
-    from hitops.io.uvfits import export_uvfits, read_headers
+    from hitops.io.fits import read_headers
+    from hitops.io.uvfits import export_uvfits
 
     truth = make_pair(tmp_path / "src", n_ant=4, n_time=300, dt=2.0, ref_offset_scale=0.0,
                       seed=3)

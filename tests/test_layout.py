@@ -11,7 +11,10 @@ whatever the module does).
 from __future__ import annotations
 
 import ast
+import sys
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parent.parent / "hitops"
 #: issue 12: no module of hitops/tracking over ~400 lines, no function over ~80
@@ -152,3 +155,29 @@ def test_wrap_tracking_lives_in_hitops_tracking():
     calibrate_side = [n for n in graph if n.startswith(("hitops.calibrate", "hitops.tracking"))]
     assert not [n for n in calibrate_side if "hitops.simulate.geometry" in graph[n]]
     assert "hitops.geometry" in graph["hitops.simulate.geometry"]
+
+
+
+#: issue 25: hitops/io held to 450 lines a module and 100 a function
+IO_MAX_MODULE_LINES = 450
+IO_MAX_FUNCTION_LINES = 100
+
+
+@pytest.fixture
+def io_limits(monkeypatch):
+    """_too_long with hitops/io's limits (it reads the module's limits when called)."""
+    monkeypatch.setattr(sys.modules[__name__], "MAX_MODULE_LINES", IO_MAX_MODULE_LINES)
+    monkeypatch.setattr(sys.modules[__name__], "MAX_FUNCTION_LINES", IO_MAX_FUNCTION_LINES)
+
+
+def test_the_io_size_check_sees_a_long_module_and_function(tmp_path, io_limits):
+    long = tmp_path / "long.py"
+    long.write_text("def f():\n" + "    x = 1\n" * IO_MAX_MODULE_LINES)
+    assert _too_long([long]) == [f"long.py: {IO_MAX_MODULE_LINES + 1} lines",
+                                 f"long.py: f() {IO_MAX_MODULE_LINES + 1} lines"]
+
+
+def test_io_modules_and_functions_are_small(io_limits):
+    paths = sorted((ROOT / "io").glob("*.py"))
+    assert len(paths) > 10
+    assert _too_long(paths) == []

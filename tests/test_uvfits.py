@@ -14,7 +14,8 @@ import pytest
 
 from hitops.calibrate.synthetic import add_column, make_pair
 from hitops.errors import ColumnError, OutputExistsError
-from hitops.io.uvfits import export_uvfits, read_headers
+from hitops.io.fits import read_headers
+from hitops.io.uvfits import export_uvfits
 
 
 def _flagged_pair(tmp_path, corr=("RR", "RL", "LR", "LL")):

@@ -34,6 +34,7 @@ from ..options import make_options
 from .band_index import INDEX_COLUMNS
 from .inputs import check_inputs, parse_methods
 from .output import OutputTransaction, drop_stale_columns, release_cluster_tables
+from .rules import PreparedInputs, prepare_inputs
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -62,12 +63,11 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
     started = time.perf_counter()
     # ---- 1. inputs, all checked before anything is written
     methods = parse_methods(method)
-    # ---- issue 13 (hitops/io/convert.py): --export-uvfits checked, UVFITS / FITS-IDI inputs
-    # converted once into Measurement Sets in --workdir, before anything is written
-    from ..io.convert import prepare_inputs
-    ref_ms, target_ms = prepare_inputs(ref_ms, target_ms, workdir, export_uvfits, overwrite,
-                                       caltable=caltable, tracker=tracker)
-    # ---- end issue 13
+    # the output files checked, UVFITS / FITS-IDI inputs converted once into Measurement
+    # Sets in --workdir, before anything is written (hitops/calibrate/rules.py)
+    prepared = prepare_inputs(ref_ms, target_ms, workdir, export_uvfits, overwrite,
+                              caltable=caltable, tracker=tracker)
+    ref_ms, target_ms = prepared.ref_ms, prepared.target_ms
     ref_ms = msio.check_ms(ref_ms, "reference-band Measurement Set")
     target_ms = msio.check_ms(target_ms, "target-band Measurement Set")
     if os.path.realpath(ref_ms) == os.path.realpath(target_ms):
@@ -89,7 +89,7 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
         drop_stale_columns(target_ms)
         opts = make_options("calibrate", locals())
         try:
-            return _calibrate_locked(opts, methods, ref_ms, target_ms, started)
+            return _calibrate_locked(opts, methods, ref_ms, target_ms, started, prepared)
         except RuntimeError as err:
             # casacore's messages do not always say which table failed: find the damage
             access.raise_if_damaged(err, [(ref_ms, [ref_column, "FLAG"] + INDEX_COLUMNS),
@@ -102,7 +102,8 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
             gc.collect()
 
 
-def _calibrate_locked(opts, methods, ref_ms: str, target_ms: str, started: float) -> Dict:
+def _calibrate_locked(opts, methods, ref_ms: str, target_ms: str, started: float,
+                      prepared: PreparedInputs) -> Dict:
     """The rest of :func:`calibrate`, holding the target set's run lock: plan, run, report."""
     import dask
 
@@ -110,10 +111,11 @@ def _calibrate_locked(opts, methods, ref_ms: str, target_ms: str, started: float
     # threads unless --scheduler names a cluster: a dask.distributed Client that the caller
     # made the default must not receive the reads of a run that did not ask for it
     with dask.config.set(scheduler="threads"):
-        return _plan_and_run(opts, methods, ref_ms, target_ms, started)
+        return _plan_and_run(opts, methods, ref_ms, target_ms, started, prepared)
 
 
-def _plan_and_run(opts, methods, ref_ms: str, target_ms: str, started: float) -> Dict:
+def _plan_and_run(opts, methods, ref_ms: str, target_ms: str, started: float,
+                  prepared: PreparedInputs) -> Dict:
     from .plan import build_plan
 
     outputs, columns = check_inputs(opts, methods, ref_ms, target_ms)
@@ -125,13 +127,13 @@ def _plan_and_run(opts, methods, ref_ms: str, target_ms: str, started: float) ->
         from ..cluster import dask_client
         client, closer = dask_client(opts.scheduler)
     try:
-        return _run(run, client, started)
+        return _run(run, client, started, prepared)
     finally:
         if closer is not None:
             closer.close()
 
 
-def _run(run, client, started: float) -> Dict:
+def _run(run, client, started: float, prepared: PreparedInputs) -> Dict:
     """Every group pair into one OutputTransaction, committed once; then the report."""
     from .pipeline import run_group
     from .report import combined_report, group_report, write_report
@@ -159,5 +161,5 @@ def _run(run, client, started: float) -> Dict:
     reports = [group_report(run, group, result, tx, started)
                for group, result in zip(run.groups, results)]
     if len(reports) == 1:
-        return write_report(run, reports[0], results[0], started)
-    return write_report(run, combined_report(run, reports), None, started)
+        return write_report(run, reports[0], results[0], started, prepared)
+    return write_report(run, combined_report(run, reports), None, started, prepared)

@@ -15,6 +15,7 @@ from typing import Dict, List
 
 from ..errors import HitopsError
 from .output import FLAG_BACKUP
+from .rules import PreparedInputs, finish_report
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -123,7 +124,7 @@ def combined_report(run, reports: List[Dict]) -> Dict:
                           for k in first["timings_s"]}}
 
 
-def write_report(run, report: Dict, result, started: float) -> Dict:
+def write_report(run, report: Dict, result, started: float, prepared: PreparedInputs) -> Dict:
     """The verdict, the calibration table and conversions of a run; the JSON report written.
 
     ``result``: the one group's GroupResult, or None for a run of several groups.
@@ -148,9 +149,9 @@ def write_report(run, report: Dict, result, started: float) -> Dict:
     if opts.caltable:
         report["caltable"] = _write_caltable(run, run.groups[0], result)
         report_path.write_text(json.dumps(report, indent=1))
-    # issue 13 (hitops/io/convert.py): the input conversions in the report, --export-uvfits
-    from ..io.convert import finish_report
-    if finish_report(report, opts, run.ref_ms, run.target_ms, run.outputs, run.methods):
+    # the input conversions in the report, --export-uvfits (hitops/calibrate/rules.py)
+    if finish_report(report, opts, run.ref_ms, run.target_ms, run.outputs, run.methods,
+                     prepared):
         report_path.write_text(json.dumps(report, indent=1))
     elapsed = time.perf_counter() - started
     log.info("wrote %s to %s; report %s; %.2f s (%s)", ", ".join(run.outputs.values()),

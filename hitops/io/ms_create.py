@@ -101,56 +101,59 @@ def _main_dminfo(n_corr: int) -> dict:
     return info
 
 
-def _fill_subtables(ms: str, layout: ArrayLayout, band: Band, field: Field,
-                    time_range: tuple, telescope: str) -> None:
+def _put_rows(ms: str, subtable: str, n_rows: int, columns: Mapping[str, object]) -> None:
+    """Add ``n_rows`` rows to a subtable of ``ms`` and fill ``columns`` (name -> values)."""
     from casacore import tables as pt
 
-    n_ant = len(layout.names)
-    n_corr = len(band.corr_types)
-    with pt.table(f"{ms}::ANTENNA", readonly=False, ack=False) as t:
-        t.addrows(n_ant)
-        t.putcol("NAME", list(layout.names))
-        t.putcol("STATION", list(layout.stations))
-        t.putcol("POSITION", np.asarray(layout.positions, dtype=np.float64))
-        t.putcol("OFFSET", np.zeros((n_ant, 3)))
-        t.putcol("DISH_DIAMETER", np.asarray(layout.diameters, dtype=np.float64))
-        t.putcol("MOUNT", ["alt-az"] * n_ant)
-        t.putcol("TYPE", ["GROUND-BASED"] * n_ant)
-        t.putcol("FLAG_ROW", np.zeros(n_ant, bool))
+    with pt.table(f"{ms}::{subtable}", readonly=False, ack=False) as t:
+        t.addrows(n_rows)
+        for name, values in columns.items():
+            t.putcol(name, values)
 
+
+def _receptors(band: Band) -> list:
     circular = band.corr_types[0] in ("RR", "RL", "LR", "LL")
-    receptors = ["R", "L"] if circular else ["X", "Y"]
-    with pt.table(f"{ms}::FEED", readonly=False, ack=False) as t:
-        t.addrows(n_ant)
-        t.putcol("ANTENNA_ID", np.arange(n_ant, dtype=np.int32))
-        t.putcol("FEED_ID", np.zeros(n_ant, np.int32))
-        t.putcol("SPECTRAL_WINDOW_ID", np.full(n_ant, -1, np.int32))
-        t.putcol("TIME", np.full(n_ant, time_range[0]))
-        t.putcol("INTERVAL", np.full(n_ant, time_range[1] - time_range[0]))
-        t.putcol("NUM_RECEPTORS", np.full(n_ant, 2, np.int32))
-        t.putcol("BEAM_ID", np.full(n_ant, -1, np.int32))
-        t.putcol("BEAM_OFFSET", np.zeros((n_ant, 2, 2)))
-        t.putcol("POLARIZATION_TYPE", np.array([receptors] * n_ant))
-        t.putcol("POL_RESPONSE", np.tile(np.eye(2, dtype=np.complex64), (n_ant, 1, 1)))
-        t.putcol("POSITION", np.zeros((n_ant, 3)))
-        t.putcol("RECEPTOR_ANGLE", np.zeros((n_ant, 2)))
+    return ["R", "L"] if circular else ["X", "Y"]
 
-    with pt.table(f"{ms}::SPECTRAL_WINDOW", readonly=False, ack=False) as t:
-        t.addrows(1)
-        t.putcol("NUM_CHAN", np.array([1], np.int32))
-        t.putcol("CHAN_FREQ", np.array([[band.freq_hz]]))
-        for col in ("CHAN_WIDTH", "EFFECTIVE_BW", "RESOLUTION"):
-            t.putcol(col, np.array([[band.bandwidth_hz]]))
-        t.putcol("REF_FREQUENCY", np.array([band.freq_hz]))
-        t.putcol("TOTAL_BANDWIDTH", np.array([band.bandwidth_hz]))
-        t.putcol("MEAS_FREQ_REF", np.array([5], np.int32))  # TOPO
-        t.putcol("NAME", [f"{band.freq_hz / 1e9:g}GHz"])
-        t.putcol("NET_SIDEBAND", np.array([1], np.int32))
-        t.putcol("FREQ_GROUP", np.array([0], np.int32))
-        t.putcol("FREQ_GROUP_NAME", ["Group 1"])
-        t.putcol("IF_CONV_CHAIN", np.array([0], np.int32))
-        t.putcol("FLAG_ROW", np.array([False]))
 
+def _antenna_columns(layout: ArrayLayout) -> dict:
+    n_ant = len(layout.names)
+    return {"NAME": list(layout.names), "STATION": list(layout.stations),
+            "POSITION": np.asarray(layout.positions, dtype=np.float64),
+            "OFFSET": np.zeros((n_ant, 3)),
+            "DISH_DIAMETER": np.asarray(layout.diameters, dtype=np.float64),
+            "MOUNT": ["alt-az"] * n_ant, "TYPE": ["GROUND-BASED"] * n_ant,
+            "FLAG_ROW": np.zeros(n_ant, bool)}
+
+
+def _feed_columns(n_ant: int, receptors: list, time_range: tuple) -> dict:
+    return {"ANTENNA_ID": np.arange(n_ant, dtype=np.int32),
+            "FEED_ID": np.zeros(n_ant, np.int32),
+            "SPECTRAL_WINDOW_ID": np.full(n_ant, -1, np.int32),
+            "TIME": np.full(n_ant, time_range[0]),
+            "INTERVAL": np.full(n_ant, time_range[1] - time_range[0]),
+            "NUM_RECEPTORS": np.full(n_ant, 2, np.int32),
+            "BEAM_ID": np.full(n_ant, -1, np.int32),
+            "BEAM_OFFSET": np.zeros((n_ant, 2, 2)),
+            "POLARIZATION_TYPE": np.array([receptors] * n_ant),
+            "POL_RESPONSE": np.tile(np.eye(2, dtype=np.complex64), (n_ant, 1, 1)),
+            "POSITION": np.zeros((n_ant, 3)),
+            "RECEPTOR_ANGLE": np.zeros((n_ant, 2))}
+
+
+def _spectral_window_columns(band: Band) -> dict:
+    width = np.array([[band.bandwidth_hz]])
+    return {"NUM_CHAN": np.array([1], np.int32), "CHAN_FREQ": np.array([[band.freq_hz]]),
+            "CHAN_WIDTH": width, "EFFECTIVE_BW": width, "RESOLUTION": width,
+            "REF_FREQUENCY": np.array([band.freq_hz]),
+            "TOTAL_BANDWIDTH": np.array([band.bandwidth_hz]),
+            "MEAS_FREQ_REF": np.array([5], np.int32),  # TOPO
+            "NAME": [f"{band.freq_hz / 1e9:g}GHz"], "NET_SIDEBAND": np.array([1], np.int32),
+            "FREQ_GROUP": np.array([0], np.int32), "FREQ_GROUP_NAME": ["Group 1"],
+            "IF_CONV_CHAIN": np.array([0], np.int32), "FLAG_ROW": np.array([False])}
+
+
+def _polarization_columns(band: Band, receptors: list) -> dict:
     codes = np.array([[CORR_CODES[c] for c in band.corr_types]], np.int32)
     # python-casacore shows a [2, NUM_CORR] cell as (NUM_CORR, 2): one receptor pair
     # per correlation, e.g. RR LL -> [[0, 0], [1, 1]] (as casatools.simulator writes).
@@ -158,58 +161,44 @@ def _fill_subtables(ms: str, layout: ArrayLayout, band: Band, field: Field,
     # "Insufficient unflagged antennas".)
     products = np.array([[[receptors.index(c[0]), receptors.index(c[1])]
                           for c in band.corr_types]], np.int32)
-    with pt.table(f"{ms}::POLARIZATION", readonly=False, ack=False) as t:
-        t.addrows(1)
-        t.putcol("NUM_CORR", np.array([n_corr], np.int32))
-        t.putcol("CORR_TYPE", codes)
-        t.putcol("CORR_PRODUCT", products)
-        t.putcol("FLAG_ROW", np.array([False]))
+    return {"NUM_CORR": np.array([len(band.corr_types)], np.int32), "CORR_TYPE": codes,
+            "CORR_PRODUCT": products, "FLAG_ROW": np.array([False])}
 
+
+def _field_columns(field: Field, time_range: tuple) -> dict:
     direction = np.array([[[field.ra_rad, field.dec_rad]]])
-    with pt.table(f"{ms}::FIELD", readonly=False, ack=False) as t:
-        t.addrows(1)
-        t.putcol("NAME", [field.name])
-        t.putcol("CODE", [""])
-        t.putcol("TIME", np.array([time_range[0]]))
-        t.putcol("NUM_POLY", np.array([0], np.int32))
-        for col in ("DELAY_DIR", "PHASE_DIR", "REFERENCE_DIR"):
-            t.putcol(col, direction)
-        t.putcol("SOURCE_ID", np.array([0], np.int32))
-        t.putcol("FLAG_ROW", np.array([False]))
+    return {"NAME": [field.name], "CODE": [""], "TIME": np.array([time_range[0]]),
+            "NUM_POLY": np.array([0], np.int32), "DELAY_DIR": direction,
+            "PHASE_DIR": direction, "REFERENCE_DIR": direction,
+            "SOURCE_ID": np.array([0], np.int32), "FLAG_ROW": np.array([False])}
 
-    with pt.table(f"{ms}::DATA_DESCRIPTION", readonly=False, ack=False) as t:
-        t.addrows(1)
-        t.putcol("SPECTRAL_WINDOW_ID", np.array([0], np.int32))
-        t.putcol("POLARIZATION_ID", np.array([0], np.int32))
-        t.putcol("FLAG_ROW", np.array([False]))
 
-    with pt.table(f"{ms}::OBSERVATION", readonly=False, ack=False) as t:
-        t.addrows(1)
-        t.putcol("TELESCOPE_NAME", [telescope])
-        t.putcol("TIME_RANGE", np.array([time_range]))
-        t.putcol("OBSERVER", ["hitops"])
-        t.putcol("PROJECT", ["hitops simulation"])
-        t.putcol("RELEASE_DATE", np.array([time_range[1]]))
-        t.putcol("SCHEDULE_TYPE", [""])
-        t.putcol("FLAG_ROW", np.array([False]))
-
-    with pt.table(f"{ms}::STATE", readonly=False, ack=False) as t:
-        t.addrows(1)
-        t.putcol("OBS_MODE", ["OBSERVE_TARGET#ON_SOURCE"])
-        t.putcol("CAL", np.array([0.0]))
-        t.putcol("LOAD", np.array([0.0]))
-        t.putcol("SIG", np.array([True]))
-        t.putcol("REF", np.array([False]))
-        t.putcol("SUB_SCAN", np.array([0], np.int32))
-        t.putcol("FLAG_ROW", np.array([False]))
-
-    with pt.table(f"{ms}::PROCESSOR", readonly=False, ack=False) as t:
-        t.addrows(1)
-        t.putcol("TYPE", ["CORRELATOR"])
-        t.putcol("SUB_TYPE", ["hitops"])
-        t.putcol("TYPE_ID", np.array([0], np.int32))
-        t.putcol("MODE_ID", np.array([0], np.int32))
-        t.putcol("FLAG_ROW", np.array([False]))
+def _fill_subtables(ms: str, layout: ArrayLayout, band: Band, field: Field,
+                    time_range: tuple, telescope: str) -> None:
+    """Every subtable CASA's listobs/fringefit/gaincal and WSClean need, one row each
+    (ANTENNA and FEED: one per station)."""
+    n_ant = len(layout.names)
+    receptors = _receptors(band)
+    no = np.array([False])
+    _put_rows(ms, "ANTENNA", n_ant, _antenna_columns(layout))
+    _put_rows(ms, "FEED", n_ant, _feed_columns(n_ant, receptors, time_range))
+    _put_rows(ms, "SPECTRAL_WINDOW", 1, _spectral_window_columns(band))
+    _put_rows(ms, "POLARIZATION", 1, _polarization_columns(band, receptors))
+    _put_rows(ms, "FIELD", 1, _field_columns(field, time_range))
+    _put_rows(ms, "DATA_DESCRIPTION", 1, {"SPECTRAL_WINDOW_ID": np.array([0], np.int32),
+                                          "POLARIZATION_ID": np.array([0], np.int32),
+                                          "FLAG_ROW": no})
+    _put_rows(ms, "OBSERVATION", 1, {
+        "TELESCOPE_NAME": [telescope], "TIME_RANGE": np.array([time_range]),
+        "OBSERVER": ["hitops"], "PROJECT": ["hitops simulation"],
+        "RELEASE_DATE": np.array([time_range[1]]), "SCHEDULE_TYPE": [""], "FLAG_ROW": no})
+    _put_rows(ms, "STATE", 1, {
+        "OBS_MODE": ["OBSERVE_TARGET#ON_SOURCE"], "CAL": np.array([0.0]),
+        "LOAD": np.array([0.0]), "SIG": np.array([True]), "REF": np.array([False]),
+        "SUB_SCAN": np.array([0], np.int32), "FLAG_ROW": no})
+    _put_rows(ms, "PROCESSOR", 1, {
+        "TYPE": ["CORRELATOR"], "SUB_TYPE": ["hitops"], "TYPE_ID": np.array([0], np.int32),
+        "MODE_ID": np.array([0], np.int32), "FLAG_ROW": no})
 
 
 #: main-table columns the caller must supply

@@ -1,0 +1,128 @@
+"""calibrate's rules for inputs that are not Measurement Sets and for its file outputs.
+
+Issue 13 let ``hitops calibrate`` take UVFITS and FITS-IDI files and write
+``--export-uvfits`` and ``--caltable`` files.  The conversions themselves are
+:mod:`hitops.io.convert`'s job; what only calibrate decides lives here:
+
+* :func:`prepare_inputs`, the run's first step: the output files are checked
+  before anything is converted or calibrated (an existing file needs
+  ``--overwrite``; ``--caltable`` needs the antenna tracker, the only one with
+  per-antenna solutions; no output may be an input), then REF and TARGET are
+  converted (or reused) into Measurement Sets.  It returns the conversions as
+  a :class:`PreparedInputs`, which the run hands to its report stage;
+* :func:`finish_report`, the run's last step: the conversions in the report,
+  then ``--export-uvfits`` with calibrate's history lines.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Optional
+
+from ..errors import InputError, OutputExistsError
+from ..io.convert import Conversion, ensure_ms
+
+
+@dataclass(frozen=True)
+class PreparedInputs:
+    """REF and TARGET as Measurement Sets, and what was done to get each."""
+
+    ref: Conversion
+    target: Conversion
+
+    @property
+    def ref_ms(self) -> str:
+        return self.ref.ms
+
+    @property
+    def target_ms(self) -> str:
+        return self.target.ms
+
+    def report_entries(self) -> List[Dict]:
+        """The report's ``conversions``: one entry per band given as UVFITS or FITS-IDI."""
+        return [{"band": band, **c.as_dict()}
+                for band, c in (("ref", self.ref), ("target", self.target)) if c.format != "ms"]
+
+
+def check_output_file(path, overwrite: bool, option: str) -> None:
+    """Before anything is written: an existing output file needs ``--overwrite``."""
+    if not path:
+        return
+    p = Path(path)
+    if p.is_dir():
+        raise InputError(f"{option} '{path}' is a directory; give a file name")
+    if p.exists() and not overwrite:
+        raise OutputExistsError(f"{option} '{path}' exists; pass --overwrite to replace it or "
+                                f"give another {option} path (nothing was written)")
+    parent = p.resolve().parent
+    if parent.exists() and not os.access(parent, os.W_OK):
+        raise InputError(f"{option} '{path}': its directory {parent} is not writable; give a "
+                         "writable path")
+
+
+def _check_caltable(caltable: str, overwrite: bool, tracker: Optional[str]) -> None:
+    if tracker is not None and tracker != "antenna":
+        raise InputError(f"--caltable '{caltable}' needs --tracker antenna: a calibration "
+                         "table holds one phase per antenna, and only the antenna tracker "
+                         f"solves per antenna (--tracker {tracker} works per baseline)")
+    if Path(caltable).exists() and not overwrite:
+        raise OutputExistsError(f"--caltable '{caltable}' exists; pass --overwrite to "
+                                "replace it or give another --caltable path (nothing was "
+                                "written)")
+
+
+def prepare_inputs(ref, target, workdir: Optional[str] = None,
+                   export_uvfits: Optional[str] = None, overwrite: bool = False,
+                   caltable: Optional[str] = None,
+                   tracker: Optional[str] = None) -> PreparedInputs:
+    """calibrate's first step: check the output files, convert the inputs that are no sets.
+
+    The --export-uvfits and --caltable paths are checked before any conversion
+    or calibration, so a refused run changes nothing.
+    """
+    check_output_file(export_uvfits, overwrite, "--export-uvfits")
+    if caltable:
+        _check_caltable(caltable, overwrite, tracker)
+    for given in (ref, target):
+        for option, out in (("--export-uvfits", export_uvfits), ("--caltable", caltable)):
+            if out and Path(given).exists() and \
+                    os.path.realpath(given) == os.path.realpath(out):
+                raise InputError(f"{option} '{out}' is an input; give another path (inputs "
+                                 "are never written)")
+    ref_c = ensure_ms(ref, "REF (reference band)", workdir)
+    tgt_c = ensure_ms(target, "TARGET (target band)", workdir)
+    if ref_c.format != "ms" and os.path.realpath(ref_c.ms) == os.path.realpath(tgt_c.ms):
+        raise InputError(f"REF '{ref}' and TARGET '{target}' convert to the same set "
+                         f"'{ref_c.ms}'; give files with different names or the same file once")
+    return PreparedInputs(ref_c, tgt_c)
+
+
+def history_lines(methods: List[str], tracker: str, ref_ms: str) -> List[str]:
+    """The HISTORY lines calibrate adds to an exported UVFITS file: how it was made."""
+    return [f"hitops calibrate --method {','.join(methods)} --tracker {tracker}",
+            f"reference band: {Path(ref_ms).name}"]
+
+
+def finish_report(report: Dict, opts, ref_ms: str, target_ms: str, outputs: Dict[str, str],
+                  methods: List[str], inputs: PreparedInputs) -> bool:
+    """calibrate's last step: the conversions in the report, then --export-uvfits.
+
+    Returns True when ``report`` changed (the caller writes it again).
+    """
+    from ..io.uvfits import export_uvfits
+
+    changed = False
+    conversions = inputs.report_entries()
+    if conversions:
+        report["conversions"] = conversions
+        changed = True
+    path = getattr(opts, "export_uvfits", None)
+    if path:
+        report["export_uvfits"] = export_uvfits(
+            target_ms, path, outputs[methods[0]], overwrite=bool(opts.overwrite),
+            role="target-band Measurement Set",
+            history=history_lines(methods, opts.tracker, ref_ms))
+        changed = True
+    return changed
