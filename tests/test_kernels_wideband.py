@@ -193,3 +193,41 @@ def test_large_phases_keep_float64_precision():
     out, _ = wideband.apply_channel_ratios(tgt.astype(np.complex64), np.ones((1, 1, 1), bool),
                                            psi, np.ones((1, 1), bool), ratio)
     assert abs(math.atan2(out[0, 0, 0].imag, out[0, 0, 0].real)) < 1e-4
+
+
+def test_a_band_of_channels_picks_n0_where_one_channel_cannot():
+    # PWC counted from n'(t0) = 0 while the true count started at n0 = 57: each channel's
+    # output is off by 2*pi*R_j*57; the reference (a model) is good to 2 degrees
+    ks = np.arange(-200, 201, dtype=np.int64)
+    n0 = 57
+    ratios = TGT_CHANS / REF_FREQ
+    z = np.exp(1j * (2 * np.pi * ((ratios * n0) % 1) + np.deg2rad(2.0)))
+    scores = wideband.channel_offset_scores(z, ratios, ks)
+    assert ks[np.argmax(scores)] == n0
+    # the neighbours on the 8.37-degree grid (k = n0 +- 3) still need a good reference
+    # (cos 8.4 deg = 0.99 on one channel, 0.92-0.94 across the band); far candidates,
+    # which one channel cannot tell apart at all, lose their coherence across the band
+    assert np.sort(scores)[-2] < 0.95
+    assert scores[np.abs(ks - n0) > 3].max() < 0.8
+    one = np.array([230e9 / REF_FREQ])                      # R = 230/86: k and k + 43 are one offset
+    single = wideband.channel_offset_scores(np.exp(1j * 2 * np.pi * ((one * n0) % 1)), one, ks)
+    tied = ks[single >= single.max() - 1e-9]
+    assert n0 in tied and n0 - 43 in tied and n0 + 43 in tied
+
+
+def test_the_channel_recurrence_equals_direct_evaluation():
+    # evenly spaced channels are rotated by recurrence, others channel by channel: both
+    # must give exp(-i*R_k*psi) to single precision, on a phase of thousands of radians
+    rng = np.random.default_rng(7)
+    psi = rng.uniform(-5000, 5000, (50, 2))
+    valid = np.ones((50, 2), bool)
+    for chans in (TGT_WINDOWS[0], TGT_CHANS):          # one window (even), two windows (not)
+        ratios = chans / REF_FREQ
+        tgt = np.ones((50, chans.size, 2), np.complex64)
+        out, _ = wideband.apply_channel_ratios(tgt, np.ones(tgt.shape, bool), psi, valid, ratios)
+        direct = np.exp(-1j * ratios[None, :, None] * psi[:, None, :])
+        assert np.abs(out - direct).max() < 1e-6
+    delay = rng.uniform(-1e-9, 1e-9, (50, 2))
+    vis = np.exp(1j * 2 * np.pi * (REF_CHANS[None, :, None] - REF_FREQ) * delay[:, None, :])
+    reduced, _ = wideband.reference_phasors(vis, np.ones(vis.shape, bool), REF_CHANS, REF_FREQ, delay)
+    assert np.abs(reduced - 1).max() < 1e-12

@@ -35,6 +35,25 @@ import numpy as np
 
 from .fpt import TWO_PI, usable
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def cis(x):
+    """exp(i*x) as complex128."""
+    return complex(math.cos(x), math.sin(x))
+
+
+@numba.njit(cache=True, nogil=True)
+def evenly_spaced(values):
+    """True when ``values`` step evenly (to 1e-9 of the step), as a window's channels do."""
+    n = values.shape[0]
+    if n < 3:
+        return True
+    step = (values[n - 1] - values[0]) / (n - 1)
+    for k in range(1, n):
+        if abs(values[k] - values[0] - k * step) > 1e-9 * abs(step):
+            return False
+    return True
+
+
 @numba.njit(cache=True, nogil=True)
 def row_delays(vis, ok, chan_freq):
     """Delay (seconds) of each (row, correlation) across a window's channels.
@@ -79,19 +98,27 @@ def reference_phasors(vis, ok, chan_freq, ref_freq, delay):
     n_row, n_chan, n_corr = vis.shape
     out = np.zeros((n_row, n_corr), dtype=np.complex128)
     good = np.zeros((n_row, n_corr), dtype=np.bool_)
+    even = evenly_spaced(chan_freq)
+    dnu = (chan_freq[n_chan - 1] - chan_freq[0]) / max(n_chan - 1, 1)
     for r in range(n_row):
         for c in range(n_corr):
             tau = delay[r, c]
             if not math.isfinite(tau):
                 tau = 0.0
+            # evenly spaced channels: one sin/cos per row, the rest by recurrence (the
+            # product's rounding grows as n_chan * 1e-16, far below any phase that matters)
+            rotor = cis(-TWO_PI * (chan_freq[0] - ref_freq) * tau)
+            step = cis(-TWO_PI * dnu * tau)
             acc = 0j
             count = 0
             for k in range(n_chan):
+                if not even:
+                    rotor = cis(-TWO_PI * (chan_freq[k] - ref_freq) * tau)
                 v = vis[r, k, c]
                 if ok[r, k, c] and usable(v):
-                    turn = -TWO_PI * (chan_freq[k] - ref_freq) * tau
-                    acc += v * complex(math.cos(turn), math.sin(turn))
+                    acc += v * rotor
                     count += 1
+                rotor *= step
             if count > 0 and acc != 0j:
                 out[r, c] = acc / count
                 good[r, c] = True
@@ -140,6 +167,8 @@ def apply_channel_ratios(tgt_vis, tgt_ok, ref_phase, ref_valid, ratios):
     n_row, n_chan, n_corr = tgt_vis.shape
     out = np.zeros((n_row, n_chan, n_corr), dtype=np.complex64)
     calibrated = np.zeros((n_row, n_chan, n_corr), dtype=np.bool_)
+    even = evenly_spaced(ratios)
+    d_ratio = (ratios[n_chan - 1] - ratios[0]) / max(n_chan - 1, 1)
     for r in range(n_row):
         for c in range(n_corr):
             if not ref_valid[r, c]:
@@ -147,14 +176,18 @@ def apply_channel_ratios(tgt_vis, tgt_ok, ref_phase, ref_valid, ratios):
             phase = ref_phase[r, c]
             if not math.isfinite(phase):
                 continue
+            # R_k * phase can reach ~1e5 rad on a long track: float64 keeps it to ~1e-11 rad;
+            # evenly spaced channels take one sin/cos per row and a recurrence across them
+            rotor = cis(-ratios[0] * phase)
+            step = cis(-d_ratio * phase)
             for k in range(n_chan):
+                if not even:
+                    rotor = cis(-ratios[k] * phase)
                 v = tgt_vis[r, k, c]
-                if not (tgt_ok[r, k, c] and usable(v)):
-                    continue
-                # R_k * phase can reach ~1e5 rad on a long track; float64 keeps it to ~1e-11 rad
-                theta = -ratios[k] * phase
-                out[r, k, c] = v * complex(math.cos(theta), math.sin(theta))
-                calibrated[r, k, c] = True
+                if tgt_ok[r, k, c] and usable(v):
+                    out[r, k, c] = v * rotor
+                    calibrated[r, k, c] = True
+                rotor *= step
     return out, calibrated
 
 
@@ -213,3 +246,38 @@ def apply_channel_ratios_dask(tgt_vis, tgt_ok, ref_phase, ref_valid, ratios):
     return da.blockwise(block, ("row", "chan", "corr"), tgt_vis, ("row", "chan", "corr"),
                         tgt_ok, ("row", "chan", "corr"), ref_phase, ("row", "corr"),
                         ref_valid, ("row", "corr"), concatenate=True, dtype=np.complex64)
+
+
+@numba.njit(cache=True, nogil=True)
+def channel_offset_scores(chan_sums, ratios, candidates):
+    """How well each n0 candidate explains the per-channel offsets of a PWC output.
+
+    chan_sums: (n_chan,) complex, the sum over a series' samples of
+    exp(i*(Phi_ref - Phi_out)) in each target channel (Phi_ref from a reference
+    calibration or model, Phi_out the PWC output counted from n'(t0) = 0);
+    ratios: (n_chan,) R_j; candidates: (n_k,) int64.  A count that is wrong by
+    n0 turns leaves channel j off by 2*pi*R_j*n0 (mod 2*pi), so candidate k's
+    score is Re(sum_j z_j exp(-2*pi*i*R_j*k)) / sum_j |z_j|: 1 for a perfect fit.
+    The real part, not the modulus: the reference fixes the absolute phase, and
+    with one channel the score is cos(measured - 2*pi*eps*k), the rule of
+    :func:`hitops.calibrate.offsets.choose_offset`.
+    One channel cannot tell k from k + 43 at R = 230/86; across a band the
+    offsets of a wrong k change with frequency as a delay of k/nu_ref, so a
+    candidate far from the truth decorrelates over the channels.
+    """
+    n_k = candidates.shape[0]
+    scores = np.zeros(n_k)
+    total = 0.0
+    for j in range(chan_sums.shape[0]):
+        total += abs(chan_sums[j])
+    if total == 0.0:
+        return scores
+    for i in range(n_k):
+        acc = 0j
+        for j in range(chan_sums.shape[0]):
+            # the fractional turns of R_j*k only: exact for |k| up to ~1e6
+            turns = ratios[j] * candidates[i]
+            turn = -TWO_PI * (turns - math.floor(turns))
+            acc += chan_sums[j] * complex(math.cos(turn), math.sin(turn))
+        scores[i] = acc.real / total
+    return scores
