@@ -231,3 +231,24 @@ def test_the_channel_recurrence_equals_direct_evaluation():
     vis = np.exp(1j * 2 * np.pi * (REF_CHANS[None, :, None] - REF_FREQ) * delay[:, None, :])
     reduced, _ = wideband.reference_phasors(vis, np.ones(vis.shape, bool), REF_CHANS, REF_FREQ, delay)
     assert np.abs(reduced - 1).max() < 1e-12
+
+
+def test_phase_plus_delay_is_the_per_channel_ratio(scene):
+    # exp(-i*R_0*psi) at the window centre and a delay psi/(2*pi*nu_ref) across it give
+    # every channel exp(-i*R_k*psi): the form a Fringe Jones table carries
+    ref, tgt, _ = scene
+    ok_ref = np.ones(ref.shape, bool)
+    reduced, good = wideband.reference_phasors(ref, ok_ref, REF_CHANS, REF_FREQ,
+                                               wideband.row_delays(ref, ok_ref, REF_CHANS))
+    psi, valid = track(reduced, good)
+    window = TGT_WINDOWS[1]
+    centre = window.mean()
+    window_vis = tgt[:, 16:, :]
+    direct, _ = wideband.apply_channel_ratios(window_vis, np.ones(window_vis.shape, bool), psi,
+                                              valid, window / REF_FREQ)
+    phasor = np.exp(-1j * (centre / REF_FREQ) * psi)
+    rotated = wideband.rotate_channels(window_vis, phasor, psi / (2 * np.pi * REF_FREQ), window - centre)
+    assert np.abs(rotated - direct).max() < 1e-5
+    # the delay left out (one ratio per window) is what fails
+    flat = wideband.rotate_channels(window_vis, phasor, np.zeros_like(psi), window - centre)
+    assert np.abs(np.angle(flat)).max() > 0.5

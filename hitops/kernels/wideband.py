@@ -281,3 +281,36 @@ def channel_offset_scores(chan_sums, ratios, candidates):
             acc += chan_sums[j] * complex(math.cos(turn), math.sin(turn))
         scores[i] = acc.real / total
     return scores
+
+
+@numba.njit(cache=True, nogil=True)
+def rotate_channels(data, phasor, delay, chan_offset):
+    """Target rows times a phasor at the window's reference channel and a delay across it.
+
+    data: (n_row, n_chan, n_corr) complex; phasor: (n_row, n_corr) complex, the
+    correction at frequency nu_0 (zero where not calibrated); delay: (n_row,
+    n_corr) seconds; chan_offset: (n_chan,) nu_k - nu_0 in Hz.  Returns
+    data * phasor * exp(-2*pi*i*(nu_k - nu_0)*delay) as complex64.  This is the
+    per-channel transfer written the way a CASA 'Fringe Jones' table holds it: with
+    phasor = exp(-i*R_0*psi) and delay = psi / (2*pi*nu_ref), channel k gets
+    exp(-i*R_k*psi) (issue 26: per-channel ratios on one reference phase are a
+    phase plus a delay).
+    """
+    n_row, n_chan, n_corr = data.shape
+    out = np.zeros((n_row, n_chan, n_corr), dtype=np.complex64)
+    even = evenly_spaced(chan_offset)
+    step_hz = (chan_offset[n_chan - 1] - chan_offset[0]) / max(n_chan - 1, 1)
+    for r in range(n_row):
+        for c in range(n_corr):
+            p = complex(phasor[r, c])
+            if p == 0j:
+                continue
+            tau = delay[r, c]
+            rotor = p * cis(-TWO_PI * chan_offset[0] * tau)
+            step = cis(-TWO_PI * step_hz * tau)
+            for k in range(n_chan):
+                if not even:
+                    rotor = p * cis(-TWO_PI * chan_offset[k] * tau)
+                out[r, k, c] = data[r, k, c] * rotor
+                rotor *= step
+    return out
