@@ -9,7 +9,7 @@ The pipeline, one module per stage (docs/architecture.md):
    correlations and times matched, the chunks cut and checked, R split into
    r + eps and the tracker set up;
 3. :mod:`~hitops.calibrate.pipeline`: per chunk read -> track -> transfer ->
-   write (with the n0 offset step of :mod:`~hitops.calibrate.offset_step`
+   write (with the n0 offset step of :mod:`~hitops.calibrate.n0`
    between a first and a writing pass), every group into one
    :class:`~hitops.calibrate.output.OutputTransaction`, committed once;
 4. :mod:`~hitops.calibrate.report`: the summary, the verdict, the JSON report.

@@ -17,7 +17,7 @@ from ..errors import InputError, OutputExistsError
 from ..io import read as msio
 from ..tracking.options import check_options as check_tracking_numbers
 from .band_index import INDEX_COLUMNS
-from .offsets import is_point_model
+from .n0.step import is_point_model
 from .output import FLAG_BACKUP, STAGING_PREFIX
 
 log = logging.getLogger("hitops.calibrate")

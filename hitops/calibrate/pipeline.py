@@ -14,10 +14,10 @@ For each time chunk of the plan, in time order:
 
 With the n0 offset step a first pass (steps 1-3) sums the calibrated phase
 against the offset reference per scan or segment; the integers are solved
-(:mod:`hitops.calibrate.offset_step`) and the writing pass follows.  With a
+(:mod:`hitops.calibrate.n0.step`) and the writing pass follows.  With a
 robust tracker the first pass keeps its output when it fits in a fifth of the
 memory budget, and the writing pass only shifts it by 2 pi eps k per segment
-(:func:`hitops.calibrate.offsets.offset_shift_rows`) instead of tracking and
+(:func:`hitops.calibrate.n0.step.offset_shifted_rows`) instead of tracking and
 transferring again.
 """
 
@@ -36,7 +36,7 @@ from ..tracking.count import Carry
 from ..tracking.factory import new_tracker
 from ..tracking.state import apply_segment_offsets
 from .chunk_read import ChunkData, read_chunk, read_target
-from .offset_step import OffsetSolution, solve_offsets
+from .n0.step import OffsetSolution, offset_shifted_rows, solve_offsets
 from .transfer import group_inputs, plan_groups, transfer_group
 
 log = logging.getLogger("hitops.calibrate")
@@ -268,7 +268,7 @@ class GroupPipeline:
 
     def _sum_kept(self, result: PassResult, chunk: ChunkData, seg_keys, phasor_rows,
                   calibrated) -> None:
-        from .lattice import segment_row_sums
+        from ..kernels.segments import segment_row_sums
 
         method = fpt.PWC if fpt.PWC in self.codes else fpt.CWU
         for (b, c, key), z, n in zip(*segment_row_sums(
@@ -280,8 +280,6 @@ class GroupPipeline:
 
     def write_kept(self, kept: Dict[int, KeptChunk], segment_k) -> None:
         """The writing pass from the first pass's kept output, shifted by the step's k."""
-        from .offsets import offset_shift_rows
-
         for k in range(self.group.n_chunks):
             if k in self._cache:
                 chunk = self._cache[k]
@@ -291,8 +289,11 @@ class GroupPipeline:
                 self.timings["read"] += time.perf_counter() - stage
             part = kept.pop(k)
             stage = time.perf_counter()
-            offset_shift_rows(chunk.tgt_grid, self.group.eps, segment_k, part.segment_keys,
-                              [part.phasor_rows[c] for c in self.codes if c in (fpt.PWC, fpt.CWU)])
+            shifted = [c for c in self.codes if c in (fpt.PWC, fpt.CWU)]
+            for c, out in zip(shifted, offset_shifted_rows(
+                    chunk.tgt_grid, self.group.eps, segment_k, part.segment_keys,
+                    [part.phasor_rows[c] for c in shifted])):
+                part.phasor_rows[c] = out
             self.timings["offset_apply"] = (self.timings.get("offset_apply", 0.0)
                                             + time.perf_counter() - stage)
             self.write(chunk, part.phasor_rows, part.calibrated)

@@ -86,7 +86,7 @@ def transfer_group(g: Dict) -> Dict:
             g["n_scan"])
     if g.get("segment_keys") is not None and "offset_sums" in out:
         # robust trackers: the n0 step per segment (segments after long gaps and jumps)
-        from .lattice import segment_run_sums
+        from ..kernels.segments import segment_run_sums
         out["segment_sums"] = segment_run_sums(g["segment_keys"], tgt_phase,
                                                   phasors[offset_method], calibrated,
                                                   off_phase, off_valid)

@@ -5,12 +5,12 @@ reference (``--offset-reference-column``: a reference calibration;
 ``--offset-model``: ``point`` or a model column):
 
 * count tracker: per baseline, correlation and scan, the lattice point nearest
-  the circular mean (:func:`hitops.calibrate.offsets.choose_offset`), applied
+  the circular mean (:func:`hitops.calibrate.n0.baseline.choose_offset`), applied
   as a phase offset by the writing pass;
 * smooth tracker: the same per segment, added to the segment's wrap count;
 * antenna tracker: integers per antenna and segment for the parallel hands,
   from one lattice solve over every baseline and both hands
-  (:func:`hitops.calibrate.offsets.antenna_offsets`), so closure phases are
+  (:func:`hitops.calibrate.n0.antenna.antenna_offsets`), so closure phases are
   kept; the cross hands per baseline.
 """
 
@@ -24,8 +24,11 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
-from ..tracking.state import SEGMENT_KEY
-from .offsets import antenna_offsets, choose_offset
+from ...kernels.segments import shifted_rows
+from ...tracking.state import SEGMENT_KEY, apply_segment_offsets
+from .antenna import antenna_offsets
+from .baseline import choose_offset
+from .hands import HandPhases
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -87,17 +90,16 @@ def _antenna_lattice(solution, group, sums, tracker, max_k, ambiguity):
     antenna_corrs = {c for c, name in enumerate(match.corr_names)
                      if len(name) == 2 and name[0] == name[1]}
     # the first pass's antenna phases tie the two hands
-    hands = None if getattr(tracker, "antenna_phase", None) is None else {
-        "phase": tracker.antenna_phase, "segment": tracker.antenna_segment,
-        "scan_of_time": match.scan_of_time}
-    seg_k, antennas, solves, series = antenna_offsets(
+    hands = None if tracker.antenna_phase is None else HandPhases(
+        tracker.antenna_phase, tracker.antenna_segment, match.scan_of_time)
+    found = antenna_offsets(
         sums, antenna_corrs, match.ant1, match.ant2, list(group.antenna_names),
         match.baseline_names, match.corr_names, match.scans, group.eps, max_k, ambiguity,
         refants=group.tracking.refants, segment_key=int(SEGMENT_KEY), hands=hands)
-    solution.segment_k.update(seg_k)
-    solution.series.extend(series)
-    solution.antennas, solution.solves = antennas, solves
-    _log_antenna_offsets(antennas, solves)
+    solution.segment_k.update(found.segment_k)
+    solution.series.extend(found.series)
+    solution.antennas, solution.solves = found.antennas, found.solves
+    _log_antenna_offsets(found.antennas, found.solves)
     return {key: v for key, v in sums.items() if key[1] not in antenna_corrs}
 
 
@@ -166,3 +168,31 @@ def _log_antenna_offsets(antennas, solves) -> None:
     log.info("offset step: %d antenna segments solved on the 2 pi eps k lattice in %d solves; "
              "%d ambiguous", len(antennas), len(solves),
              sum(bool(e.get("ambiguous")) for e in antennas))
+
+
+def offset_shifted_rows(tgt_grid, eps: float, segment_k, seg_keys, phasors):
+    """``phasors`` (PWC/CWU, (n_row, n_corr) each) multiplied by exp(i 2 pi eps k): new arrays.
+
+    ``segment_k``: {(b, c, key): k} added to the wrap counts of a segment by the n0 step
+    (robust trackers), which moves its PWC and CWU output by 2 pi eps k; ``seg_keys``
+    (n_bl, n_corr, n_time) the chunk's segment keys; ``tgt_grid`` (n_bl, n_time) the
+    chunk's target rows.  Used to shift the first pass's output instead of running the
+    transfer again (one chunk); equal to the second pass to complex64 rounding.
+    Returns the list of shifted phasors (the inputs themselves when nothing moves).
+    """
+    if seg_keys is None or not any(segment_k.values() if segment_k else ()):
+        return list(phasors)
+    k = apply_segment_offsets(np.zeros(seg_keys.shape, np.int64), seg_keys, segment_k)
+    values = [v for v in segment_k.values()]
+    k_min, k_max = min(values + [0]), max(values + [0])
+    table = np.exp(1j * (2 * math.pi * eps) * np.arange(k_min, k_max + 1)).astype(np.complex64)
+    grid = np.ascontiguousarray(tgt_grid)
+    return [shifted_rows(grid, k, table, k_min, out) for out in phasors]
+
+
+#: ``--offset-model point``: a point source at the phase centre (model phase 0 everywhere)
+POINT_MODEL = "point"
+
+
+def is_point_model(offset_model) -> bool:
+    return bool(offset_model) and str(offset_model).strip().lower() == POINT_MODEL
