@@ -25,15 +25,18 @@ import gc
 import logging
 import os
 import time
-from typing import Dict
+from typing import TYPE_CHECKING, Dict, List
 
 from ..errors import InputError
 from ..io import access
 from ..io import read as msio
 from ..options import make_options
 from .band_index import INDEX_COLUMNS
-from .inputs import check_inputs, parse_methods
+from .inputs import CalibrateOptions, check_inputs, parse_methods
 from .output import OutputTransaction, drop_stale_columns, release_cluster_tables
+
+if TYPE_CHECKING:   # the plan's modules load dask-ms: imported where a run starts
+    from .plan import RunPlan
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -62,12 +65,11 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
     started = time.perf_counter()
     # ---- 1. inputs, all checked before anything is written
     methods = parse_methods(method)
-    # ---- issue 13 (hitops/io/convert.py): --export-uvfits checked, UVFITS / FITS-IDI inputs
-    # converted once into Measurement Sets in --workdir, before anything is written
+    # --export-uvfits checked, UVFITS / FITS-IDI inputs converted once into Measurement Sets
+    # in --workdir (hitops/io/convert.py), before anything is written
     from ..io.convert import prepare_inputs
     ref_ms, target_ms = prepare_inputs(ref_ms, target_ms, workdir, export_uvfits, overwrite,
                                        caltable=caltable, tracker=tracker)
-    # ---- end issue 13
     ref_ms = msio.check_ms(ref_ms, "reference-band Measurement Set")
     target_ms = msio.check_ms(target_ms, "target-band Measurement Set")
     if os.path.realpath(ref_ms) == os.path.realpath(target_ms):
@@ -87,7 +89,22 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
         access.wait_for_table_lock(target_ms, True, lock_timeout, "target-band Measurement Set")
         access.wait_for_table_lock(ref_ms, False, lock_timeout, "reference-band Measurement Set")
         drop_stale_columns(target_ms)
-        opts = make_options("calibrate", locals())
+        # the sets as converted and checked; every other option as given
+        opts = make_options("calibrate", dict(
+            ref_ms=ref_ms, target_ms=target_ms, method=method, ref_column=ref_column,
+            target_column=target_column, ref_model_column=ref_model_column,
+            offset_reference_column=offset_reference_column, offset_model=offset_model,
+            max_offset_wraps=max_offset_wraps, offset_ambiguity_deg=offset_ambiguity_deg,
+            ratio=ratio, antenna_map=antenna_map, output_column=output_column,
+            overwrite=overwrite, average_channels=average_channels,
+            time_tolerance=time_tolerance, tracker=tracker, half_window=half_window,
+            coherence_time=coherence_time, no_elevation_scaling=no_elevation_scaling, snr=snr,
+            max_gap=max_gap, jump_threshold=jump_threshold, jump_window=jump_window,
+            jump_action=jump_action, refant=refant, solve_half_window=solve_half_window,
+            memory_budget=memory_budget, chunk_rows=chunk_rows, report=report,
+            workdir=workdir, export_uvfits=export_uvfits, scheduler=scheduler,
+            lock_timeout=lock_timeout, caltable=caltable, no_verdict=no_verdict,
+            verdict_interval=verdict_interval))
         try:
             return _calibrate_locked(opts, methods, ref_ms, target_ms, started)
         except RuntimeError as err:
@@ -102,7 +119,8 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
             gc.collect()
 
 
-def _calibrate_locked(opts, methods, ref_ms: str, target_ms: str, started: float) -> Dict:
+def _calibrate_locked(opts: CalibrateOptions, methods: List[str], ref_ms: str, target_ms: str,
+                      started: float) -> Dict:
     """The rest of :func:`calibrate`, holding the target set's run lock: plan, run, report."""
     import dask
 
@@ -113,7 +131,8 @@ def _calibrate_locked(opts, methods, ref_ms: str, target_ms: str, started: float
         return _plan_and_run(opts, methods, ref_ms, target_ms, started)
 
 
-def _plan_and_run(opts, methods, ref_ms: str, target_ms: str, started: float) -> Dict:
+def _plan_and_run(opts: CalibrateOptions, methods: List[str], ref_ms: str, target_ms: str,
+                  started: float) -> Dict:
     from .plan import build_plan
 
     outputs, columns = check_inputs(opts, methods, ref_ms, target_ms)
@@ -131,7 +150,7 @@ def _plan_and_run(opts, methods, ref_ms: str, target_ms: str, started: float) ->
             closer.close()
 
 
-def _run(run, client, started: float) -> Dict:
+def _run(run: RunPlan, client, started: float) -> Dict:
     """Every group pair into one OutputTransaction, committed once; then the report."""
     from .pipeline import run_group
     from .report import combined_report, group_report, write_report

@@ -13,9 +13,18 @@ transfer.  The kernels do not change their inputs.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
+
+
+class SegmentSums(NamedTuple):
+    """Sums of exp(i (Phi_ref - Phi_out)) per (baseline, correlation, segment key), sorted."""
+
+    index: np.ndarray     # (m, 3) int64 baseline, correlation, key
+    sums: np.ndarray      # (m,) complex128
+    counts: np.ndarray    # (m,) int64 samples
 
 
 @numba.njit(cache=True, nogil=True)
@@ -28,21 +37,39 @@ def _segment_runs(keys, tgt_phase, phasor, calibrated, off_phase, off_valid, fil
     """
     n_bl, n_corr, n_time = keys.shape
     n_runs = 0
-    for b in range(n_bl):
-        for c in range(n_corr):
-            cur = -1
-            for t in range(n_time):
-                key = keys[b, c, t]
-                if key < 0 or not (calibrated[b, t, c] and off_valid[b, c, t]):
-                    continue
-                if key != cur:
-                    n_runs += 1
-                    cur = key
-    index = np.zeros((n_runs if fill else 0, 3), np.int64)
-    sums = np.zeros(n_runs if fill else 0, np.complex128)
-    counts = np.zeros(n_runs if fill else 0, np.int64)
-    if not fill:
-        return index, sums, counts
+    r = -1
+    index = np.zeros((0, 3), np.int64)
+    sums = np.zeros(0, np.complex128)
+    counts = np.zeros(0, np.int64)
+    # sweep 0 counts the runs, sweep 1 fills them
+    for sweep in range(2 if fill else 1):
+        if sweep == 1:
+            index = np.zeros((n_runs, 3), np.int64)
+            sums = np.zeros(n_runs, np.complex128)
+            counts = np.zeros(n_runs, np.int64)
+        for b in range(n_bl):
+            for c in range(n_corr):
+                cur = -1
+                for t in range(n_time):
+                    key = keys[b, c, t]
+                    if key < 0 or not (calibrated[b, t, c] and off_valid[b, c, t]):
+                        continue
+                    if key != cur:
+                        cur = key
+                        if sweep == 0:
+                            n_runs += 1
+                            continue
+                        r += 1
+                        index[r, 0] = b
+                        index[r, 1] = c
+                        index[r, 2] = key
+                    elif sweep == 0:
+                        continue
+                    p = phasor[b, t, c]
+                    d = off_phase[b, c, t] - (tgt_phase[b, c, t] + math.atan2(p.imag, p.real))
+                    sums[r] += complex(math.cos(d), math.sin(d))
+                    counts[r] += 1
+    return index, sums, counts
     r = -1
     for b in range(n_bl):
         for c in range(n_corr):
@@ -64,23 +91,24 @@ def _segment_runs(keys, tgt_phase, phasor, calibrated, off_phase, off_valid, fil
     return index, sums, counts
 
 
-def segment_run_sums(keys, tgt_phase, phasor, calibrated, off_phase, off_valid):
-    """(index (m, 3), sums, counts) per distinct (baseline, correlation, key), sorted."""
+def segment_run_sums(keys, tgt_phase, phasor, calibrated, off_phase, off_valid) -> SegmentSums:
+    """The sums per distinct (baseline, correlation, key) from the gridded phases."""
     args = (np.ascontiguousarray(keys, np.int64), np.ascontiguousarray(tgt_phase, np.float64),
             np.ascontiguousarray(phasor), np.ascontiguousarray(calibrated),
             np.ascontiguousarray(off_phase, np.float64), np.ascontiguousarray(off_valid))
     return _merge_runs(*_segment_runs(*args, True))
 
 
-def _merge_runs(index, sums, counts):
+def _merge_runs(index, sums, counts) -> SegmentSums:
     """The runs of one (baseline, correlation, key) added up: one entry each, sorted."""
     if index.shape[0] == 0:
-        return index, sums, counts
+        return SegmentSums(index, sums, counts)
     uniq, inverse = np.unique(index, axis=0, return_inverse=True)
     inverse = inverse.ravel()
     out_sums = np.bincount(inverse, sums.real, uniq.shape[0]) \
         + 1j * np.bincount(inverse, sums.imag, uniq.shape[0])
-    return uniq.astype(np.int64), out_sums, np.bincount(inverse, counts, uniq.shape[0]).astype(np.int64)
+    return SegmentSums(uniq.astype(np.int64), out_sums,
+                       np.bincount(inverse, counts, uniq.shape[0]).astype(np.int64))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -149,7 +177,7 @@ def _segment_row_runs(tgt_rows, keys, tgt_vis, phasor, calibrated, off_vis, off_
     return index, sums, counts
 
 
-def segment_row_sums(tgt_rows, keys, tgt_vis, phasor, calibrated, off_vis, off_ok):
+def segment_row_sums(tgt_rows, keys, tgt_vis, phasor, calibrated, off_vis, off_ok) -> SegmentSums:
     """Sums of exp(i (Phi_ref - Phi_out)) per (baseline, correlation, segment key), sorted,
     from the chunk's row-ordered target visibilities, output phasors and reference (or
     model) visibilities; the driver's form of :func:`segment_run_sums` (no phase grids)."""

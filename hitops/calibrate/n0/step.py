@@ -4,7 +4,7 @@ Given the first pass's sums of the calibrated phase against the offset
 reference (``--offset-reference-column``: a reference calibration;
 ``--offset-model``: ``point`` or a model column):
 
-* count tracker: per baseline, correlation and scan, the lattice point nearest
+* count tracker (not ``segmented``): per baseline, correlation and scan, the lattice point nearest
   the circular mean (:func:`hitops.calibrate.n0.baseline.choose_offset`), applied
   as a phase offset by the writing pass;
 * smooth tracker: the same per segment, added to the segment's wrap count;
@@ -25,7 +25,9 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from ...kernels.segments import shifted_rows
+from ...tracking.base import WrapTracker
 from ...tracking.state import SEGMENT_KEY, apply_segment_offsets
+from ..plan import GroupPlan, RunPlan
 from .antenna import antenna_offsets
 from .baseline import choose_offset
 from .hands import HandPhases
@@ -55,22 +57,41 @@ class OffsetSolution:
         return self.offsets is not None
 
 
-def solve_offsets(run, group, first) -> OffsetSolution:
-    """The integers from the first pass (:class:`hitops.calibrate.pipeline.PassResult`)."""
+@dataclass
+class OffsetSums:
+    """What the first pass sums for the step: exp(i (Phi_ref - Phi_out)) over calibrated
+    samples per (baseline, correlation, scan), ``scan_sums`` (complex128) and
+    ``scan_counts`` (int64) (n_bl, n_corr, n_scan), and per segment,
+    ``segment_sums`` {(baseline, correlation, segment key): [z, n]} (segmented trackers)."""
+
+    scan_sums: np.ndarray
+    scan_counts: np.ndarray
+    segment_sums: Dict[tuple, list] = field(default_factory=dict)
+
+    @classmethod
+    def empty(cls, n_bl: int, n_corr: int, n_scan: int) -> "OffsetSums":
+        return cls(np.zeros((n_bl, n_corr, n_scan), dtype=np.complex128),
+                   np.zeros((n_bl, n_corr, n_scan), dtype=np.int64))
+
+
+def solve_offsets(run: RunPlan, group: GroupPlan, tracker: WrapTracker,
+                  sums: OffsetSums) -> OffsetSolution:
+    """The integers from the first pass's ``sums`` and its ``tracker``."""
     stage = time.perf_counter()
-    match, eps, setup = group.match, group.eps, group.tracking
+    match = group.match
     max_k, ambiguity = int(run.opts.max_offset_wraps), float(run.opts.offset_ambiguity_deg)
     solution = OffsetSolution(offsets=np.zeros((match.n_bl, group.n_corr, match.scans.size)))
-    if setup is None:
-        _per_scan(solution, group, first.scan_sums, first.scan_counts, max_k, ambiguity)
+    if not tracker.segmented:
+        _per_scan(solution, group, sums.scan_sums, sums.scan_counts, max_k, ambiguity)
     else:
-        # robust trackers: the n0 step per segment (every scan starts one; long gaps and
+        # segmented trackers: the n0 step per segment (every scan starts one; long gaps and
         # jumps start more); k is added to the segment's wrap count
-        sums = first.segment_sums
+        segment_sums = sums.segment_sums
         solution.segment_k = {}
-        if setup.tracker == "antenna":
-            sums = _antenna_lattice(solution, group, sums, first.tracker, max_k, ambiguity)
-        _per_segment(solution, group, sums, max_k, ambiguity)
+        if tracker.name == "antenna":
+            segment_sums = _antenna_lattice(solution, group, segment_sums, tracker, max_k,
+                                            ambiguity)
+        _per_segment(solution, group, segment_sums, max_k, ambiguity)
     chosen = [e for e in solution.series if e.get("samples") and e.get("solve") != "antenna"]
     if chosen or solution.solves is None:
         log.info("offset step: n0 chosen per baseline for %d series (|k| <= %d); %d "
@@ -84,7 +105,8 @@ def solve_offsets(run, group, first) -> OffsetSolution:
     return solution
 
 
-def _antenna_lattice(solution, group, sums, tracker, max_k, ambiguity):
+def _antenna_lattice(solution: OffsetSolution, group: GroupPlan, sums, tracker: WrapTracker,
+                     max_k: int, ambiguity: float):
     """Integers per antenna and segment for the parallel hands; returns the other sums."""
     match = group.match
     antenna_corrs = {c for c, name in enumerate(match.corr_names)
@@ -119,7 +141,8 @@ def _entry(choice, base: dict, segment: bool) -> dict:
     return entry
 
 
-def _per_segment(solution, group, sums, max_k, ambiguity) -> None:
+def _per_segment(solution: OffsetSolution, group: GroupPlan, sums, max_k: int,
+                 ambiguity: float) -> None:
     match = group.match
     for (b, c, key), (z, n) in sorted(sums.items()):
         choice = choose_offset(complex(z), int(n), group.eps, max_k, ambiguity)
@@ -130,7 +153,8 @@ def _per_segment(solution, group, sums, max_k, ambiguity) -> None:
         solution.series.append(_entry(choice, base, segment=True))
 
 
-def _per_scan(solution, group, sums, counts, max_k, ambiguity) -> None:
+def _per_scan(solution: OffsetSolution, group: GroupPlan, sums, counts, max_k: int,
+              ambiguity: float) -> None:
     match = group.match
     for b in range(match.n_bl):
         for c in range(group.n_corr):
@@ -189,10 +213,3 @@ def offset_shifted_rows(tgt_grid, eps: float, segment_k, seg_keys, phasors):
     grid = np.ascontiguousarray(tgt_grid)
     return [shifted_rows(grid, k, table, k_min, out) for out in phasors]
 
-
-#: ``--offset-model point``: a point source at the phase centre (model phase 0 everywhere)
-POINT_MODEL = "point"
-
-
-def is_point_model(offset_model) -> bool:
-    return bool(offset_model) and str(offset_model).strip().lower() == POINT_MODEL
