@@ -187,7 +187,7 @@ class GroupPipeline:
 
         match, group = self.group.match, self.group
         scan_local = match.scan_of_time[chunk.t0:chunk.t1]
-        # per-segment sums: a robust tracker's first pass (no per-scan shifts) with a step
+        # per-segment sums: a segmented tracker's first pass (no per-scan shifts) with a step
         sum_segments = (tracked.segment_keys is not None and offsets is None
                         and bool(self.run.columns.offset))
         placed, tasks = [], []
@@ -247,10 +247,12 @@ class GroupPipeline:
         self.timings["write"] += time.perf_counter() - stage
 
     # ---- the passes
-    def run_pass(self, offsets=None, segment_k=None, write=True, kept=None,
-                 keep_reads=False) -> PassResult:
+    def run_pass(self, offsets: Optional[np.ndarray] = None,
+                 segment_k: Optional[Dict[tuple, int]] = None, write: bool = True,
+                 kept: Optional[Dict[int, KeptChunk]] = None,
+                 keep_reads: bool = False) -> PassResult:
         """One pass over the chunks.  ``offsets``: per-scan n0 shifts (count); ``segment_k``:
-        per-segment integers (robust trackers); ``kept``: a dict that collects the output
+        per-segment integers (segmented trackers); ``kept``: a dict that collects the output
         instead of writing (a first pass whose writing pass only shifts)."""
         match, n_corr, n_scan = self.group.match, self.group.n_corr, self.group.match.scans.size
         off_col = self.run.columns.offset
@@ -290,7 +292,7 @@ class GroupPipeline:
             chunk.tgt_grid, seg_keys, chunk.tgt_vis, phasor_rows[method], calibrated,
             chunk.off_vis, chunk.off_ok), baselines=None)
 
-    def write_kept(self, kept: Dict[int, KeptChunk], segment_k) -> None:
+    def write_kept(self, kept: Dict[int, KeptChunk], segment_k: Dict[tuple, int]) -> None:
         """The writing pass from the first pass's kept output, shifted by the step's k."""
         for k in range(self.group.n_chunks):
             if k in self._cache:
