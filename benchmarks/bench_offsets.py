@@ -15,7 +15,7 @@ Two measurements, written to docs/calibrate.md (section ``offsets-uniqueness``):
    lattice period) on every baseline.  A segment where the count error changes
    inside it has a tracking slip: the tracker's failure, not the solve's, counted
    apart.
-2. **The solve alone** (hitops.calibrate.lattice.solve_lattice) on edge sums with
+2. **The solve alone** (hitops.calibrate.n0.lattice.solve_lattice) on edge sums with
    wrapped-normal per-sample phase noise sigma (the noise of the calibrated target
    phase), 600 samples per baseline, for 3 to 8 stations and three ratios (eps =
    29/43: 8.37 deg between lattice points; R = 2.5: 180 deg; R = 4/3: 120 deg); the
@@ -146,7 +146,7 @@ def end_to_end(workdir: Path, n_ant: int, rho: float, n_scans: int, seed: int) -
 
 
 def solve_alone(n_ant: int, eps: float, sigma: float, trials: int, rng, n: int = 600) -> float:
-    from hitops.calibrate.lattice import solve_lattice
+    from hitops.calibrate.n0.lattice import solve_lattice
 
     ok = 0
     a, b = np.triu_indices(n_ant, 1)

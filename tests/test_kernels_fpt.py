@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from hitops.calibrate.offsets import choose_offset
+from hitops.calibrate.n0.baseline import choose_offset
 from hitops.kernels import fpt
 from hitops.tracking.count import Carry, count_scans, count_wraps
 

@@ -1,4 +1,4 @@
-"""The integer lattice solve of the antenna n0 offsets (hitops.calibrate.lattice), alone.
+"""The integer lattice solve of the antenna n0 offsets (hitops.calibrate.n0.lattice), alone.
 
 Edges carry z_e = sum exp(i (Phi_model - Phi_out)); a node's count error k_v moves
 its baselines' outputs by 2 pi eps (k_a - k_b), so the edge of a noiseless scene
@@ -13,7 +13,8 @@ import math
 import numpy as np
 import pytest
 
-from hitops.calibrate.lattice import candidates, segment_run_sums, solve_lattice
+from hitops.calibrate.n0.lattice import candidates, solve_lattice
+from hitops.kernels.segments import segment_run_sums
 
 EPS = 230.0 / 86.0 - 2           # 29/43
 
@@ -146,7 +147,7 @@ def test_uniqueness_against_the_per_node_phase_error():
 
 def test_segment_row_sums_equal_the_grid_form():
     """The driver's sums (row arrays through the row grid) equal the groups' (phase grids)."""
-    from hitops.calibrate.lattice import segment_row_sums
+    from hitops.kernels.segments import segment_row_sums
     from hitops.kernels import fpt
 
     rng = np.random.default_rng(5)

@@ -1,7 +1,7 @@
 """The n0 offset step against a model (issue 16): ``--offset-model point|COLUMN``.
 
 With ``--tracker antenna`` the integers are solved per antenna and segment on the
-2 pi eps k lattice with every baseline at once (hitops.calibrate.lattice); with the
+2 pi eps k lattice with every baseline at once (hitops.calibrate.n0.lattice); with the
 baseline trackers the step falls back to the per-baseline choice against the model.
 Scenes from hitops.calibrate.synthetic.make_pair with ``ref_offset_scale=0`` (a
 purely antenna-based reference band, as a point source gives), so a noiseless
@@ -257,7 +257,7 @@ def _hands_scene(n_scans=4, n_per_scan=10, j=(0, 2, -1), ref_rl=(0.0, 0.5, -0.4)
 
 
 def test_hand_ties_recover_j_and_refuse_a_split_segment():
-    from hitops.calibrate.offsets import hand_ties
+    from hitops.calibrate.n0.hands import hand_ties
 
     hands = _hands_scene()
     ties = hand_ties(hands["phase"], hands["segment"], hands["scan_of_time"], 0, 1)
@@ -277,7 +277,9 @@ def test_both_hands_outvote_one_hand_off_its_lattice_point():
     other way: alone, that hand picks the neighbouring point; tied (k_RR - k_LL = j from
     the reference band, LL's constant instrumental phase of 100 deg on antenna 2 measured
     over the track and removed), every integer is the true one."""
-    from hitops.calibrate.offsets import PAIR_KEY, antenna_offsets
+    from hitops.calibrate.n0.antenna import antenna_offsets
+    from hitops.calibrate.n0.hands import HandPhases
+    from hitops.tracking.state import PAIR_KEY
 
     two_pi_eps = 2 * np.pi * EPS
     j = np.array([0, 2, -1])
@@ -299,9 +301,8 @@ def test_both_hands_outvote_one_hand_off_its_lattice_point():
             ["RR", "LL"], np.arange(1, 5), EPS, 50, 2.0)
 
     def wrong_segments(result):
-        _, antennas, _, _ = result
         bad = set()
-        for e in antennas:
+        for e in result.antennas:
             truth = m_rr[e["scan"] - 1][e["antenna_index"]] - (j[e["antenna_index"]]
                                                                  if e["correlation"] == "LL" else 0)
             if abs(math.remainder(two_pi_eps * (e["k"] - truth), 2 * np.pi)) > 1e-6:
@@ -311,10 +312,10 @@ def test_both_hands_outvote_one_hand_off_its_lattice_point():
     alone = antenna_offsets(*args, refants=[0])
     # (LL alone also rounds its 100 deg instrumental phase onto the lattice: not the truth)
     assert {w for w in wrong_segments(alone) if w[1] == "RR"} == {(1, "RR")}
-    tied = antenna_offsets(*args, refants=[0], hands=_hands_scene())
+    tied = antenna_offsets(*args, refants=[0], hands=HandPhases(**_hands_scene()))
     assert wrong_segments(tied) == set()
-    assert all(e["hands"] == "RR+LL" and e["tied"] for e in tied[1])
+    assert all(e["hands"] == "RR+LL" and e["tied"] for e in tied.antennas)
     # LL keeps its instrumental phase, the same in every scan (no lattice step between scans)
-    ap_pv = [e["residual_deg"] for e in tied[3]
+    ap_pv = [e["residual_deg"] for e in tied.series
              if e["correlation"] == "LL" and e["baseline"] == "AP-PV"]
     assert len(ap_pv) == 4 and np.allclose(ap_pv, 100.0, atol=1e-6)

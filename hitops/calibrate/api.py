@@ -9,7 +9,7 @@ The pipeline, one module per stage (docs/architecture.md):
    correlations and times matched, the chunks cut and checked, R split into
    r + eps and the tracker set up;
 3. :mod:`~hitops.calibrate.pipeline`: per chunk read -> track -> transfer ->
-   write (with the n0 offset step of :mod:`~hitops.calibrate.offset_step`
+   write (with the n0 offset step of :mod:`~hitops.calibrate.n0`
    between a first and a writing pass), every group into one
    :class:`~hitops.calibrate.output.OutputTransaction`, committed once;
 4. :mod:`~hitops.calibrate.report`: the summary, the verdict, the JSON report.
@@ -25,16 +25,19 @@ import gc
 import logging
 import os
 import time
-from typing import Dict
+from typing import TYPE_CHECKING, Dict, List
 
 from ..errors import InputError
 from ..io import access
 from ..io import read as msio
 from ..options import make_options
 from .band_index import INDEX_COLUMNS
-from .inputs import check_inputs, parse_methods
+from .inputs import CalibrateOptions, check_inputs, parse_methods
 from .output import OutputTransaction, drop_stale_columns, release_cluster_tables
 from .rules import PreparedInputs, prepare_inputs
+
+if TYPE_CHECKING:   # the plan's modules load dask-ms: imported where a run starts
+    from .plan import RunPlan
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -87,7 +90,22 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
         access.wait_for_table_lock(target_ms, True, lock_timeout, "target-band Measurement Set")
         access.wait_for_table_lock(ref_ms, False, lock_timeout, "reference-band Measurement Set")
         drop_stale_columns(target_ms)
-        opts = make_options("calibrate", locals())
+        # the sets as converted and checked; every other option as given
+        opts = make_options("calibrate", dict(
+            ref_ms=ref_ms, target_ms=target_ms, method=method, ref_column=ref_column,
+            target_column=target_column, ref_model_column=ref_model_column,
+            offset_reference_column=offset_reference_column, offset_model=offset_model,
+            max_offset_wraps=max_offset_wraps, offset_ambiguity_deg=offset_ambiguity_deg,
+            ratio=ratio, antenna_map=antenna_map, output_column=output_column,
+            overwrite=overwrite, average_channels=average_channels,
+            time_tolerance=time_tolerance, tracker=tracker, half_window=half_window,
+            coherence_time=coherence_time, no_elevation_scaling=no_elevation_scaling, snr=snr,
+            max_gap=max_gap, jump_threshold=jump_threshold, jump_window=jump_window,
+            jump_action=jump_action, refant=refant, solve_half_window=solve_half_window,
+            memory_budget=memory_budget, chunk_rows=chunk_rows, report=report,
+            workdir=workdir, export_uvfits=export_uvfits, scheduler=scheduler,
+            lock_timeout=lock_timeout, caltable=caltable, no_verdict=no_verdict,
+            verdict_interval=verdict_interval))
         try:
             return _calibrate_locked(opts, methods, ref_ms, target_ms, started, prepared)
         except RuntimeError as err:
@@ -102,8 +120,8 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
             gc.collect()
 
 
-def _calibrate_locked(opts, methods, ref_ms: str, target_ms: str, started: float,
-                      prepared: PreparedInputs) -> Dict:
+def _calibrate_locked(opts: CalibrateOptions, methods: List[str], ref_ms: str, target_ms: str,
+                      started: float, prepared: PreparedInputs) -> Dict:
     """The rest of :func:`calibrate`, holding the target set's run lock: plan, run, report."""
     import dask
 
@@ -114,8 +132,8 @@ def _calibrate_locked(opts, methods, ref_ms: str, target_ms: str, started: float
         return _plan_and_run(opts, methods, ref_ms, target_ms, started, prepared)
 
 
-def _plan_and_run(opts, methods, ref_ms: str, target_ms: str, started: float,
-                  prepared: PreparedInputs) -> Dict:
+def _plan_and_run(opts: CalibrateOptions, methods: List[str], ref_ms: str, target_ms: str,
+                  started: float, prepared: PreparedInputs) -> Dict:
     from .plan import build_plan
 
     outputs, columns = check_inputs(opts, methods, ref_ms, target_ms)
@@ -133,7 +151,7 @@ def _plan_and_run(opts, methods, ref_ms: str, target_ms: str, started: float,
             closer.close()
 
 
-def _run(run, client, started: float, prepared: PreparedInputs) -> Dict:
+def _run(run: RunPlan, client, started: float, prepared: PreparedInputs) -> Dict:
     """Every group pair into one OutputTransaction, committed once; then the report."""
     from .pipeline import run_group
     from .report import combined_report, group_report, write_report

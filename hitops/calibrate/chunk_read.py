@@ -4,20 +4,23 @@
 (plus the tracker's context on either side), averages channels, and returns
 a :class:`ChunkData`: per-row visibilities and validity, the row grids
 ``tgt_grid`` / ``ref_grid`` ((n_bl, n_time) row index or -1) and, for the
-robust trackers, the reference band gridded over the extended time range.
+trackers that ask for it (smooth, antenna), the reference band gridded over the
+extended time range (a :class:`hitops.tracking.base.ReferenceGrid`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Tuple
 
 import numpy as np
 
 from ..io import read as msio
+from ..tracking.base import ReferenceGrid
 from ..tracking.grid import gather_grid
 from .band_index import ROW_COLUMNS
 from .chunks import ChunkRows
+from .plan import GroupPlan, RunPlan
 
 
 @dataclass
@@ -39,7 +42,8 @@ class ChunkData:
     off_ok: Optional[np.ndarray]
     tgt_grid: np.ndarray            # (n_bl, t1 - t0) index into the target rows, or -1
     ref_grid: np.ndarray
-    ext: Optional[tuple]            # robust trackers: (t_lo, t_hi, vis, valid, sigma) gridded
+    reference: Optional[ReferenceGrid]   # the reference band over the tracker's extended
+                                         # times, gridded (None: the tracker needs no grid)
 
 
 def average(data: np.ndarray, flag: np.ndarray, flag_row: np.ndarray):
@@ -79,7 +83,7 @@ def _grid(n_bl: int, n_time: int, bl, time_index) -> np.ndarray:
     return grid
 
 
-def read_target(run, group, k: int, scheduler) -> ChunkData:
+def read_target(run: RunPlan, group: GroupPlan, k: int, scheduler) -> ChunkData:
     """Chunk ``k``'s target rows only: what writing a kept output needs."""
     columns, match = run.columns, group.match
     t0, t1 = group.bounds[k], group.bounds[k + 1]
@@ -94,14 +98,16 @@ def read_target(run, group, k: int, scheduler) -> ChunkData:
                      tgt_flag=flag, tgt_flag_row=t_idx.flag_row, tgt_vis=None, tgt_ok=None,
                      ref_vis=None, ref_ok=None, ref_swapped=None, off_vis=None, off_ok=None,
                      tgt_grid=_grid(match.n_bl, t1 - t0, t_idx.bl, t_idx.time - t0),
-                     ref_grid=None, ext=None)
+                     ref_grid=None, reference=None)
 
 
-def read_chunk(run, group, k: int, extent: tuple, scheduler) -> ChunkData:
-    """Chunk ``k`` of ``group`` (a :class:`hitops.calibrate.plan.GroupPlan`).
+def read_chunk(run: RunPlan, group: GroupPlan, k: int, extent: Tuple[int, int],
+               grid_reference: bool, scheduler) -> ChunkData:
+    """Chunk ``k`` of ``group``.
 
     ``extent``: (t_lo, t_hi), the reference times the tracker needs (the chunk
-    itself for count); ``scheduler``: the dask scheduler of the reads.
+    itself for count); ``grid_reference``: grid them for the tracker
+    (``WrapTracker.grids_reference``); ``scheduler``: the dask scheduler of the reads.
     """
     columns, match = run.columns, group.match
     t0, t1 = group.bounds[k], group.bounds[k + 1]
@@ -138,11 +144,12 @@ def read_chunk(run, group, k: int, extent: tuple, scheduler) -> ChunkData:
         mvis, _ = average(ref[columns.ref_model], np.zeros_like(ref["FLAG"]),
                           np.zeros_like(r_idx.flag_row))
         rvis = rvis * np.conj(mvis)
-    ext = None
-    if group.tracking is not None:
+    reference = None
+    if grid_reference:
         ext_grid = _grid(match.n_bl, t_hi - t_lo, r_idx.bl, r_idx.time - t_lo)
-        ext = (t_lo, t_hi) + gather_grid(ext_grid, rvis, rok, r_idx.swapped, match.corr_map,
-                                         _sigma(ref, group.tracking.snr_source))
+        reference = ReferenceGrid(t_lo, t_hi, *gather_grid(
+            ext_grid, rvis, rok, r_idx.swapped, match.corr_map,
+            _sigma(ref, group.tracking.snr_source)))
         del ext_grid
         inner = (r_idx.time >= t0) & (r_idx.time < t1)
         rvis, rok = rvis[inner], rok[inner]
@@ -158,4 +165,5 @@ def read_chunk(run, group, k: int, extent: tuple, scheduler) -> ChunkData:
                      tgt_flag=tgt["FLAG"], tgt_flag_row=t_idx.flag_row, tgt_vis=tvis, tgt_ok=tok,
                      ref_vis=rvis, ref_ok=rok, ref_swapped=r_idx.swapped, off_vis=ovis,
                      off_ok=ook, tgt_grid=_grid(match.n_bl, n_t, t_idx.bl, t_idx.time - t0),
-                     ref_grid=_grid(match.n_bl, n_t, r_idx.bl, r_idx.time - t0), ext=ext)
+                     ref_grid=_grid(match.n_bl, n_t, r_idx.bl, r_idx.time - t0),
+                     reference=reference)

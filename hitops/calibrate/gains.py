@@ -3,7 +3,7 @@
 With ``--tracker antenna`` the column calibrate writes is the target DATA times
 exp(-i (phi_p - phi_q)) on baseline p-q, where phi_p is R times station p's
 unwrapped reference phase, minus 2 pi eps k_p where the n0 offset step gave the
-station's segment an integer k_p (hitops/calibrate/offsets.py).  These phi_p,
+station's segment an integer k_p (hitops/calibrate/n0/antenna.py).  These phi_p,
 per correlation and time, are exactly what a phase-only G Jones table holds, so
 CASA ``applycal`` of the table written here reproduces the column on the parallel
 hands (the cross hands of the column are transferred per baseline; CASA forms

@@ -11,16 +11,26 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 from ..errors import InputError, OutputExistsError
 from ..io import read as msio
 from ..tracking.options import check_options as check_tracking_numbers
 from .band_index import INDEX_COLUMNS
-from .offsets import is_point_model
+from ..options import options_class
 from .output import FLAG_BACKUP, STAGING_PREFIX
 
 log = logging.getLogger("hitops.calibrate")
+
+#: the typed options of ``hitops calibrate``: a frozen dataclass from hitops/schemas/calibrate.yml
+CalibrateOptions = options_class("calibrate")
+
+#: ``--offset-model point``: a point source at the phase centre (model phase 0 everywhere)
+POINT_MODEL = "point"
+
+
+def is_point_model(offset_model) -> bool:
+    return bool(offset_model) and str(offset_model).strip().lower() == POINT_MODEL
 
 #: the column each method writes unless --output-column renames it
 DEFAULT_COLUMNS = {"pwc": "PWC_DATA", "cfpt": "CFPT_DATA", "cwu": "CWU_DATA"}
@@ -66,7 +76,7 @@ def parse_methods(method) -> List[str]:
     return methods
 
 
-def check_numbers(opts) -> None:
+def check_numbers(opts: CalibrateOptions) -> None:
     """The numeric options (the schema has checked types and choices)."""
     ratio = opts.ratio
     if ratio is not None and not (float(ratio) > 0 and math.isfinite(float(ratio))):
@@ -85,7 +95,7 @@ def check_numbers(opts) -> None:
                          "seconds; omit it to use half the smallest INTERVAL")
 
 
-def output_columns(opts, methods: List[str]) -> Dict[str, str]:
+def output_columns(opts: CalibrateOptions, methods: List[str]) -> Dict[str, str]:
     """method -> the column it writes."""
     if opts.output_column and len(methods) > 1:
         raise InputError(f"--output-column {opts.output_column} names one column but --method "
@@ -93,7 +103,8 @@ def output_columns(opts, methods: List[str]) -> Dict[str, str]:
     return {m: (opts.output_column or DEFAULT_COLUMNS[m]) for m in methods}
 
 
-def check_inputs(opts, methods: List[str], ref_ms: str, target_ms: str) -> tuple:
+def check_inputs(opts: CalibrateOptions, methods: List[str], ref_ms: str,
+                 target_ms: str) -> Tuple[Dict[str, str], "Columns"]:
     """(outputs, :class:`Columns`) of a run, every column checked in both sets."""
     check_numbers(opts)
     outputs = output_columns(opts, methods)
@@ -110,7 +121,7 @@ def check_inputs(opts, methods: List[str], ref_ms: str, target_ms: str) -> tuple
     if offset_model and reference:
         raise InputError(f"--offset-model {offset_model} and --offset-reference-column "
                          f"{reference} both set the n0 offset step; give one")
-    # --offset-model: 'point' or a model column of TARGET_MS (hitops/calibrate/offsets.py)
+    # --offset-model: 'point' or a model column of TARGET_MS (hitops/calibrate/n0/)
     model_column = offset_model if offset_model and not is_point_model(offset_model) else None
     ref_cols = [opts.ref_column, "FLAG"] + ([opts.ref_model_column] if opts.ref_model_column else [])
     tgt_cols = ([opts.target_column, flag_column] + ([reference] if reference else [])

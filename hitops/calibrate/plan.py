@@ -14,18 +14,19 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
 from ..errors import InputError, MeasurementSetError
 from ..io import read as msio
 from ..io.match import parse_antenna_map
-from ..io.stations import read_stations
+from ..io.stations import Stations, read_stations
+from ..tracking.options import TrackingSetup
 from .band_index import INDEX_COLUMNS, ROW_COLUMNS, BandIndex, index_bands
-from .chunks import ChunkMatch
+from .chunks import ChunkMatch, ChunkRows
 from .groups import GroupPair, describe_groups, pair_groups
-from .inputs import Columns
+from .inputs import CalibrateOptions, Columns
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -38,12 +39,14 @@ class GroupPlan:
     label: str                      # '' when the sets hold one group
     match: ChunkMatch
     bounds: List[int]               # chunk k covers union times [bounds[k], bounds[k+1])
-    first_chunk: Optional[tuple]    # the checks' rows of a one-chunk run, reused by the read
+    # the checks' (target, reference) rows of a one-chunk run, reused by the read
+    first_chunk: Optional[Tuple[ChunkRows, ChunkRows]]
     ratio: float                    # R = nu_target / nu_reference
     r: int
     eps: float                      # R = r + eps
     ratio_source: str
-    tracking: Optional[object]      # hitops.tracking.options.TrackingSetup; None for count
+    # the smooth/antenna trackers' resolved parameters; the count tracker has none (None)
+    tracking: Optional[TrackingSetup]
     n_target_rows: int
     antenna_names: List[str]        # station codes of the target set, by antenna index
 
@@ -60,7 +63,7 @@ class GroupPlan:
 class RunPlan:
     """What every group of a run shares, and the groups."""
 
-    opts: object                    # CalibrateOptions (hitops/options.py)
+    opts: CalibrateOptions          # the schema's typed options (hitops/options.py)
     methods: List[str]
     outputs: Dict[str, str]         # method -> column
     ref_ms: str
@@ -123,7 +126,7 @@ def rows_from_budget(budget: int, ref_ms: str, target_ms: str, columns: Columns,
     return rows
 
 
-def build_plan(opts, methods: List[str], outputs: Dict[str, str], ref_ms: str,
+def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, str], ref_ms: str,
                target_ms: str, columns: Columns, timings: Dict[str, float]) -> RunPlan:
     """Open both bands, pair their groups and plan each pair (nothing written yet)."""
     from .memory import parse_budget
@@ -187,7 +190,7 @@ def _band(ms: str, datasets: Dict, key, n_ant: int, time_ordered: bool,
                      ds_in_time_order=in_time_order)
 
 
-def _ratio(opts, pair: GroupPair, label: str):
+def _ratio(opts: CalibrateOptions, pair: GroupPair, label: str):
     """(R, r, eps, where R came from), logged."""
     ref_freq, tgt_freq = pair.ref.freq, pair.tgt.freq
     if opts.ratio is None:
@@ -209,7 +212,8 @@ def _ratio(opts, pair: GroupPair, label: str):
 
 
 def plan_group(run: RunPlan, pair: GroupPair, ref_band: BandIndex, tgt_band: BandIndex,
-               ref_stations, tgt_stations, antenna_map, label: str) -> GroupPlan:
+               ref_stations: Stations, tgt_stations: Stations, antenna_map,
+               label: str) -> GroupPlan:
     """Index, match and check one group pair before anything is written."""
     opts, columns, timings = run.opts, run.columns, run.timings
     if ref_band.n_row == 0 or tgt_band.n_row == 0:

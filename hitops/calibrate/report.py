@@ -11,34 +11,34 @@ import json
 import logging
 import time
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 from ..errors import HitopsError
-from .output import FLAG_BACKUP
+from .output import FLAG_BACKUP, OutputTransaction
+from .pipeline import GroupResult
+from .plan import GroupPlan, RunPlan
 from .rules import PreparedInputs, finish_report
+from .transfer import SampleCounts
 
 log = logging.getLogger("hitops.calibrate")
 
 
-def _log_samples(totals: Dict[str, int]) -> int:
-    flagged = (totals["target_invalid"] + totals["no_reference_row"]
-               + totals["reference_invalid"] + totals["other_uncalibrated"])
+def _log_samples(samples: SampleCounts) -> int:
+    flagged = samples.flagged
     log.info("%d of %d target samples (row x correlation) not calibrated, each counted once: "
              "%d flagged/NaN/zero in the target, %d without a reference row, %d with the "
-             "reference sample flagged/NaN/zero%s; %d calibrated", flagged, totals["n_samples"],
-             totals["target_invalid"], totals["no_reference_row"], totals["reference_invalid"],
-             (f", {totals['other_uncalibrated']} other" if totals["other_uncalibrated"] else ""),
-             totals["n_samples"] - flagged)
+             "reference sample flagged/NaN/zero%s; %d calibrated", flagged, samples.n_samples,
+             samples.target_invalid, samples.no_reference_row, samples.reference_invalid,
+             (f", {samples.other_uncalibrated} other" if samples.other_uncalibrated else ""),
+             samples.n_samples - flagged)
     return flagged
 
 
-def _tracking_entry(run, group, result) -> dict:
+def _tracking_entry(run: RunPlan, group: GroupPlan, result: GroupResult) -> dict:
     match, setup, solution = group.match, group.tracking, result.offsets
-    if result.tracker is None:
-        return {"setup": {"tracker": "count"},
-                "baselines": [{"baseline": name, "wrap_events": int(result.wrap_events[b].sum())}
-                              for b, name in enumerate(match.baseline_names)]}
     entry = result.tracker.report(match.times)
+    if not result.tracker.segmented:   # count: wrap events per baseline, nothing to resolve
+        return entry
     option = "--offset-model" if run.columns.offset_is_model else "--offset-reference-column"
     if solution.solves is not None:
         what = "the model" if run.columns.offset_is_model else "the reference column"
@@ -53,10 +53,11 @@ def _tracking_entry(run, group, result) -> dict:
     return entry
 
 
-def group_report(run, group, result, tx, started: float) -> Dict:
+def group_report(run: RunPlan, group: GroupPlan, result: GroupResult, tx: OutputTransaction,
+                 started: float) -> Dict:
     """The log lines and the report of one finished group pair."""
-    match, totals, solution = group.match, result.totals, result.offsets
-    flagged = _log_samples(totals)
+    match, samples, solution = group.match, result.samples, result.offsets
+    flagged = _log_samples(samples)
     for b, name in enumerate(match.baseline_names):
         log.info("wraps %s: %s", name, ", ".join(f"{cn} {int(result.wrap_events[b, c])}"
                                                  for c, cn in enumerate(match.corr_names)))
@@ -72,12 +73,12 @@ def group_report(run, group, result, tx, started: float) -> Dict:
                   "input_flags": columns.flag, "backup_created": tx.backup_written},
         "rows": {"target": int(group.n_target_rows), "matched": match.n_matched,
                  "reference_unused": match.n_ref_unused},
-        "samples": {"target": totals["n_samples"], "flagged": flagged,
-                    "no_reference_row": totals["no_reference_row"],
-                    "target_invalid": totals["target_invalid"],
-                    "reference_invalid": totals["reference_invalid"],
-                    "other_uncalibrated": totals["other_uncalibrated"],
-                    "jump_flagged": totals.get("jump_flagged", 0),
+        "samples": {"target": samples.n_samples, "flagged": flagged,
+                    "no_reference_row": samples.no_reference_row,
+                    "target_invalid": samples.target_invalid,
+                    "reference_invalid": samples.reference_invalid,
+                    "other_uncalibrated": samples.other_uncalibrated,
+                    "jump_flagged": result.jump_flagged,
                     "causes": "disjoint: target_invalid + no_reference_row + reference_invalid "
                               "+ other_uncalibrated = flagged"},
         "wraps": [{"baseline": name, "correlation": cn,
@@ -102,7 +103,7 @@ def group_report(run, group, result, tx, started: float) -> Dict:
     }
 
 
-def combined_report(run, reports: List[Dict]) -> Dict:
+def combined_report(run: RunPlan, reports: List[Dict]) -> Dict:
     """One report for several group pairs: the run's entries, then one entry per group."""
     first = reports[0]
     groups = []
@@ -124,7 +125,8 @@ def combined_report(run, reports: List[Dict]) -> Dict:
                           for k in first["timings_s"]}}
 
 
-def write_report(run, report: Dict, result, started: float, prepared: PreparedInputs) -> Dict:
+def write_report(run: RunPlan, report: Dict, result: Optional[GroupResult],
+                 started: float, prepared: PreparedInputs) -> Dict:
     """The verdict, the calibration table and conversions of a run; the JSON report written.
 
     ``result``: the one group's GroupResult, or None for a run of several groups.
@@ -165,14 +167,13 @@ def write_report(run, report: Dict, result, started: float, prepared: PreparedIn
     return report
 
 
-def no_offset_step_warning(run, group, solution):
+def no_offset_step_warning(run: RunPlan, group: GroupPlan, solution) -> Optional[str]:
     """The warning of a run that wrote PWC/CWU without the n0 step (None otherwise)."""
     written = [run.outputs[m] for m in ("pwc", "cwu") if m in run.outputs]
     if not written or group.eps == 0.0 or solution.ran:
         return None
-    setup = group.tracking
     per = ("antenna (closure phases are right, the phases themselves are not)"
-           if setup is not None and setup.tracker == "antenna" else "baseline")
+           if run.opts.tracker == "antenna" else "baseline")
     return (f"{' and '.join(written)} carr{'y' if len(written) > 1 else 'ies'} a constant "
             f"2 pi eps n0 per {per} and scan (or tracking segment): no n0 offset step ran. Before "
             "imaging, run the offset step (--offset-model point, or a model column; "
@@ -180,7 +181,7 @@ def no_offset_step_warning(run, group, solution):
             "(docs/calibrate.md, 'The n0 offset step')")
 
 
-def _write_caltable(run, group, result) -> Dict:
+def _write_caltable(run: RunPlan, group: GroupPlan, result: GroupResult) -> Dict:
     """--caltable: the antenna tracker's gains as a CASA G Jones table (hitops/calibrate/gains.py)."""
     from ..io.caltable import write_gain_table
     from .gains import antenna_gain_phases
@@ -200,7 +201,7 @@ def _write_caltable(run, group, result) -> Dict:
     return {"path": str(path), "solutions": n_valid, "flagged": int(valid.size - n_valid)}
 
 
-def _verdict(run, group) -> Dict:
+def _verdict(run: RunPlan, group: GroupPlan) -> Dict:
     """Will FPT help here?  The prediction per baseline (hitops/calibrate/verdict.py)."""
     from .verdict import log_verdict, predict, summary
 

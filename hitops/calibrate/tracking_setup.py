@@ -9,24 +9,33 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import fields
+from typing import Optional
 
 from ..geometry import station_sin_elevation
 from ..tracking.grid import grid_positions
-from ..tracking.options import ANTENNA_TRACK_HALF_WINDOW, setup_tracking
+from ..tracking.options import ANTENNA_TRACK_HALF_WINDOW, TrackingSetup, setup_tracking
+from .chunks import ChunkMatch
+from .inputs import CalibrateOptions
 
 log = logging.getLogger("hitops.calibrate")
 
-#: the tracking options and their defaults (a count run says which of them it ignores)
-_ROBUST_DEFAULTS = {"half_window": 0, "coherence_time": 20.0, "snr": 0.0, "max_gap": -1,
-                    "jump_threshold": -1.0, "jump_window": 0, "jump_action": "segment",
-                    "refant": None, "solve_half_window": -1, "no_elevation_scaling": False}
+#: the options that tune the smooth and antenna trackers (a count run says which of them
+#: it ignores: those not at the schema's default)
+ROBUST_OPTIONS = ("half_window", "coherence_time", "snr", "max_gap", "jump_threshold",
+                  "jump_window", "jump_action", "refant", "solve_half_window",
+                  "no_elevation_scaling")
 
 
-def tracking_setup(opts, match, target_ms: str, antenna_names, snr_from: str):
-    """The TrackingSetup of ``--tracker smooth|antenna`` (None for count); checks --refant."""
+def tracking_setup(opts: CalibrateOptions, match: ChunkMatch, target_ms: str, antenna_names,
+                   snr_from: str) -> Optional[TrackingSetup]:
+    """The TrackingSetup of ``--tracker smooth|antenna`` (None for count, which has no
+    parameters); checks --refant."""
     if opts.tracker == "count":
-        changed = [k for k, v in _ROBUST_DEFAULTS.items()
-                   if getattr(opts, k) != v and not (v is None and not getattr(opts, k))]
+        defaults = {f.name: f.default for f in fields(CalibrateOptions)}
+        changed = [k for k in ROBUST_OPTIONS
+                   if getattr(opts, k) != defaults[k]
+                   and not (defaults[k] is None and not getattr(opts, k))]
         if changed:
             log.warning("--tracker count ignores %s (they tune --tracker smooth/antenna)",
                         ", ".join("--" + k.replace("_", "-") for k in changed))

@@ -1,119 +1,171 @@
 """One time chunk of frequency phase transfer, split over baseline groups.
 
 The pipeline (:mod:`hitops.calibrate.pipeline`) reads a chunk of rows, calls
-:func:`plan_groups` and runs :func:`transfer_group` on each baseline group
-as a dask task.  Wrap counting continues across chunks through a
-:class:`hitops.tracking.count.Carry` (the last valid reference sample of each series and its
-count), so the result does not depend on the chunk size; it restarts at
-every new scan.
+:func:`plan_groups` and runs :func:`transfer_group` on each baseline group as
+a dask task: a :class:`TransferInputs` in (the group's rows, the chunk's scans,
+the tracker's share, the n0 shifts), a :class:`TransferResult` out (each
+method's phasors, the calibrated mask, what the task carried, the sample
+counts and the n0 step's sums).  The reference wraps come from the tracker's
+share (:class:`hitops.tracking.base.GroupWraps`): counted here by the count
+tracker (continuing across chunks through a :class:`hitops.tracking.count.Carry`,
+so the result does not depend on the chunk size; it restarts at every new
+scan), sliced from the chunk's counts by the smooth and antenna trackers.
 """
 
 from __future__ import annotations
 
-from typing import Dict, List, Optional
+from dataclasses import dataclass, fields
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
 from ..kernels import fpt
-from ..tracking.count import count_scans, wrap_events
+from ..kernels.segments import SegmentSums, segment_run_sums
+from ..tracking.base import GroupWraps
+from ..tracking.count import Carry, count_scans
 
 
-def transfer_group(g: Dict) -> Dict:
-    """FPT of one baseline group of one chunk (a dask task; inputs are group-local).
+@dataclass
+class GroupRows:
+    """The rows one baseline group's task reads, and its row grids.
 
-    Keys of ``g``: tgt_rows, ref_rows (n_bl, n_time) local row indices;
-    tgt_vis, tgt_ok (n_tgt, n_corr); ref_vis, ref_ok (n_ref, n_corr_ref);
-    ref_swapped (n_ref,); corr_map (2, n_corr); scan_of_time (n_time,);
-    n_scan; methods (list of method codes); ratio; eps;
-    ref_model (n_bl, n_corr, n_time) or None: antenna mode's unwrapped model phase of
-    each baseline (NaN where not modelled); it replaces the baseline's own phase;
-    ref_wraps, ref_exclude (n_bl, n_corr, n_time) or None: reference wrap counts
-    and excluded reference samples from the tracker (:mod:`hitops.tracking`);
-    ref_carry, tgt_carry (Carry); offsets (n_bl, n_corr, n_scan) or None;
-    off_vis, off_ok (n_tgt, n_corr) or None.
+    tgt_rows, ref_rows (n_bl, n_time): index into the row arrays, or -1; tgt_vis,
+    tgt_ok (n_tgt, n_corr); ref_vis, ref_ok (n_ref, n_corr_ref); ref_swapped
+    (n_ref,); off_vis, off_ok (n_tgt, n_corr): the n0 step's offset reference (or
+    model) when the task sums the step, else None.
     """
-    tgt_rows, ref_rows = g["tgt_rows"], g["ref_rows"]
+
+    tgt_rows: np.ndarray
+    ref_rows: np.ndarray
+    tgt_vis: np.ndarray
+    tgt_ok: np.ndarray
+    ref_vis: np.ndarray
+    ref_ok: np.ndarray
+    ref_swapped: np.ndarray
+    off_vis: Optional[np.ndarray]
+    off_ok: Optional[np.ndarray]
+
+
+@dataclass
+class TransferInputs:
+    """Everything one baseline group's transfer task needs (all group-local).
+
+    corr_map (2, n_corr): the reference correlation of each target one (unswapped,
+    swapped rows); scan_of_time (n_time,) and n_scan: the chunk's tracking scans;
+    methods: method codes (:data:`hitops.kernels.fpt.METHOD_CODES`); ratio = r + eps;
+    reference: the tracker's share of the chunk; tgt_carry: CWU's own count of the
+    target phase, carried across chunks; offsets (n_bl, n_corr, n_scan): the n0
+    shifts per scan of a writing pass, or None; segment_keys (n_bl, n_corr, n_time):
+    sum the n0 step per segment (robust trackers' first pass), or None.
+    """
+
+    rows: GroupRows
+    corr_map: np.ndarray
+    scan_of_time: np.ndarray
+    n_scan: int
+    methods: List[int]
+    ratio: float
+    eps: float
+    reference: GroupWraps
+    tgt_carry: Carry
+    offsets: Optional[np.ndarray] = None
+    segment_keys: Optional[np.ndarray] = None
+
+
+@dataclass
+class SampleCounts:
+    """Target samples (row x correlation) and why some are not calibrated: disjoint causes,
+    in this order, that add up to the samples left uncalibrated."""
+
+    n_samples: int = 0
+    target_invalid: int = 0
+    no_reference_row: int = 0
+    reference_invalid: int = 0
+    other_uncalibrated: int = 0
+
+    def add(self, other: "SampleCounts") -> None:
+        for f in fields(self):
+            setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
+
+    @property
+    def flagged(self) -> int:
+        return (self.target_invalid + self.no_reference_row + self.reference_invalid
+                + self.other_uncalibrated)
+
+
+@dataclass
+class TransferResult:
+    """One baseline group's output.
+
+    phasors: method code -> (n_bl, n_time, n_corr) complex64 factor per cell;
+    calibrated (n_bl, n_time, n_corr) bool; ref_carry: what the tracker's share
+    carried out (``ResolvedWraps.carry``); tgt_carry: CWU's target count after the
+    chunk; wrap_events (n_bl, n_corr) int64 counted here; samples: the causes;
+    scan_sums / scan_counts (n_bl, n_corr, n_scan): the n0 step's sums per scan, and
+    segment_sums per segment (group-local baselines), when the task sums the step.
+    """
+
+    phasors: Dict[int, np.ndarray]
+    calibrated: np.ndarray
+    ref_carry: Optional[Carry]
+    tgt_carry: Carry
+    wrap_events: np.ndarray
+    samples: SampleCounts
+    scan_sums: Optional[np.ndarray] = None
+    scan_counts: Optional[np.ndarray] = None
+    segment_sums: Optional[SegmentSums] = None
+
+
+def transfer_group(inputs: TransferInputs) -> TransferResult:
+    """FPT of one baseline group of one chunk (a dask task; inputs are group-local)."""
+    rows = inputs.rows
+    tgt_rows, ref_rows = rows.tgt_rows, rows.ref_rows
     n_bl, n_time = tgt_rows.shape
-    n_corr = g["corr_map"].shape[1]
+    n_corr = inputs.corr_map.shape[1]
+    methods, scan_of_time = inputs.methods, inputs.scan_of_time
     identity = np.vstack([np.arange(n_corr), np.arange(n_corr)]).astype(np.int64)
-    ref_phase, ref_valid = fpt.gather_phase(ref_rows, g["ref_vis"], g["ref_ok"],
-                                            g["ref_swapped"], g["corr_map"])
-    if fpt.CWU in g["methods"] or g.get("off_vis") is not None:
-        tgt_phase, tgt_valid = fpt.gather_phase(tgt_rows, g["tgt_vis"], g["tgt_ok"],
-                                                np.zeros(g["tgt_vis"].shape[0], bool), identity)
+    ref_phase, ref_valid = fpt.gather_phase(ref_rows, rows.ref_vis, rows.ref_ok,
+                                            rows.ref_swapped, inputs.corr_map)
+    if fpt.CWU in methods or rows.off_vis is not None:
+        tgt_phase, tgt_valid = fpt.gather_phase(tgt_rows, rows.tgt_vis, rows.tgt_ok,
+                                                np.zeros(rows.tgt_vis.shape[0], bool), identity)
     else:  # PWC and CFPT do not need the target phase itself
-        tgt_valid = fpt.gather_valid(tgt_rows, g["tgt_vis"], g["tgt_ok"])
+        tgt_valid = fpt.gather_valid(tgt_rows, rows.tgt_vis, rows.tgt_ok)
         tgt_phase = np.zeros((1, 1, 1))
-    scan_of_time = g["scan_of_time"]
-    robust = g.get("ref_wraps") is not None
-    if robust:
-        # counts from the smooth/antenna tracker (whole array, with context across chunks)
-        ref_wraps, ref_carry = g["ref_wraps"], g["ref_carry"]
-        ref_phase, ref_valid = tracked_reference(ref_phase, ref_valid, g.get("ref_exclude"),
-                                                 g.get("ref_model"))
-    else:
-        ref_wraps, ref_carry = count_scans(ref_phase, ref_valid, scan_of_time, g["ref_carry"])
-    tgt_wraps, tgt_carry = np.zeros((1, 1, 1), np.int64), g["tgt_carry"]
-    if fpt.CWU in g["methods"]:
-        tgt_wraps, tgt_carry = count_scans(tgt_phase, tgt_valid, scan_of_time, g["tgt_carry"])
-    offsets = g["offsets"]
+    reference = inputs.reference.resolve(ref_phase, ref_valid, scan_of_time)
+    tgt_wraps, tgt_carry = np.zeros((1, 1, 1), np.int64), inputs.tgt_carry
+    if fpt.CWU in methods:
+        tgt_wraps, tgt_carry = count_scans(tgt_phase, tgt_valid, scan_of_time, inputs.tgt_carry)
+    offsets = inputs.offsets
     if offsets is None:
-        offsets = np.zeros((n_bl, n_corr, g["n_scan"]))
+        offsets = np.zeros((n_bl, n_corr, inputs.n_scan))
     phasors = {}
     calibrated = None
-    for method in g["methods"]:
+    for method in methods:
         phasors[method], calibrated = fpt.transfer_phasors(
-            tgt_rows, tgt_phase, tgt_valid, ref_phase, ref_valid, ref_wraps, tgt_wraps,
-            g["ratio"], g["eps"], method, offsets, scan_of_time)
-    out = {"phasors": phasors, "calibrated": calibrated, "ref_carry": ref_carry,
-           "tgt_carry": tgt_carry}
-    # wrap events per series (|steps| of n), for the log and report
-    steps = wrap_events(np.ascontiguousarray(ref_wraps), scan_of_time)
-    if robust:   # the robust tracker counts its own wrap events across chunks
-        steps = np.zeros_like(steps)
-    elif n_time and scan_of_time[0] == g["ref_carry"].last_scan and g["ref_carry"].has_last.any():
-        # the first sample continues the previous chunk's scan: its step counts too
-        first = ref_wraps[:, :, 0] - np.where(g["ref_carry"].has_last, g["ref_carry"].count, 0)
-        steps = steps + np.abs(np.where(g["ref_carry"].has_last, first, 0))
-    out["wrap_events"] = steps
-    out.update(sample_causes(tgt_rows, ref_rows, tgt_valid, ref_valid, calibrated, n_corr))
+            tgt_rows, tgt_phase, tgt_valid, reference.ref_phase, reference.ref_valid,
+            reference.ref_wraps, tgt_wraps, inputs.ratio, inputs.eps, method, offsets,
+            scan_of_time)
+    out = TransferResult(phasors=phasors, calibrated=calibrated, ref_carry=reference.carry,
+                         tgt_carry=tgt_carry, wrap_events=reference.wrap_events,
+                         samples=sample_causes(tgt_rows, ref_rows, tgt_valid, reference.ref_valid,
+                                               calibrated, n_corr))
     offset_method = fpt.PWC if fpt.PWC in phasors else (fpt.CWU if fpt.CWU in phasors else None)
-    if g.get("off_vis") is not None and offset_method is not None:
-        off_phase, off_valid = fpt.gather_phase(tgt_rows, g["off_vis"], g["off_ok"],
-                                                np.zeros(g["off_vis"].shape[0], bool), identity)
-        out["offset_sums"], out["offset_counts"] = fpt.offset_sums(
+    if rows.off_vis is not None and offset_method is not None:
+        off_phase, off_valid = fpt.gather_phase(tgt_rows, rows.off_vis, rows.off_ok,
+                                                np.zeros(rows.off_vis.shape[0], bool), identity)
+        out.scan_sums, out.scan_counts = fpt.offset_sums(
             tgt_phase, phasors[offset_method], calibrated, off_phase, off_valid, scan_of_time,
-            g["n_scan"])
-    if g.get("segment_keys") is not None and "offset_sums" in out:
-        # robust trackers: the n0 step per segment (segments after long gaps and jumps)
-        from .lattice import segment_run_sums
-        out["segment_sums"] = segment_run_sums(g["segment_keys"], tgt_phase,
-                                                  phasors[offset_method], calibrated,
-                                                  off_phase, off_valid)
+            inputs.n_scan)
+        if inputs.segment_keys is not None:
+            # robust trackers: the n0 step per segment (segments after long gaps and jumps)
+            out.segment_sums = segment_run_sums(inputs.segment_keys, tgt_phase,
+                                                phasors[offset_method], calibrated,
+                                                off_phase, off_valid)
     return out
 
 
-
-def tracked_reference(ref_phase, ref_valid, exclude, model):
-    """The reference phase and validity a robust tracker's output leaves to transfer.
-
-    ``exclude``: reference samples after a jump (--jump-action flag), or None;
-    ``model``: antenna mode's unwrapped model phase (NaN where not modelled), or None.
-    """
-    if exclude is not None:
-        ref_valid = ref_valid & ~exclude
-    if model is not None and np.isfinite(model).any():
-        # antenna mode: the baseline's reference phase is its antenna model (the counts
-        # already belong to it), so the transferred phase closes on every triangle;
-        # correlations without a model (cross-hands) keep their own phase
-        modelled = np.isfinite(model)
-        antenna_corr = modelled.any(axis=(0, 2))
-        ref_phase = np.where(modelled, (model + np.pi) % (2 * np.pi) - np.pi, ref_phase)
-        ref_valid = np.where(antenna_corr[None, :, None], ref_valid & modelled, ref_valid)
-    return ref_phase, ref_valid
-
-
-def sample_causes(tgt_rows, ref_rows, tgt_valid, ref_valid, calibrated, n_corr: int) -> Dict:
+def sample_causes(tgt_rows, ref_rows, tgt_valid, ref_valid, calibrated, n_corr: int) -> SampleCounts:
     """Why target samples are not calibrated: disjoint causes, in this order, that add up
     to the samples left uncalibrated (a sample flagged in the target and without a
     reference row counts once, as target-flagged)."""
@@ -124,10 +176,11 @@ def sample_causes(tgt_rows, ref_rows, tgt_valid, ref_valid, calibrated, n_corr: 
     no_ref = tgt_cell & tgt_valid & ~has_ref[:, None, :]
     ref_bad = tgt_cell & tgt_valid & has_ref[:, None, :] & ~ref_valid
     not_calibrated = ~np.swapaxes(calibrated, 1, 2)   # (n_bl, n_time, n_corr) -> (n_bl, n_corr, n_time)
-    return {"n_samples": int(has_tgt.sum()) * n_corr, "target_invalid": int(tgt_bad.sum()),
-            "no_reference_row": int(no_ref.sum()), "reference_invalid": int(ref_bad.sum()),
-            "other_uncalibrated": int((tgt_cell & not_calibrated & ~tgt_bad & ~no_ref
-                                       & ~ref_bad).sum())}
+    return SampleCounts(n_samples=int(has_tgt.sum()) * n_corr, target_invalid=int(tgt_bad.sum()),
+                        no_reference_row=int(no_ref.sum()), reference_invalid=int(ref_bad.sum()),
+                        other_uncalibrated=int((tgt_cell & not_calibrated & ~tgt_bad & ~no_ref
+                                                & ~ref_bad).sum()))
+
 
 def plan_groups(n_bl: int, n_groups: int) -> List[np.ndarray]:
     """Baseline indices of each group (contiguous, nearly equal sizes)."""
@@ -135,22 +188,20 @@ def plan_groups(n_bl: int, n_groups: int) -> List[np.ndarray]:
     return [g for g in np.array_split(np.arange(n_bl), n_groups) if g.size]
 
 
-def group_inputs(bls: np.ndarray, tgt_grid: np.ndarray, ref_grid: np.ndarray,
-                 tgt_vis, tgt_ok, ref_vis, ref_ok, ref_swapped,
-                 off_vis: Optional[np.ndarray], off_ok: Optional[np.ndarray],
-                 local: bool = True) -> Dict:
-    """The rows one baseline group needs, and its row grids.
+def group_rows(bls: np.ndarray, tgt_grid: np.ndarray, ref_grid: np.ndarray,
+               tgt_vis, tgt_ok, ref_vis, ref_ok, ref_swapped,
+               off_vis: Optional[np.ndarray], off_ok: Optional[np.ndarray],
+               local: bool = True) -> Tuple[GroupRows, Optional[np.ndarray]]:
+    """The rows one baseline group needs, its row grids, and the chunk rows it copied.
 
     ``local``: copy the group's rows into compact arrays (what a remote worker
-    should receive); otherwise share the chunk's arrays (threads) and index
-    them through the chunk's row grids.
+    should receive; the second value says which chunk rows they are); otherwise
+    share the chunk's arrays (threads) and index them through the chunk's row grids
+    (the second value is None).
     """
     if not local:
-        rows = tgt_grid[bls]
-        return {"tgt_rows": rows, "ref_rows": ref_grid[bls], "tgt_vis": tgt_vis,
-                "tgt_ok": tgt_ok, "ref_vis": ref_vis, "ref_ok": ref_ok,
-                "ref_swapped": ref_swapped, "off_vis": off_vis, "off_ok": off_ok,
-                "tgt_picked": None}
+        return GroupRows(tgt_grid[bls], ref_grid[bls], tgt_vis, tgt_ok, ref_vis, ref_ok,
+                         ref_swapped, off_vis, off_ok), None
 
     def localise(grid, arrays):
         rows = grid[bls]
@@ -162,6 +213,4 @@ def group_inputs(bls: np.ndarray, tgt_grid: np.ndarray, ref_grid: np.ndarray,
 
     tgt_local, tgt_picked, (tv, tok, ov, ook) = localise(tgt_grid, [tgt_vis, tgt_ok, off_vis, off_ok])
     ref_local, _, (rv, rok, rsw) = localise(ref_grid, [ref_vis, ref_ok, ref_swapped])
-    return {"tgt_rows": tgt_local, "ref_rows": ref_local, "tgt_vis": tv, "tgt_ok": tok,
-            "ref_vis": rv, "ref_ok": rok, "ref_swapped": rsw, "off_vis": ov, "off_ok": ook,
-            "tgt_picked": tgt_picked}
+    return GroupRows(tgt_local, ref_local, tv, tok, rv, rok, rsw, ov, ook), tgt_picked

@@ -82,88 +82,23 @@ def segment_coherence(vis, flag, times, scan, intervals, dt, min_fill):
         Number of usable samples.
     """
     n_bl, n_time, n_series = vis.shape
-    n_flag = flag.shape[2]
     n_int = intervals.shape[0]
     c_mean = np.full((n_bl, n_series, n_int), np.nan)
     c_std = np.full((n_bl, n_series, n_int), np.nan)
     n_segments = np.zeros((n_bl, n_series, n_int), dtype=np.int64)
     n_usable = np.zeros((n_bl, n_series), dtype=np.int64)
-    # cumulative unit-phasor sums and usable counts of one baseline; index t
-    # holds the sum over samples [0, t)
-    csum = np.zeros((n_time + 1, n_series), dtype=np.complex128)
-    ccount = np.zeros((n_time + 1, n_series), dtype=np.int64)
-    # per-series accumulators of one (baseline, interval)
-    w_sum = np.zeros(n_series)
-    w_sq = np.zeros(n_series)
-    w_n = np.zeros(n_series)
-    k_seg = np.zeros(n_series, dtype=np.int64)
     # a sample exactly on a segment boundary belongs to the later segment,
     # whatever the rounding of TIME (MJD seconds keep ~1e-6 s)
     nudge = 1e-3 * dt
-
     for b in range(n_bl):
-        for t in range(n_time):
-            present = scan[b, t] >= 0
-            for s in range(n_series):
-                v = vis[b, t, s]
-                amp = abs(v)
-                if present and not flag[b, t, s % n_flag] and amp > 0.0 and math.isfinite(amp):
-                    csum[t + 1, s] = csum[t, s] + v / amp
-                    ccount[t + 1, s] = ccount[t, s] + 1
-                else:
-                    csum[t + 1, s] = csum[t, s]
-                    ccount[t + 1, s] = ccount[t, s]
+        csum, ccount = _cumulative_phasors(vis, flag, scan, b)
         for s in range(n_series):
             n_usable[b, s] = ccount[n_time, s]
-
         for k in range(n_int):
             interval = intervals[k]
             need = max(min_fill * interval / dt, 1.0)
-            w_sum[:] = 0.0
-            w_sq[:] = 0.0
-            w_n[:] = 0.0
-            k_seg[:] = 0
-            seg_start = -1      # time index where the open segment starts
-            run_scan = -1       # scan of the current run
-            run_t0 = 0.0        # start time of the current run
-            seg_end = 0.0       # end time of the open segment
-            for t in range(n_time + 1):
-                close = False
-                start_run = False
-                if t == n_time:
-                    close = seg_start >= 0
-                else:
-                    sc = scan[b, t]
-                    if sc < 0:
-                        continue
-                    if sc != run_scan or seg_start < 0:
-                        close = seg_start >= 0
-                        start_run = True
-                    elif times[t] - run_t0 + nudge >= seg_end:
-                        close = True
-                if close:
-                    for s in range(n_series):
-                        n = ccount[t, s] - ccount[seg_start, s]
-                        if n > 0 and n >= need:
-                            dz = csum[t, s] - csum[seg_start, s]
-                            coh = math.sqrt(dz.real * dz.real + dz.imag * dz.imag) / n
-                            w_sum[s] += n * coh
-                            w_sq[s] += n * coh * coh
-                            w_n[s] += n
-                            k_seg[s] += 1
-                    seg_start = -1
-                if t == n_time:
-                    break
-                if start_run:
-                    run_scan = scan[b, t]
-                    run_t0 = times[t]
-                    seg_end = interval
-                    seg_start = t
-                elif close:
-                    # the segment this sample falls in (gaps may skip several)
-                    seg_id = math.floor((times[t] - run_t0 + nudge) / interval)
-                    seg_end = (seg_id + 1) * interval
-                    seg_start = t
+            w_sum, w_sq, w_n, k_seg = _interval_segments(csum, ccount, times, scan[b], interval,
+                                                         need, nudge)
             for s in range(n_series):
                 n_segments[b, s, k] = k_seg[s]
                 if k_seg[s] > 0:
@@ -172,6 +107,82 @@ def segment_coherence(vis, flag, times, scan, intervals, dt, min_fill):
                     var = w_sq[s] / w_n[s] - mean * mean
                     c_std[b, s, k] = math.sqrt(var) if var > 0.0 else 0.0
     return c_mean, c_std, n_segments, n_usable
+
+
+@numba.njit(cache=True, nogil=True)
+def _cumulative_phasors(vis, flag, scan, b):
+    """Cumulative unit-phasor sums and usable counts of baseline ``b``, (n_time + 1,
+    n_series) each: index t holds the sum over samples [0, t)."""
+    _, n_time, n_series = vis.shape
+    n_flag = flag.shape[2]
+    csum = np.zeros((n_time + 1, n_series), dtype=np.complex128)
+    ccount = np.zeros((n_time + 1, n_series), dtype=np.int64)
+    for t in range(n_time):
+        present = scan[b, t] >= 0
+        for s in range(n_series):
+            v = vis[b, t, s]
+            amp = abs(v)
+            if present and not flag[b, t, s % n_flag] and amp > 0.0 and math.isfinite(amp):
+                csum[t + 1, s] = csum[t, s] + v / amp
+                ccount[t + 1, s] = ccount[t, s] + 1
+            else:
+                csum[t + 1, s] = csum[t, s]
+                ccount[t + 1, s] = ccount[t, s]
+    return csum, ccount
+
+
+@numba.njit(cache=True, nogil=True)
+def _interval_segments(csum, ccount, times, scan_b, interval, need, nudge):
+    """One baseline's segments of length ``interval``: per series the sums of n * C,
+    n * C^2 and n over the kept segments (n >= ``need`` usable samples), and their number."""
+    n_time = times.shape[0]
+    n_series = csum.shape[1]
+    w_sum = np.zeros(n_series)
+    w_sq = np.zeros(n_series)
+    w_n = np.zeros(n_series)
+    k_seg = np.zeros(n_series, dtype=np.int64)
+    seg_start = -1      # time index where the open segment starts
+    run_scan = -1       # scan of the current run
+    run_t0 = 0.0        # start time of the current run
+    seg_end = 0.0       # end time of the open segment
+    for t in range(n_time + 1):
+        close = False
+        start_run = False
+        if t == n_time:
+            close = seg_start >= 0
+        else:
+            sc = scan_b[t]
+            if sc < 0:
+                continue
+            if sc != run_scan or seg_start < 0:
+                close = seg_start >= 0
+                start_run = True
+            elif times[t] - run_t0 + nudge >= seg_end:
+                close = True
+        if close:
+            for s in range(n_series):
+                n = ccount[t, s] - ccount[seg_start, s]
+                if n > 0 and n >= need:
+                    dz = csum[t, s] - csum[seg_start, s]
+                    coh = math.sqrt(dz.real * dz.real + dz.imag * dz.imag) / n
+                    w_sum[s] += n * coh
+                    w_sq[s] += n * coh * coh
+                    w_n[s] += n
+                    k_seg[s] += 1
+            seg_start = -1
+        if t == n_time:
+            break
+        if start_run:
+            run_scan = scan_b[t]
+            run_t0 = times[t]
+            seg_end = interval
+            seg_start = t
+        elif close:
+            # the segment this sample falls in (gaps may skip several)
+            seg_id = math.floor((times[t] - run_t0 + nudge) / interval)
+            seg_end = (seg_id + 1) * interval
+            seg_start = t
+    return w_sum, w_sq, w_n, k_seg
 
 
 @numba.njit(cache=True, nogil=True)

@@ -1,7 +1,8 @@
 """Reference-band phase-wrap tracking: the three trackers of ``hitops calibrate`` and their theory.
 
-One interface (:mod:`.base`: ``WrapTracker``, ``Tracked``) with one module per
-tracker: :mod:`.count` (the paper's step > pi rule), :mod:`.smooth` (smoothed
+One interface (:mod:`.base`: ``WrapTracker`` and the types it passes, ``ReferenceGrid``
+in, ``ChunkTracking`` out, split into one ``GroupWraps`` per baseline group of the
+transfer) with one module per tracker: :mod:`.count` (the paper's step > pi rule), :mod:`.smooth` (smoothed
 unit phasor, gap bridging, jump detection) and :mod:`.antenna` (wraps tracked
 per antenna), each with its numba kernels beside it (:mod:`.smooth_kernel`,
 :mod:`.antenna_kernel`); the shared parts: :mod:`.options` (checks, resolved

@@ -26,7 +26,7 @@ from .grid import on_grid
 from .modes import track_antennas
 from .options import ANTENNA_TRACK_HALF_WINDOW, MIN_COHERENCE
 from .smooth import Chunk, Run, SmoothTracker
-from .state import Stats, jump_list
+from .state import PAIR_KEY, Stats, jump_list
 from .windows import half_windows, per_sample_snr
 
 log = logging.getLogger("hitops.calibrate")
@@ -180,7 +180,7 @@ class AntennaTracker(SmoothTracker):
                 # a baseline's segment is the pair of its antennas' (aligned) segments
                 sp, sq = out["ant_seg"][p_ant], out["ant_seg"][q_ant]
                 ch.seg[:, c, a:b] = np.where(ch.valid[:, c, a:b] & (sp >= 0) & (sq >= 0),
-                                             sp * 1_000_003 + sq, -1)
+                                             sp * PAIR_KEY + sq, -1)
                 ant_model, ant_ok = per_sample_model(out)
                 # keep this chunk's own times (its context belongs to the neighbours)
                 lo, hi = max(a, t0 - t_lo), min(b, t1 - t_lo)

@@ -11,7 +11,10 @@ runs it over a (baseline, correlation, time) chunk, restarting at each scan and
 continuing across chunks through a :class:`Carry` (the last valid sample of
 each series and its count), so the counts do not depend on the chunk size;
 :class:`CountTracker` is the same behind the :class:`~hitops.tracking.base.WrapTracker`
-interface.  It needs no context: one sample is carried instead.
+interface.  It needs no context: one sample is carried instead.  In a calibrate
+run it needs no grid either: each baseline group's transfer task counts its own
+phases from its part of the carry (:class:`CountedWraps`), and the tracker takes
+the carry and the wrap events back (:meth:`CountTracker.absorb`).
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from .base import Tracked, WrapTracker, scan_runs
+from .base import ChunkTracking, GroupWraps, ResolvedWraps, Tracked, WrapTracker, scan_runs
 from .state import Stats
 
 
@@ -146,6 +149,28 @@ def chunk_wrap_events(wraps: np.ndarray, scan_of_time: np.ndarray, carry: Carry)
     return steps
 
 
+@dataclass
+class CountedWraps(GroupWraps):
+    """A baseline group's wraps, counted inside its transfer task from the carried sample."""
+
+    carry: Carry
+
+    def resolve(self, ref_phase, ref_valid, scan_of_time) -> ResolvedWraps:
+        wraps, after = count_scans(ref_phase, ref_valid, scan_of_time, self.carry)
+        return ResolvedWraps(ref_phase, ref_valid, wraps,
+                             chunk_wrap_events(wraps, scan_of_time, self.carry), after)
+
+
+@dataclass
+class CountedChunk(ChunkTracking):
+    """A chunk the count tracker leaves to the tasks: each gets its baselines' carry."""
+
+    carry: Carry
+
+    def for_group(self, bls) -> CountedWraps:
+        return CountedWraps(self.carry.subset(bls))
+
+
 class CountTracker(WrapTracker):
     """``--tracker count`` over the whole (n_bl, n_corr, n) grid, chunk after chunk.
 
@@ -156,6 +181,8 @@ class CountTracker(WrapTracker):
     """
 
     name = "count"
+    grids_reference = False
+    segmented = False
 
     def __init__(self, match, corr_names, setup=None, **_unused):
         self.match = match
@@ -179,6 +206,20 @@ class CountTracker(WrapTracker):
         self.stats.per_series["wrap_events"] += chunk_wrap_events(wraps, scan, self.state)
         self.state = carry
         return Tracked(ref_wraps=wraps)
+
+    def track_chunk(self, t0, t1, reference=None) -> CountedChunk:
+        """The counting is left to the transfer tasks (:class:`CountedWraps`)."""
+        return CountedChunk(self.state)
+
+    def absorb(self, bls, carry: Carry, wrap_events) -> None:
+        """The carry after a task of baselines ``bls``, and its wrap events."""
+        self.state.last_phase[bls] = carry.last_phase
+        self.state.has_last[bls] = carry.has_last
+        self.state.count[bls] = carry.count
+        self.stats.per_series["wrap_events"][bls] += wrap_events
+
+    def finish_chunk(self, t1: int) -> None:
+        self.state.last_scan = int(self.match.scan_of_time[t1 - 1])
 
     def report(self, times) -> dict:
         """The JSON report's tracking entry: wrap events per baseline."""

@@ -19,6 +19,9 @@ import numpy as np
 
 #: segment keys are scan index * SEGMENT_KEY + segment id
 SEGMENT_KEY = np.int64(1) << 32
+#: antenna mode: a baseline's segment id is sp * PAIR_KEY + sq, sp and sq the aligned
+#: segment ids of its two antennas (ids of one scan stay far below it)
+PAIR_KEY = 1_000_003
 
 
 @dataclass

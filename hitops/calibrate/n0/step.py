@@ -4,13 +4,13 @@ Given the first pass's sums of the calibrated phase against the offset
 reference (``--offset-reference-column``: a reference calibration;
 ``--offset-model``: ``point`` or a model column):
 
-* count tracker: per baseline, correlation and scan, the lattice point nearest
-  the circular mean (:func:`hitops.calibrate.offsets.choose_offset`), applied
+* count tracker (not ``segmented``): per baseline, correlation and scan, the lattice point nearest
+  the circular mean (:func:`hitops.calibrate.n0.baseline.choose_offset`), applied
   as a phase offset by the writing pass;
 * smooth tracker: the same per segment, added to the segment's wrap count;
 * antenna tracker: integers per antenna and segment for the parallel hands,
   from one lattice solve over every baseline and both hands
-  (:func:`hitops.calibrate.offsets.antenna_offsets`), so closure phases are
+  (:func:`hitops.calibrate.n0.antenna.antenna_offsets`), so closure phases are
   kept; the cross hands per baseline.
 """
 
@@ -24,8 +24,13 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
-from ..tracking.state import SEGMENT_KEY
-from .offsets import antenna_offsets, choose_offset
+from ...kernels.segments import shifted_rows
+from ...tracking.base import WrapTracker
+from ...tracking.state import SEGMENT_KEY, apply_segment_offsets
+from ..plan import GroupPlan, RunPlan
+from .antenna import antenna_offsets
+from .baseline import choose_offset
+from .hands import HandPhases
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -52,22 +57,41 @@ class OffsetSolution:
         return self.offsets is not None
 
 
-def solve_offsets(run, group, first) -> OffsetSolution:
-    """The integers from the first pass (:class:`hitops.calibrate.pipeline.PassResult`)."""
+@dataclass
+class OffsetSums:
+    """What the first pass sums for the step: exp(i (Phi_ref - Phi_out)) over calibrated
+    samples per (baseline, correlation, scan), ``scan_sums`` (complex128) and
+    ``scan_counts`` (int64) (n_bl, n_corr, n_scan), and per segment,
+    ``segment_sums`` {(baseline, correlation, segment key): [z, n]} (segmented trackers)."""
+
+    scan_sums: np.ndarray
+    scan_counts: np.ndarray
+    segment_sums: Dict[tuple, list] = field(default_factory=dict)
+
+    @classmethod
+    def empty(cls, n_bl: int, n_corr: int, n_scan: int) -> "OffsetSums":
+        return cls(np.zeros((n_bl, n_corr, n_scan), dtype=np.complex128),
+                   np.zeros((n_bl, n_corr, n_scan), dtype=np.int64))
+
+
+def solve_offsets(run: RunPlan, group: GroupPlan, tracker: WrapTracker,
+                  sums: OffsetSums) -> OffsetSolution:
+    """The integers from the first pass's ``sums`` and its ``tracker``."""
     stage = time.perf_counter()
-    match, eps, setup = group.match, group.eps, group.tracking
+    match = group.match
     max_k, ambiguity = int(run.opts.max_offset_wraps), float(run.opts.offset_ambiguity_deg)
     solution = OffsetSolution(offsets=np.zeros((match.n_bl, group.n_corr, match.scans.size)))
-    if setup is None:
-        _per_scan(solution, group, first.scan_sums, first.scan_counts, max_k, ambiguity)
+    if not tracker.segmented:
+        _per_scan(solution, group, sums.scan_sums, sums.scan_counts, max_k, ambiguity)
     else:
-        # robust trackers: the n0 step per segment (every scan starts one; long gaps and
+        # segmented trackers: the n0 step per segment (every scan starts one; long gaps and
         # jumps start more); k is added to the segment's wrap count
-        sums = first.segment_sums
+        segment_sums = sums.segment_sums
         solution.segment_k = {}
-        if setup.tracker == "antenna":
-            sums = _antenna_lattice(solution, group, sums, first.tracker, max_k, ambiguity)
-        _per_segment(solution, group, sums, max_k, ambiguity)
+        if tracker.name == "antenna":
+            segment_sums = _antenna_lattice(solution, group, segment_sums, tracker, max_k,
+                                            ambiguity)
+        _per_segment(solution, group, segment_sums, max_k, ambiguity)
     chosen = [e for e in solution.series if e.get("samples") and e.get("solve") != "antenna"]
     if chosen or solution.solves is None:
         log.info("offset step: n0 chosen per baseline for %d series (|k| <= %d); %d "
@@ -81,23 +105,23 @@ def solve_offsets(run, group, first) -> OffsetSolution:
     return solution
 
 
-def _antenna_lattice(solution, group, sums, tracker, max_k, ambiguity):
+def _antenna_lattice(solution: OffsetSolution, group: GroupPlan, sums, tracker: WrapTracker,
+                     max_k: int, ambiguity: float):
     """Integers per antenna and segment for the parallel hands; returns the other sums."""
     match = group.match
     antenna_corrs = {c for c, name in enumerate(match.corr_names)
                      if len(name) == 2 and name[0] == name[1]}
     # the first pass's antenna phases tie the two hands
-    hands = None if getattr(tracker, "antenna_phase", None) is None else {
-        "phase": tracker.antenna_phase, "segment": tracker.antenna_segment,
-        "scan_of_time": match.scan_of_time}
-    seg_k, antennas, solves, series = antenna_offsets(
+    hands = None if tracker.antenna_phase is None else HandPhases(
+        tracker.antenna_phase, tracker.antenna_segment, match.scan_of_time)
+    found = antenna_offsets(
         sums, antenna_corrs, match.ant1, match.ant2, list(group.antenna_names),
         match.baseline_names, match.corr_names, match.scans, group.eps, max_k, ambiguity,
         refants=group.tracking.refants, segment_key=int(SEGMENT_KEY), hands=hands)
-    solution.segment_k.update(seg_k)
-    solution.series.extend(series)
-    solution.antennas, solution.solves = antennas, solves
-    _log_antenna_offsets(antennas, solves)
+    solution.segment_k.update(found.segment_k)
+    solution.series.extend(found.series)
+    solution.antennas, solution.solves = found.antennas, found.solves
+    _log_antenna_offsets(found.antennas, found.solves)
     return {key: v for key, v in sums.items() if key[1] not in antenna_corrs}
 
 
@@ -117,7 +141,8 @@ def _entry(choice, base: dict, segment: bool) -> dict:
     return entry
 
 
-def _per_segment(solution, group, sums, max_k, ambiguity) -> None:
+def _per_segment(solution: OffsetSolution, group: GroupPlan, sums, max_k: int,
+                 ambiguity: float) -> None:
     match = group.match
     for (b, c, key), (z, n) in sorted(sums.items()):
         choice = choose_offset(complex(z), int(n), group.eps, max_k, ambiguity)
@@ -128,7 +153,8 @@ def _per_segment(solution, group, sums, max_k, ambiguity) -> None:
         solution.series.append(_entry(choice, base, segment=True))
 
 
-def _per_scan(solution, group, sums, counts, max_k, ambiguity) -> None:
+def _per_scan(solution: OffsetSolution, group: GroupPlan, sums, counts, max_k: int,
+              ambiguity: float) -> None:
     match = group.match
     for b in range(match.n_bl):
         for c in range(group.n_corr):
@@ -166,3 +192,24 @@ def _log_antenna_offsets(antennas, solves) -> None:
     log.info("offset step: %d antenna segments solved on the 2 pi eps k lattice in %d solves; "
              "%d ambiguous", len(antennas), len(solves),
              sum(bool(e.get("ambiguous")) for e in antennas))
+
+
+def offset_shifted_rows(tgt_grid, eps: float, segment_k, seg_keys, phasors):
+    """``phasors`` (PWC/CWU, (n_row, n_corr) each) multiplied by exp(i 2 pi eps k): new arrays.
+
+    ``segment_k``: {(b, c, key): k} added to the wrap counts of a segment by the n0 step
+    (robust trackers), which moves its PWC and CWU output by 2 pi eps k; ``seg_keys``
+    (n_bl, n_corr, n_time) the chunk's segment keys; ``tgt_grid`` (n_bl, n_time) the
+    chunk's target rows.  Used to shift the first pass's output instead of running the
+    transfer again (one chunk); equal to the second pass to complex64 rounding.
+    Returns the list of shifted phasors (the inputs themselves when nothing moves).
+    """
+    if seg_keys is None or not any(segment_k.values() if segment_k else ()):
+        return list(phasors)
+    k = apply_segment_offsets(np.zeros(seg_keys.shape, np.int64), seg_keys, segment_k)
+    values = [v for v in segment_k.values()]
+    k_min, k_max = min(values + [0]), max(values + [0])
+    table = np.exp(1j * (2 * math.pi * eps) * np.arange(k_min, k_max + 1)).astype(np.complex64)
+    grid = np.ascontiguousarray(tgt_grid)
+    return [shifted_rows(grid, k, table, k_min, out) for out in phasors]
+
