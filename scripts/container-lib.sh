@@ -83,9 +83,12 @@ apt_get_logged() {  # log as_root... -- apt-get args...
 }
 
 # No builder works: buildah (and mmdebstrap, which makes the base image without
-# a registry) from Debian.  Ends with one line when it cannot.
+# a registry) from Debian.  Ends with one line when it cannot.  A buildah that is
+# installed but fails is not reinstalled (apt-get would change nothing).
 install_buildah() {  # why the builders were passed over
     local why=$1 as_root=() log=$CACHE/apt-get.log problem
+    command -v buildah >/dev/null \
+        && die "no working container builder ($why): fix buildah (see 'buildah info'), install podman, or start docker's daemon, then rerun"
     command -v apt-get >/dev/null \
         || die "no working container builder ($why) and no apt-get to install one: install buildah (or podman, or start docker's daemon), then rerun"
     if [ "$(id -u)" -ne 0 ]; then
@@ -98,7 +101,7 @@ install_buildah() {  # why the builders were passed over
     apt_get_logged "$log" "${as_root[@]}" -- update -q
     apt_get_logged "$log" "${as_root[@]}" -- install -y -q buildah mmdebstrap
     problem=$(builder_problem buildah)
-    [ -z "$problem" ] || die "apt-get installed buildah but it is $problem: see $log and 'buildah info'"
+    [ -z "$problem" ] || die "after apt-get install buildah, buildah still does not work (buildah $problem): see $log"
 }
 
 # Prints the builder to use, and one line on stderr saying which and why the
@@ -121,18 +124,19 @@ pick_tool() {
     fi
     for tool in "${BUILDERS[@]}"; do
         if [ -n "$chosen" ]; then  # not probed: an earlier one works
-            if command -v "$tool" >/dev/null; then passed+=("$tool: $chosen comes first")
-            else passed+=("$tool: not installed"); fi
+            if command -v "$tool" >/dev/null; then passed+=("$tool comes after $chosen")
+            else passed+=("$tool not installed"); fi
             continue
         fi
         problem=$(builder_problem "$tool")
-        if [ -z "$problem" ]; then chosen=$tool; else passed+=("$tool: $problem"); fi
+        if [ -z "$problem" ]; then chosen=$tool; else passed+=("$tool $problem"); fi
     done
     if [ -z "$chosen" ]; then
         install_buildah "$(join_by '; ' "${passed[@]}")"
-        chosen=buildah how=", installed now from Debian"
+        # buildah's own entry ("not installed", or its failure, which the install fixed) is past
+        chosen=buildah how="installed now from Debian; " passed=("${passed[@]:1}")
     fi
-    note "container builder: $chosen$how (passed over: $(join_by '; ' "${passed[@]}"))"
+    note "container builder: $chosen (${how}passed over: $(join_by '; ' "${passed[@]}"))"
     echo "$chosen"
 }
 
