@@ -260,6 +260,15 @@ def _lines(path):
     return path.read_text().splitlines() if path.exists() else []
 
 
+def _installed_from_debian(calls, sudo_user=""):
+    """apt-get update, then install of both packages, DEBIAN_FRONTEND reaching apt-get."""
+    apt = _lines(calls)
+    assert [c.split("|")[0] for c in apt] == ["update -q", "install -y -q buildah mmdebstrap"]
+    # SUDO_USER empty: apt-get ran directly; "tester": through sudo, whose reset
+    # environment still carried DEBIAN_FRONTEND
+    assert all(c.endswith(f"|DEBIAN_FRONTEND=noninteractive|SUDO_USER={sudo_user}") for c in apt)
+
+
 def _chosen(stderr):
     lines = [line for line in stderr.splitlines() if "container builder: " in line]
     assert len(lines) == 1, stderr   # said once, also when image-base.sh needs the builder
@@ -270,16 +279,19 @@ DAEMONLESS = ("docker installed, but `docker info` failed: Cannot connect to the
               "unix:///var/run/docker.sock. Is the docker daemon running?")
 
 
-def test_no_builder_as_root_installs_buildah_and_builds(tmp_path):
-    # the machine of issue 30: a docker client without its daemon, no buildah, no podman
+def _build_on_issue_30s_machine(tmp_path, uid):
+    """`make image`'s script where issue 30 met it: a docker client without its
+    daemon, no buildah, no podman, no sudo."""
     env = Env(tmp_path, ("docker",))
-    calls = _installer(env, uid=0, sudo=False)
+    calls = _installer(env, uid=uid, sudo=False)
     env.wheelhouse()
-    out = env.run("image-build.sh", HITOPS_SKIP_WHEELHOUSE=1, DOCKER_INFO_RC=1)
+    return env, calls, env.run("image-build.sh", HITOPS_SKIP_WHEELHOUSE=1, DOCKER_INFO_RC=1)
+
+
+def test_no_builder_as_root_installs_buildah_and_builds(tmp_path):
+    env, calls, out = _build_on_issue_30s_machine(tmp_path, uid=0)
     assert out.returncode == 0, out.stderr
-    apt = _lines(calls)
-    assert [c.split("|")[0] for c in apt] == ["update -q", "install -y -q buildah mmdebstrap"]
-    assert all(c.endswith("|DEBIAN_FRONTEND=noninteractive|SUDO_USER=") for c in apt)  # not sudo
+    _installed_from_debian(calls)
     assert not (env.state / "sudo.calls").exists()
     assert ("installing buildah and mmdebstrap from Debian (apt-get install buildah mmdebstrap; "
             f"output in {env.cache}/apt-get.log)") in out.stderr
@@ -300,10 +312,7 @@ def test_no_builder_not_root_installs_through_sudo(tmp_path):
     out = lib(env, "pick_tool")
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "buildah"
-    apt = _lines(calls)
-    assert [c.split("|")[0] for c in apt] == ["update -q", "install -y -q buildah mmdebstrap"]
-    # DEBIAN_FRONTEND survived sudo's environment reset
-    assert all(c.endswith("|DEBIAN_FRONTEND=noninteractive|SUDO_USER=tester") for c in apt)
+    _installed_from_debian(calls, sudo_user="tester")
     assert _lines(env.state / "sudo.calls") == [
         "env DEBIAN_FRONTEND=noninteractive apt-get update -q",
         "env DEBIAN_FRONTEND=noninteractive apt-get install -y -q buildah mmdebstrap"]
@@ -313,10 +322,7 @@ def test_no_builder_not_root_installs_through_sudo(tmp_path):
 
 
 def test_no_builder_neither_root_nor_sudo_is_one_line(tmp_path):
-    env = Env(tmp_path, ("docker",))
-    calls = _installer(env, uid=1000, sudo=False)
-    env.wheelhouse()
-    out = env.run("image-build.sh", HITOPS_SKIP_WHEELHOUSE=1, DOCKER_INFO_RC=1)
+    env, calls, out = _build_on_issue_30s_machine(tmp_path, uid=1000)
     assert out.returncode != 0
     assert out.stderr.strip().splitlines() == [
         "image-build.sh: no working container builder (buildah not installed; podman not installed; "
@@ -366,7 +372,7 @@ def test_check_and_archive_install_the_builder_too(tmp_path, script):
     calls = _installer(env, uid=0, sudo=False)
     out = env.run(script, DOCKER_INFO_RC=1)
     # buildah installed; its storage is empty, so they say what to run first
-    assert [c.split("|")[0] for c in _lines(calls)] == ["update -q", "install -y -q buildah mmdebstrap"]
+    _installed_from_debian(calls)
     assert out.returncode != 0
     assert out.stderr.strip().splitlines()[-1] == (
         f"{script}: ghcr.io/hitops/hitops:0.1.0 is not in buildah's storage: run `make image` first")
