@@ -389,7 +389,8 @@ def test_build_with_buildah_makes_the_base_then_builds_offline(tmp_path):
     # one probe of the builder: image-base.sh takes the one image-build.sh chose
     assert cmds[0] == "buildah info" and cmds.count("buildah info") == 1
     assert cmds[1].startswith("buildah inspect --type image localhost/hitops-base:bookworm")
-    assert cmds[2] == f"mmdebstrap --quiet --variant=minbase --include=ca-certificates bookworm {tar}.part"
+    assert cmds[2] == (f"mmdebstrap --quiet --variant=minbase --format=tar --include=ca-certificates "
+                       f"bookworm {tar}.part")
     assert "buildah from scratch" in cmds
     assert f"buildah add working-container {tar} /" in cmds
     assert "buildah commit --rm --quiet working-container localhost/hitops-base:bookworm" in cmds
@@ -407,6 +408,18 @@ def test_build_with_buildah_makes_the_base_then_builds_offline(tmp_path):
     out = env.run("image-build.sh", HITOPS_SKIP_WHEELHOUSE=1)
     assert out.returncode == 0, out.stderr
     assert not [c for c in env.commands() if c.startswith(("mmdebstrap", "buildah commit"))]
+
+
+def test_a_base_directory_left_by_older_scripts_is_made_again_as_a_tar(tmp_path):
+    # before --format=tar, mmdebstrap wrote a directory named bookworm-minbase.tar
+    env = Env(tmp_path)
+    env.wheelhouse()
+    old = env.cache / "bookworm-minbase.tar"
+    (old / "etc").mkdir(parents=True)
+    out = env.run("image-build.sh", HITOPS_SKIP_WHEELHOUSE=1)
+    assert out.returncode == 0, out.stderr
+    assert any(c.startswith("mmdebstrap ") for c in env.commands())
+    assert old.is_file() and old.read_bytes() == b"rootfs"
 
 
 def test_build_with_docker_imports_the_base_without_isolation_flags(tmp_path):
