@@ -133,7 +133,7 @@ pick_tool() {
     done
     if [ -z "$chosen" ]; then
         install_buildah "$(join_by '; ' "${passed[@]}")"
-        # buildah's own entry ("not installed", or its failure, which the install fixed) is past
+        # buildah's entry ("not installed": a broken one is not reinstalled) no longer holds
         chosen=buildah how="installed now from Debian; " passed=("${passed[@]:1}")
     fi
     note "container builder: $chosen (${how}passed over: $(join_by '; ' "${passed[@]}"))"
@@ -141,7 +141,7 @@ pick_tool() {
 }
 
 join_by() {  # separator words...
-    local sep=$1 out=""
+    local sep=$1 out="" w
     shift
     for w in "$@"; do out+=${out:+$sep}$w; done
     echo "$out"
