@@ -2,6 +2,11 @@
 # None of them runs in `make test`: they need buildah/podman/docker, slurm-wlm,
 # and the package index for the wheelhouse.
 #
+# image, image-check and image-archive use the first builder that works of
+# buildah, podman and docker (docker only when its daemon answers) and say which;
+# when none works they install buildah and mmdebstrap from Debian (apt-get, as
+# root or through sudo), as `make setup` installs WSClean (scripts/container-lib.sh).
+#
 #   make image          wheelhouse + base + build of docker/Dockerfile, tagged as
 #                       cabs/images.yml names it (scripts/image-build.sh)
 #   make image-check    the demo recipe inside the image vs on the host: same numbers
@@ -21,7 +26,7 @@ export HITOPS_PYTHON
 
 .PHONY: image image-check image-archive image-sif slurm-check
 
-image: $(STAMP) ## build the container image offline from a wheelhouse (buildah/podman/docker; docs/hpc.md)
+image: $(STAMP) ## build the container image offline from a wheelhouse (buildah/podman/docker; installs buildah+mmdebstrap when none works; docs/hpc.md)
 	scripts/image-build.sh
 
 image-check: $(STAMP) wsclean casa-config ## run the demo inside the image and on the host: same peak-flux numbers

@@ -9,7 +9,6 @@
 set -euo pipefail
 . "$(dirname "$0")/container-lib.sh"
 
-TOOL=$(pick_tool) || exit 1
 IMAGE=$(image_name) || exit 1
 version=${IMAGE##*:}
 tar=$CACHE/hitops-$version.docker.tar
@@ -26,6 +25,8 @@ if [ "${1:-}" = "--sif" ]; then
     exit 0
 fi
 
+# after --sif, which needs apptainer and the tarball, not a container builder
+TOOL=$(pick_tool) || exit 1
 image_exists "$TOOL" "$IMAGE" || die "$IMAGE is not in $TOOL's storage: run \`make image\` first"
 mkdir -p "$CACHE"
 rm -f "$tar"

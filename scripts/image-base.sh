@@ -30,10 +30,15 @@ fi
 
 mkdir -p "$CACHE"
 tar=$CACHE/bookworm-minbase.tar
-if [ ! -s "$tar" ]; then
+# a directory of that name is what this script made before it said --format=tar
+if [ ! -f "$tar" ] || [ ! -s "$tar" ]; then
+    rm -rf "$tar" "$tar.part"
     note "mmdebstrap bookworm -> $tar"
-    # ca-certificates: apt in the build fetches over https mirrors too
-    mmdebstrap --quiet --variant=minbase --include=ca-certificates bookworm "$tar.part" \
+    # ca-certificates: apt in the build fetches over https mirrors too.
+    # --format=tar: mmdebstrap picks the format from TARGET's extension, and
+    # ".part" is none it knows, so without it it writes a directory (which also
+    # needs root to come out right)
+    mmdebstrap --quiet --variant=minbase --format=tar --include=ca-certificates bookworm "$tar.part" \
         || die "mmdebstrap bookworm failed (see above); check that the Debian mirror is reachable"
     mv "$tar.part" "$tar"
 fi

@@ -1,6 +1,7 @@
 #!/bin/bash
 # `make image`: builds docker/Dockerfile into the image cabs/images.yml names,
-# offline, with buildah, podman or docker (whichever works; see container-lib.sh).
+# offline, with buildah, podman or docker (the first that works; buildah and
+# mmdebstrap installed from Debian when none does; see container-lib.sh).
 #
 #   1. wheelhouse  scripts/image-wheelhouse.sh (host: pip wheel at the host's versions)
 #   2. base        scripts/image-base.sh (mmdebstrap rootfs, or debian:bookworm-slim)
@@ -13,6 +14,7 @@ set -euo pipefail
 . "$(dirname "$0")/container-lib.sh"
 
 TOOL=$(pick_tool) || exit 1
+export _HITOPS_BUILDER=$TOOL   # image-base.sh uses it as it is
 IMAGE=$(image_name) || exit 1
 note "building $IMAGE with $TOOL (cache $CACHE)"
 start=$SECONDS

@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parent.parent
 SCRIPTS = ROOT / "scripts"
 TOOLS = ["bash", "sh", "awk", "cat", "cp", "rm", "mkdir", "ls", "find", "head", "cut", "du",
          "date", "basename", "dirname", "wc", "grep", "sed", "tr", "mv", "touch", "env", "id",
-         "chmod", "sleep", "seq", "nproc", "hostname", "mktemp", "ln"]
+         "chmod", "sleep", "seq", "nproc", "hostname", "mktemp", "ln", "timeout", "tail"]
 
 STAND_IN = r'''#!{python}
 """Recording stand-in for buildah / podman / docker / mmdebstrap / apptainer."""
@@ -50,8 +50,14 @@ if tool == "mmdebstrap":
 if tool in ("apptainer", "singularity"):
     pathlib.Path(args[-2]).write_bytes(b"sif")
     sys.exit(0)
-if tool == "docker" and args[:1] == ["info"]:
-    sys.exit(int(os.environ.get("DOCKER_INFO_RC", "0")))
+if args[:1] == ["info"]:
+    # DOCKER_INFO_RC=1: a client without its daemon; BUILDAH_/PODMAN_INFO_RC: a broken storage
+    rc = int(os.environ.get(tool.upper() + "_INFO_RC", "0"))
+    if rc:
+        print("Client: Docker Engine - Community\n", file=sys.stderr)
+        print(os.environ.get("INFO_ERROR", "Cannot connect to the Docker daemon at "
+              "unix:///var/run/docker.sock. Is the docker daemon running?"), file=sys.stderr)
+    sys.exit(rc)
 sub = args[0]
 if sub in ("inspect", "exists") or args[:2] in (["image", "exists"], ["image", "inspect"]):
     name = args[-1]
@@ -190,15 +196,186 @@ def test_pick_tool(tmp_path, stand_ins, extra, expected):
 
 
 @pytest.mark.parametrize("stand_ins, extra, message", [
-    (("docker",), {"DOCKER_INFO_RC": "1"}, "its daemon does not answer"),
-    ((), {}, "no container tool: install buildah"),
+    # no apt-get on this PATH, so these stop where the install would start
+    (("docker",), {"DOCKER_INFO_RC": "1"},
+     "no working container builder (buildah not installed; podman not installed; docker installed, "
+     "but `docker info` failed: Cannot connect to the Docker daemon at unix:///var/run/docker.sock. "
+     "Is the docker daemon running?) and no apt-get to install one: install buildah"),
+    ((), {}, "no apt-get to install one: install buildah"),
+    # a buildah that is installed but fails is not reinstalled
+    (("buildah",), {"BUILDAH_INFO_RC": "1", "INFO_ERROR": "kernel does not support overlay"},
+     "(buildah installed, but `buildah info` failed: kernel does not support overlay; podman not "
+     "installed; docker not installed): fix buildah (see 'buildah info')"),
     (("buildah",), {"HITOPS_CONTAINER_TOOL": "podman"}, "podman is not on PATH"),
+    (("docker",), {"HITOPS_CONTAINER_TOOL": "docker", "DOCKER_INFO_RC": "1"},
+     "HITOPS_CONTAINER_TOOL=docker but docker is installed, but `docker info` failed: Cannot connect"),
     (("buildah",), {"HITOPS_CONTAINER_TOOL": "rkt"}, "use buildah, podman or docker"),
 ])
 def test_pick_tool_failures_are_one_line_with_the_remedy(tmp_path, stand_ins, extra, message):
     out = lib(Env(tmp_path, stand_ins), "pick_tool", **extra)
     assert out.returncode != 0
     assert message in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
+
+
+# ---- the builder's choice and its installation (issue 30), as tests/test_setup.py
+# does for WSClean: stand-ins for apt-get, sudo and id.  apt-get's stand-in puts
+# recording stand-ins for the packages it installs on PATH; sudo's drops the
+# caller's environment as sudo's env_reset does.
+
+def _installer(env, *, uid, sudo, apt=True):
+    """apt-get / sudo / id stand-ins in env's bin; returns the apt-get call log."""
+    calls = env.state / "apt-get.calls"
+
+    def script(name, text):
+        path = env.bin / name
+        if path.is_symlink() or path.exists():
+            path.unlink()
+        path.write_text("#!/bin/bash\n" + text)
+        path.chmod(0o755)
+
+    script("id", f'[ "$1" = -u ] || exit 2\necho {uid}\n')
+    if apt:
+        stand_in = STAND_IN.replace("{python}", sys.executable)
+        (env.state / "stand-in").write_text(stand_in)
+        script("apt-get", f"""
+printf '%s|DEBIAN_FRONTEND=%s|SUDO_USER=%s\\n' "$*" "${{DEBIAN_FRONTEND-}}" "${{SUDO_USER-}}" >> {calls}
+echo "Reading package lists..."
+[ -z "${{APT_FAILS-}}" ] || {{ echo "E: Unable to locate package buildah"; exit 100; }}
+if [ "$1" = install ]; then
+    for pkg in "${{@:4}}"; do
+        {shutil.which('cp')} {env.state / 'stand-in'} {env.bin}/$pkg
+        {shutil.which('chmod')} +x {env.bin}/$pkg
+    done
+fi
+""")
+    if sudo:
+        script("sudo", f"""
+printf '%s\\n' "$*" >> {env.state / 'sudo.calls'}
+exec {shutil.which('env')} -i PATH="$PATH" SHIM_LOG="$SHIM_LOG" SHIM_STATE="$SHIM_STATE" SUDO_USER=tester "$@"
+""")
+    return calls
+
+
+def _lines(path):
+    return path.read_text().splitlines() if path.exists() else []
+
+
+def _installed_from_debian(calls, sudo_user=""):
+    """apt-get update, then install of both packages, DEBIAN_FRONTEND reaching apt-get."""
+    apt = _lines(calls)
+    assert [c.split("|")[0] for c in apt] == ["update -q", "install -y -q buildah mmdebstrap"]
+    # SUDO_USER empty: apt-get ran directly; "tester": through sudo, whose reset
+    # environment still carried DEBIAN_FRONTEND
+    assert all(c.endswith(f"|DEBIAN_FRONTEND=noninteractive|SUDO_USER={sudo_user}") for c in apt)
+
+
+def _chosen(stderr):
+    lines = [line for line in stderr.splitlines() if "container builder: " in line]
+    assert len(lines) == 1, stderr   # said once, also when image-base.sh needs the builder
+    return lines[0].split("container builder: ", 1)[1]
+
+
+DAEMONLESS = ("docker installed, but `docker info` failed: Cannot connect to the Docker daemon at "
+              "unix:///var/run/docker.sock. Is the docker daemon running?")
+
+
+def _build_on_issue_30s_machine(tmp_path, uid):
+    """`make image`'s script where issue 30 met it: a docker client without its
+    daemon, no buildah, no podman, no sudo."""
+    env = Env(tmp_path, ("docker",))
+    calls = _installer(env, uid=uid, sudo=False)
+    env.wheelhouse()
+    return env, calls, env.run("image-build.sh", HITOPS_SKIP_WHEELHOUSE=1, DOCKER_INFO_RC=1)
+
+
+def test_no_builder_as_root_installs_buildah_and_builds(tmp_path):
+    env, calls, out = _build_on_issue_30s_machine(tmp_path, uid=0)
+    assert out.returncode == 0, out.stderr
+    _installed_from_debian(calls)
+    assert not (env.state / "sudo.calls").exists()
+    assert ("installing buildah and mmdebstrap from Debian (apt-get install buildah mmdebstrap; "
+            f"output in {env.cache}/apt-get.log)") in out.stderr
+    assert "Reading package lists" in (env.cache / "apt-get.log").read_text()
+    assert _chosen(out.stderr) == (f"buildah (installed now from Debian; passed over: podman not "
+                                   f"installed; {DAEMONLESS})")
+    cmds = env.commands()
+    # the installed tools did the work: mmdebstrap's base, then buildah's build
+    assert any(c.startswith("mmdebstrap ") for c in cmds)
+    assert any(c.startswith("buildah build --isolation chroot --build-arg "
+                            "BASE=localhost/hitops-base:bookworm ") for c in cmds)
+    assert not any(c.startswith("docker ") and c != "docker info" for c in cmds)
+
+
+def test_no_builder_not_root_installs_through_sudo(tmp_path):
+    env = Env(tmp_path, ())
+    calls = _installer(env, uid=1000, sudo=True)
+    out = lib(env, "pick_tool")
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "buildah"
+    _installed_from_debian(calls, sudo_user="tester")
+    assert _lines(env.state / "sudo.calls") == [
+        "env DEBIAN_FRONTEND=noninteractive apt-get update -q",
+        "env DEBIAN_FRONTEND=noninteractive apt-get install -y -q buildah mmdebstrap"]
+    assert "(sudo apt-get install buildah mmdebstrap;" in out.stderr
+    assert _chosen(out.stderr) == ("buildah (installed now from Debian; passed over: "
+                                   "podman not installed; docker not installed)")
+
+
+def test_no_builder_neither_root_nor_sudo_is_one_line(tmp_path):
+    env, calls, out = _build_on_issue_30s_machine(tmp_path, uid=1000)
+    assert out.returncode != 0
+    assert out.stderr.strip().splitlines() == [
+        "image-build.sh: no working container builder (buildah not installed; podman not installed; "
+        f"{DAEMONLESS}) and installing buildah needs root: run 'apt-get install buildah mmdebstrap' "
+        "as root (or install sudo), then rerun"]
+    assert _lines(calls) == [] and env.commands() == ["docker info"]
+
+
+def test_a_failed_apt_get_shows_its_tail_and_one_line(tmp_path):
+    env = Env(tmp_path, ())
+    _installer(env, uid=0, sudo=False)
+    out = lib(env, "pick_tool", APT_FAILS="1")
+    assert out.returncode != 0
+    assert "E: Unable to locate package buildah" in out.stderr   # apt-get's own reason, from the log
+    assert out.stderr.strip().splitlines()[-1] == (
+        f"bash: apt-get update failed (full output in {env.cache}/apt-get.log): fix the cause shown "
+        "above, or install buildah yourself, then rerun")
+
+
+@pytest.mark.parametrize("stand_ins, extra, chosen, probed", [
+    # buildah first: the others are not even asked
+    (("buildah", "podman", "docker"), {},
+     "buildah (passed over: podman comes after buildah; docker comes after buildah)", ["buildah"]),
+    # a working podman before a daemon-less docker, which is then not asked
+    (("podman", "docker"), {"DOCKER_INFO_RC": "1"},
+     "podman (passed over: buildah not installed; docker comes after podman)", ["podman"]),
+    # a podman whose storage fails is passed over, with its reason
+    (("podman", "docker"), {"PODMAN_INFO_RC": "1", "INFO_ERROR": "cannot set up namespace"},
+     "docker (passed over: buildah not installed; podman installed, but `podman info` failed: "
+     "cannot set up namespace)", ["podman", "docker"]),
+])
+def test_the_first_working_builder_is_chosen_and_nothing_installed(tmp_path, stand_ins, extra, chosen,
+                                                                   probed):
+    env = Env(tmp_path, stand_ins)
+    calls = _installer(env, uid=0, sudo=False)
+    out = lib(env, "pick_tool", **extra)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == chosen.split()[0]
+    assert _chosen(out.stderr) == chosen
+    assert env.commands() == [f"{tool} info" for tool in probed]
+    assert _lines(calls) == []
+
+
+@pytest.mark.parametrize("script", ["image-check.sh", "image-archive.sh"])
+def test_check_and_archive_install_the_builder_too(tmp_path, script):
+    env = Env(tmp_path, ("docker",))
+    calls = _installer(env, uid=0, sudo=False)
+    out = env.run(script, DOCKER_INFO_RC=1)
+    # buildah installed; its storage is empty, so they say what to run first
+    _installed_from_debian(calls)
+    assert out.returncode != 0
+    assert out.stderr.strip().splitlines()[-1] == (
+        f"{script}: ghcr.io/hitops/hitops:0.1.0 is not in buildah's storage: run `make image` first")
 
 
 def test_build_with_buildah_makes_the_base_then_builds_offline(tmp_path):
@@ -209,8 +386,11 @@ def test_build_with_buildah_makes_the_base_then_builds_offline(tmp_path):
     cmds = env.commands()
     tar = f"{env.cache}/bookworm-minbase.tar"
     ctx = f"{env.cache}/context"
-    assert cmds[0].startswith("buildah inspect --type image localhost/hitops-base:bookworm")
-    assert cmds[1] == f"mmdebstrap --quiet --variant=minbase --include=ca-certificates bookworm {tar}.part"
+    # one probe of the builder: image-base.sh takes the one image-build.sh chose
+    assert cmds[0] == "buildah info" and cmds.count("buildah info") == 1
+    assert cmds[1].startswith("buildah inspect --type image localhost/hitops-base:bookworm")
+    assert cmds[2] == (f"mmdebstrap --quiet --variant=minbase --format=tar --include=ca-certificates "
+                       f"bookworm {tar}.part")
     assert "buildah from scratch" in cmds
     assert f"buildah add working-container {tar} /" in cmds
     assert "buildah commit --rm --quiet working-container localhost/hitops-base:bookworm" in cmds
@@ -228,6 +408,18 @@ def test_build_with_buildah_makes_the_base_then_builds_offline(tmp_path):
     out = env.run("image-build.sh", HITOPS_SKIP_WHEELHOUSE=1)
     assert out.returncode == 0, out.stderr
     assert not [c for c in env.commands() if c.startswith(("mmdebstrap", "buildah commit"))]
+
+
+def test_a_base_directory_left_by_older_scripts_is_made_again_as_a_tar(tmp_path):
+    # before --format=tar, mmdebstrap wrote a directory named bookworm-minbase.tar
+    env = Env(tmp_path)
+    env.wheelhouse()
+    old = env.cache / "bookworm-minbase.tar"
+    (old / "etc").mkdir(parents=True)
+    out = env.run("image-build.sh", HITOPS_SKIP_WHEELHOUSE=1)
+    assert out.returncode == 0, out.stderr
+    assert any(c.startswith("mmdebstrap ") for c in env.commands())
+    assert old.is_file() and old.read_bytes() == b"rootfs"
 
 
 def test_build_with_docker_imports_the_base_without_isolation_flags(tmp_path):
