@@ -22,7 +22,8 @@ import numpy as np
 
 from ..errors import OutputExistsError, SceneError
 from ..io.ms_create import ArrayLayout, Band, Field, create_ms
-from . import geometry, noise as noise_mod, troposphere
+from .. import radiometer as noise_mod
+from . import geometry, troposphere
 from .kernels import corrupt_visibilities
 from .scene import Scene, apply_overrides, parse_scene
 
