@@ -9,11 +9,11 @@ is not the bottleneck (GUIDE: ~0.1 s for a 1.2 M-row one-channel column), so
 the rows are then laid out in memory with
 :func:`hitops.io.layout.baseline_time_layout`.
 
-FLAG_ROW is folded into FLAG; several channels (the package expects
-frequency-averaged data) are vector-averaged over their unflagged channels
-with a warning; autocorrelations are dropped.  A set holding several fields
-or spectral windows is refused (FIELD_ID / DATA_DESC_ID are read only when
-the FIELD / DATA_DESCRIPTION subtables have more than one row).
+FLAG_ROW is folded into FLAG; several channels of one window are vector-averaged
+over their unflagged channels with a warning; autocorrelations are dropped.  A set
+holding several fields or spectral windows is refused here (FIELD_ID / DATA_DESC_ID
+are read only when the FIELD / DATA_DESCRIPTION subtables have more than one row):
+``hitops diagnose`` reads wideband sets with :mod:`hitops.diagnose.spectral_read`.
 """
 
 from __future__ import annotations
@@ -74,7 +74,7 @@ class GridData:
         return [self.baseline_name(b) for b in range(self.n_bl)]
 
 
-def _check_ms(ms: str) -> None:
+def check_ms(ms: str) -> None:
     path = Path(ms)
     if not (path / "table.dat").exists():
         raise MeasurementSetError(f"{ms}: not a Measurement Set (no table.dat); check the path")
@@ -83,10 +83,6 @@ def _check_ms(ms: str) -> None:
 
 def _subtable(ms: str, name: str, columns: Sequence[str]):
     return msio.read_subtable(ms, name, columns)
-
-
-def main_columns(ms: str) -> List[str]:
-    return msio.column_names(ms)
 
 
 def data_columns(ms: str) -> List[str]:
@@ -170,12 +166,27 @@ def select_baselines(pairs_ant1: np.ndarray, pairs_ant2: np.ndarray, names: List
     return mask
 
 
+def sampling_interval(ms: str, times: np.ndarray) -> float:
+    """The median step of ``times`` (s); with one time only, the median INTERVAL."""
+    if times.size > 1:
+        dt = float(np.median(np.diff(times)))
+    else:
+        from casacore import tables as pt
+
+        with pt.table(ms, ack=False) as tab:   # one time step only: fall back on INTERVAL
+            dt = float(np.median(tab.getcol("INTERVAL")))
+    if not dt > 0:
+        raise MeasurementSetError(f"{ms}: cannot find a positive sampling interval "
+                                  "(TIME steps and INTERVAL are zero)")
+    return dt
+
+
 def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = None,
               baselines: Optional[str] = None, want_uvw: bool = False,
               row_chunk: int = 400_000) -> GridData:
     """Read ``columns`` of ``ms`` for the selected baselines and correlations."""
     ms = str(ms)
-    _check_ms(ms)
+    check_ms(ms)
     available = data_columns(ms)
     missing = [c for c in columns if c not in available]
     if missing:
@@ -268,16 +279,7 @@ def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = 
     flag_grid = layout.to_grid(flag, True)
     scan_grid = layout.to_grid(values["SCAN_NUMBER"][rows].astype(np.int32), -1)
 
-    if layout.n_time > 1:
-        dt = float(np.median(np.diff(layout.times)))
-    else:
-        from casacore import tables as pt
-
-        with pt.table(ms, ack=False) as tab:   # one time step only: fall back on INTERVAL
-            dt = float(np.median(tab.getcol("INTERVAL")))
-    if not dt > 0:
-        raise MeasurementSetError(f"{ms}: cannot find a positive sampling interval "
-                                  "(TIME steps and INTERVAL are zero)")
+    dt = sampling_interval(ms, layout.times)
 
     uvw = None
     if want_uvw:
