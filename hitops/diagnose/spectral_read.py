@@ -22,8 +22,8 @@ from ..errors import ColumnError, MeasurementSetError
 from ..io import read as msio
 from ..io.layout import unique_times
 from ..io.stations import read_stations
-from .read import (GridData, check_ms, data_columns, sampling_interval, select_baselines,
-                   select_correlations)
+from .read import (GridData, check_ms, data_columns, read_grid, sampling_interval,
+                   select_baselines, select_correlations)
 
 
 @dataclass
@@ -184,3 +184,11 @@ def band_average(grid: SpectralGrid) -> GridData:
                     vis={c: stack[:, :, i, :] for i, c in enumerate(grid.columns)},
                     vis_stack=stack, corr_names=grid.corr_names, dt=grid.dt,
                     freq_hz=float(all_freq.mean()), uvw=grid.uvw, warnings=warnings)
+
+
+def read_band(ms: str, columns: Sequence[str], **selection) -> GridData:
+    """One phase per sample whatever the layout: one channel as it is, several channels or
+    windows vector-averaged (:func:`band_average`)."""
+    if is_spectral(str(ms)):
+        return band_average(read_spectral(str(ms), columns, **selection))
+    return read_grid(str(ms), columns, **selection)
