@@ -16,20 +16,17 @@ from hitops.diagnose import diagnose
 from hitops.diagnose.read import read_grid
 from hitops.diagnose.spectral_read import band_average, is_spectral, read_spectral
 from hitops.simulate import simulate
-from hitops.simulate.scene import load_scene_mapping
+from test_simulate import small_scene  # tests/ is on sys.path (rootdir-relative)
 
 C = 299792458.0
 TAU = 0.2e-9                   # residual delay of DELAY_DATA (s)
 
 
 def _scene() -> dict:
-    scene, _ = load_scene_mapping("demo")
-    scene["observation"].update({"duration": 1200, "integration": 2})
-    scene["observation"].pop("scan_length")
-    scene["observation"].pop("scan_gap")
-    scene["bands"] = [{"name": "86", "freq_ghz": 86, "bandwidth_ghz": 2, "n_chan": 16},
-                      {"name": "230", "freq_ghz": 228.1, "bandwidth_ghz": 2, "n_chan": 16,
-                       "windows_ghz": [227.1, 229.1]}]
+    scene = small_scene(bands=[
+        {"name": "86", "freq_ghz": 86, "bandwidth_ghz": 2, "n_chan": 16},
+        {"name": "230", "freq_ghz": 228.1, "bandwidth_ghz": 2, "n_chan": 16,
+         "windows_ghz": [227.1, 229.1]}])
     scene["corruptions"].update({"noise": False, "coherence_scale": 0.5})
     return scene
 

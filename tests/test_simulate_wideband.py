@@ -15,7 +15,7 @@ from casacore import tables as pt
 
 from hitops.errors import SceneError
 from hitops.simulate import parse_scene, simulate
-from hitops.simulate.scene import load_scene_mapping
+from test_simulate import small_scene  # tests/ is on sys.path (rootdir-relative)
 
 C = 299792458.0
 BOLTZMANN = 1.380649e-23
@@ -26,16 +26,8 @@ WIDE_86 = {"name": "86", "freq_ghz": 86, "bandwidth_ghz": 2, "n_chan": 16}
 
 def wide_scene(minutes=20, **changes) -> dict:
     """The demo scene, 20 minutes, 86 GHz one 16-channel window, 230 GHz two windows."""
-    scene, _ = load_scene_mapping("demo")
-    scene["observation"].update({"duration": minutes * 60, "integration": 2})
-    scene["observation"].pop("scan_length")
-    scene["observation"].pop("scan_gap")
-    scene["bands"] = [dict(WIDE_86), dict(WIDE_230)]
-    for section, values in changes.items():
-        if isinstance(values, dict) and isinstance(scene.get(section), dict):
-            scene[section].update(values)
-        else:
-            scene[section] = values
+    scene = small_scene(bands=[dict(WIDE_86), dict(WIDE_230)], **changes)
+    scene["observation"]["duration"] = minutes * 60
     return scene
 
 
@@ -114,7 +106,7 @@ def _sefd(t_rx, diameter, efficiency):
 
 
 def test_per_channel_noise_follows_the_radiometer_equation(tmp_path):
-    """No atmosphere (tau = 0, T_sys = T_rx): sigma = sqrt(SEFD_p SEFD_q / (2 dnu_chan dt)) / 0.88."""
+    """tau = 0, so T_sys = T_rx: sigma = sqrt(SEFD_p SEFD_q / (2 dnu_chan dt)) / eta_q."""
     stations = [{"code": c, "bands": {"86": {"tau": 0.0}, "230": {"tau": 0.0}}}
                 for c in ("AP", "PV", "GL", "PB", "KP")]
     scene = wide_scene(minutes=30, corruptions={"troposphere": False, "seed": 3},

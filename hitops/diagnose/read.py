@@ -39,8 +39,23 @@ STOKES_NAMES = {1: "I", 2: "Q", 3: "U", 4: "V", 5: "RR", 6: "RL", 7: "LR", 8: "L
 PARALLEL_HANDS = ("RR", "LL", "XX", "YY", "I")
 
 
+class BaselineNames:
+    """Baseline names of a grid with ``antenna_names``, ``ant1`` and ``ant2``."""
+
+    @property
+    def n_bl(self) -> int:
+        return int(self.ant1.size)
+
+    def baseline_name(self, b: int) -> str:
+        return f"{self.antenna_names[self.ant1[b]]}-{self.antenna_names[self.ant2[b]]}"
+
+    @property
+    def baseline_names(self) -> List[str]:
+        return [self.baseline_name(b) for b in range(self.n_bl)]
+
+
 @dataclass
-class GridData:
+class GridData(BaselineNames):
     """Selected baselines of one Measurement Set on a (baseline, time) grid."""
 
     ms: str
@@ -59,19 +74,8 @@ class GridData:
     warnings: List[str] = field(default_factory=list)
 
     @property
-    def n_bl(self) -> int:
-        return int(self.ant1.size)
-
-    @property
     def n_time(self) -> int:
         return int(self.times.size)
-
-    def baseline_name(self, b: int) -> str:
-        return f"{self.antenna_names[self.ant1[b]]}-{self.antenna_names[self.ant2[b]]}"
-
-    @property
-    def baseline_names(self) -> List[str]:
-        return [self.baseline_name(b) for b in range(self.n_bl)]
 
 
 def check_ms(ms: str) -> None:
@@ -166,6 +170,16 @@ def select_baselines(pairs_ant1: np.ndarray, pairs_ant2: np.ndarray, names: List
     return mask
 
 
+def check_columns(ms: str, columns: Sequence[str]) -> None:
+    """``ms`` is a readable Measurement Set holding every complex column of ``columns``."""
+    check_ms(ms)
+    available = data_columns(ms)
+    missing = [c for c in columns if c not in available]
+    if missing:
+        raise ColumnError(f"{ms}: column(s) {', '.join(missing)} not found; complex data "
+                          f"columns present: {', '.join(available) or 'none'}")
+
+
 def sampling_interval(ms: str, times: np.ndarray) -> float:
     """The median step of ``times`` (s); with one time only, the median INTERVAL."""
     if times.size > 1:
@@ -186,12 +200,7 @@ def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = 
               row_chunk: int = 400_000) -> GridData:
     """Read ``columns`` of ``ms`` for the selected baselines and correlations."""
     ms = str(ms)
-    check_ms(ms)
-    available = data_columns(ms)
-    missing = [c for c in columns if c not in available]
-    if missing:
-        raise ColumnError(f"{ms}: column(s) {', '.join(missing)} not found; complex data "
-                          f"columns present: {', '.join(available) or 'none'}")
+    check_columns(ms, columns)
 
     # station codes (ANTENNA::STATION where NAME is only a number, as after importuvfits)
     ant_names = read_stations(ms).codes

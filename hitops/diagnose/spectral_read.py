@@ -18,16 +18,16 @@ from typing import List, Optional, Sequence
 
 import numpy as np
 
-from ..errors import ColumnError, MeasurementSetError
+from ..errors import MeasurementSetError
 from ..io import read as msio
 from ..io.layout import unique_times
 from ..io.stations import read_stations
-from .read import (GridData, check_ms, data_columns, read_grid, sampling_interval,
+from .read import (BaselineNames, GridData, check_columns, read_grid, sampling_interval,
                    select_baselines, select_correlations)
 
 
 @dataclass
-class SpectralGrid:
+class SpectralGrid(BaselineNames):
     """Selected baselines of one Measurement Set, every channel of every window."""
 
     ms: str
@@ -42,22 +42,13 @@ class SpectralGrid:
     spw_ids: List[int]                  # SPECTRAL_WINDOW_ID of each window, in frequency order
     chan_freq: List[np.ndarray]         # per window (n_chan_w,) Hz
     vis: List[np.ndarray]               # per window (n_bl, n_time, n_col, n_chan_w, n_corr)
-    flag: List[np.ndarray]              # per window (n_bl, n_time, n_chan_w, n_corr), True = unusable
+    flag: List[np.ndarray]      # per window (n_bl, n_time, n_chan_w, n_corr); True: unusable
     uvw: Optional[np.ndarray] = None    # (n_bl, n_time, 3) m, NaN where no row
     warnings: List[str] = field(default_factory=list)
 
     @property
-    def n_bl(self) -> int:
-        return int(self.ant1.size)
-
-    @property
     def n_chan(self) -> int:
         return int(sum(f.size for f in self.chan_freq))
-
-    @property
-    def baseline_names(self) -> List[str]:
-        return [f"{self.antenna_names[a]}-{self.antenna_names[b]}"
-                for a, b in zip(self.ant1, self.ant2)]
 
 
 def is_spectral(ms: str) -> bool:
@@ -73,13 +64,8 @@ def read_spectral(ms: str, columns: Sequence[str], *, correlations: Optional[str
                   row_chunk: int = 400_000) -> SpectralGrid:
     """Every channel of ``columns`` of ``ms`` for the selected baselines and correlations."""
     ms = str(ms)
-    check_ms(ms)
     cols = list(dict.fromkeys(columns))
-    available = data_columns(ms)
-    missing = [c for c in cols if c not in available]
-    if missing:
-        raise ColumnError(f"{ms}: column(s) {', '.join(missing)} not found; complex data "
-                          f"columns present: {', '.join(available) or 'none'}")
+    check_columns(ms, cols)
     ant_names = read_stations(ms).codes
     wanted = ["TIME", "ANTENNA1", "ANTENNA2", "FLAG", "FLAG_ROW", "SCAN_NUMBER"] + cols
     if want_uvw:

@@ -98,7 +98,8 @@ class SourceComponent:
 
 
 def parse_band(reader, raw, where: str) -> BandSpec:
-    """A BandSpec from ``{name, freq_ghz, bandwidth_ghz[, n_chan, chan_width_mhz, windows_ghz]}``."""
+    """A BandSpec from ``{name, freq_ghz, bandwidth_ghz}`` plus optional
+    ``n_chan``, ``chan_width_mhz`` and ``windows_ghz``."""
     if not isinstance(raw, dict) or "name" not in raw:
         reader.fail(f"{where}.name", "is missing")
     reader.check_keys(raw, BAND_KEYS, where)

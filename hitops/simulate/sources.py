@@ -26,8 +26,9 @@ C_LIGHT = 299792458.0
 UAS = np.radians(1.0 / 3600e6)
 
 
-def model_visibilities(scene, band_name: str, uvw: np.ndarray, chan_freq: np.ndarray) -> np.ndarray:
-    """Noise-free visibilities (Jy), complex128 (n_row, n_chan), at the channels ``chan_freq`` (Hz)."""
+def model_visibilities(scene, band_name: str, uvw: np.ndarray,
+                       chan_freq: np.ndarray) -> np.ndarray:
+    """Noise-free visibilities (Jy), complex128 (n_row, n_chan), at ``chan_freq`` (Hz)."""
     n_row = uvw.shape[0]
     model = np.full((n_row, chan_freq.size), scene.flux[band_name], dtype=np.complex128)
     if not scene.components:
