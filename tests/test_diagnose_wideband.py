@@ -176,3 +176,21 @@ def test_cli_waterfall_and_spectrum(wide, tmp_path):
     assert (tmp_path / "plots" / "waterfall-AP-PV.png").stat().st_size > 10_000
     assert (tmp_path / "plots" / "coherence-spectrum.png").exists()
     assert (tmp_path / "spectral-table.csv").exists()
+
+
+def test_wideband_reference_wraps_are_those_of_the_band_centre(wide, tmp_path):
+    """A 16-channel 86 GHz --ref-ms: the vector average of symmetric channels has exactly the
+    phase at the window centre (2 pi nu_c dL / c), so its wraps are that phase's wraps."""
+    from hitops.tracking.count import count_wraps
+
+    paths, _ = wide
+    summary = diagnose(paths["230"], columns="TRUE_DATA", interval=60, outdir=None,
+                       ref_ms=paths["86"], baselines="PV-PB")
+    truth = np.load(paths["truth"])
+    codes = list(truth["stations"])
+    d_path = truth["path_m"][codes.index("PV")] - truth["path_m"][codes.index("PB")]
+    phase = np.angle(np.exp(2j * np.pi * 86e9 * d_path / C))
+    count = count_wraps(np.ascontiguousarray(phase), np.ones(phase.size, bool))
+    expected = int(np.count_nonzero(np.diff(count)))
+    assert expected > 5
+    assert summary["reference_wraps"]["PV-PB"] == {"RR": expected, "LL": expected}
