@@ -6,8 +6,9 @@
   channel whose phase is flat over time is a horizontal band of one colour; the
   troposphere shows as colour changing along time in every channel at once, a residual
   delay as colour changing along frequency.  Each window is drawn at its own
-  frequencies, so the gaps between windows stay blank.  Long tracks are vector-averaged
-  into at most ``MAX_TIME_BINS`` time bins (the title says how many samples each holds).
+  frequencies, so the gaps between windows stay blank, and on a regular time axis, so
+  scan gaps stay blank too.  Long tracks are vector-averaged into at most
+  ``MAX_TIME_BINS`` time bins (the axis label says how many sampling intervals each spans).
 * ``coherence-spectrum.png``: per-channel C(T) against frequency for every baseline,
   one panel per column, with each window's combined C (time and channels averaged
   together) as a horizontal bar across the window.
@@ -28,20 +29,27 @@ from .spectral_read import SpectralGrid
 MAX_TIME_BINS = 600
 
 
-def _binned(cube: np.ndarray, good: np.ndarray, factor: int) -> np.ndarray:
-    """Vector-average (n_time, n_chan) samples in blocks of ``factor`` times; NaN where empty."""
-    n_time, n_chan = cube.shape
-    n_bin = math.ceil(n_time / factor)
-    pad = n_bin * factor - n_time
+def _binned(cube: np.ndarray, good: np.ndarray, bin_of_time: np.ndarray,
+            n_bin: int) -> np.ndarray:
+    """Phase of the vector average of the (n_time, n_chan) samples in each time bin
+    (``bin_of_time`` ascending); NaN where a bin has no usable sample (e.g. scan gaps)."""
+    starts = np.flatnonzero(np.r_[True, np.diff(bin_of_time) > 0])
     values = np.where(good, cube, 0)
-    counts = good.astype(np.int64)
-    if pad:
-        values = np.concatenate([values, np.zeros((pad, n_chan), values.dtype)])
-        counts = np.concatenate([counts, np.zeros((pad, n_chan), np.int64)])
-    total = values.reshape(n_bin, factor, n_chan).sum(axis=1)
-    n = counts.reshape(n_bin, factor, n_chan).sum(axis=1)
+    total = np.zeros((n_bin, cube.shape[1]), dtype=values.dtype)
+    count = np.zeros((n_bin, cube.shape[1]), dtype=np.int64)
+    total[bin_of_time[starts]] = np.add.reduceat(values, starts, axis=0)
+    count[bin_of_time[starts]] = np.add.reduceat(good.astype(np.int64), starts, axis=0)
     with np.errstate(invalid="ignore"):
-        return np.where((n > 0) & (np.abs(total) > 0), np.angle(total), np.nan)
+        return np.where((count > 0) & (np.abs(total) > 0), np.angle(total), np.nan)
+
+
+def time_bins(times: np.ndarray, dt: float):
+    """(bin of each time, number of bins, samples per bin) on the regular grid of step dt
+    from the first time, so scan gaps keep their length on the time axis."""
+    slot = np.rint((times - times[0]) / dt).astype(np.int64)
+    n_slot = int(slot[-1]) + 1
+    factor = max(1, math.ceil(n_slot / MAX_TIME_BINS))
+    return slot // factor, math.ceil(n_slot / factor), factor
 
 
 def _waterfall_axes(n_columns: int):
@@ -63,9 +71,8 @@ def waterfall_figure(grid: SpectralGrid, b: int, columns: Sequence[str], res: Sp
     """Phase against time and frequency on baseline ``b``, one row of panels per column:
     the waterfall (first correlation) and each channel's C(T) (correlation mean) beside it."""
     fig, rows = _waterfall_axes(len(columns))
-    factor = max(1, math.ceil(grid.times.size / MAX_TIME_BINS))
     t0 = grid.times[0]
-    n_bin = math.ceil(grid.times.size / factor)
+    bin_of_time, n_bin, factor = time_bins(grid.times, grid.dt)
     edges_t = (np.arange(n_bin + 1) * factor * grid.dt) / 3600.0
     name = grid.baseline_names[b]
     corr = 0
@@ -75,7 +82,7 @@ def waterfall_figure(grid: SpectralGrid, b: int, columns: Sequence[str], res: Sp
         for w, freq in enumerate(grid.chan_freq):
             cube = grid.vis[w][b, :, i, :, corr]
             good = ~grid.flag[w][b, :, :, corr] & np.isfinite(cube) & (np.abs(cube) > 0)
-            phase = _binned(cube, good, factor)
+            phase = _binned(cube, good, bin_of_time, n_bin)
             half = np.diff(freq).mean() / 2 if freq.size > 1 else 0.5e9
             edges_f = np.concatenate([freq - half, [freq[-1] + half]]) / 1e9
             mesh = ax.pcolormesh(edges_t, edges_f, phase.T, cmap="twilight", vmin=-np.pi,
@@ -97,7 +104,7 @@ def waterfall_figure(grid: SpectralGrid, b: int, columns: Sequence[str], res: Sp
         side.tick_params(labelleft=False, labelsize=7)
     rows[0][1].legend(fontsize=6, loc="lower left", frameon=False)
     rows[-1][0].set_xlabel(f"time since {mjd_label(t0)} (h)"
-                           + (f", {factor} samples per bin" if factor > 1 else ""))
+                           + (f", bins of {factor} samples" if factor > 1 else ""))
     rows[-1][1].set_xlabel("per channel", fontsize=8)
     if mesh is not None:
         bar = fig.colorbar(mesh, ax=[r[0] for r in rows], location="left", fraction=0.03,
