@@ -194,3 +194,16 @@ def test_wideband_reference_wraps_are_those_of_the_band_centre(wide, tmp_path):
     expected = int(np.count_nonzero(np.diff(count)))
     assert expected > 5
     assert summary["reference_wraps"]["PV-PB"] == {"RR": expected, "LL": expected}
+
+
+def test_waterfall_bins_keep_scan_gaps_blank():
+    """Two 10-sample scans 20 samples apart: the gap's bins are empty (NaN), the scans' are not."""
+    from hitops.diagnose.spectral_plots import _binned, time_bins
+
+    times = np.concatenate([np.arange(10), np.arange(30, 40)]) * 2.0 + 5e9
+    bins, n_bin, factor = time_bins(times, 2.0)
+    assert (n_bin, factor) == (40, 1)
+    cube = np.exp(1j * np.linspace(0, 1, times.size))[:, None] * np.ones((1, 3))
+    phase = _binned(cube, np.ones(cube.shape, bool), bins, n_bin)
+    assert np.isnan(phase[10:30]).all() and np.isfinite(phase[:10]).all()
+    np.testing.assert_allclose(phase[30:, 0], np.linspace(0, 1, 20)[10:])
