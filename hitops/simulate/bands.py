@@ -77,8 +77,10 @@ def instrumental_series(scene, band_index: int, obs) -> Optional[Tuple[np.ndarra
     return phase, delay
 
 
-def window_data(scene, band_index: int, window: int, obs, sigma: np.ndarray) -> np.ndarray:
-    """DATA (n_row, n_chan, n_corr) complex64 of one spectral window of a band."""
+def window_data(scene, band_index: int, window: int, obs, sigma: np.ndarray,
+                inst: Optional[Tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """DATA (n_row, n_chan, n_corr) complex64 of one spectral window of a band
+    (``inst``: :func:`instrumental_series` of the band)."""
     band = scene.bands[band_index]
     chan_freq = band.chan_freq()[window]
     n_corr = len(scene.correlations)
@@ -90,7 +92,6 @@ def window_data(scene, band_index: int, window: int, obs, sigma: np.ndarray) -> 
         draws = rng.standard_normal((obs.ant1.size, chan_freq.size, n_corr, 2), dtype=np.float32)
     else:
         draws = np.zeros((0, chan_freq.size, n_corr, 2), np.float32)
-    inst = instrumental_series(scene, band_index, obs)
     if inst is None:
         inst = (np.zeros((0, 0)), np.zeros((0, 0)))
     return corrupt_channels(model_visibilities(scene, band.name, obs.uvw, chan_freq), obs.ant1,
@@ -115,7 +116,8 @@ def band_columns(scene, band_index: int, obs) -> Dict[str, np.ndarray]:
     sigma_col = np.repeat(sigma.astype(np.float32)[:, None], n_corr, axis=1)
     per_row["SIGMA"] = sigma_col
     per_row["WEIGHT"] = 1.0 / sigma_col ** 2
-    blocks = [window_data(scene, band_index, w, obs, sigma) for w in range(band.n_window)]
+    inst = instrumental_series(scene, band_index, obs)
+    blocks = [window_data(scene, band_index, w, obs, sigma, inst) for w in range(band.n_window)]
     if band.n_window == 1:
         per_row["DATA"] = blocks[0] if band.n_chan > 1 else blocks[0][:, 0, :]
         if band.is_wideband:

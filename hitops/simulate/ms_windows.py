@@ -21,7 +21,6 @@ from typing import Mapping
 
 import numpy as np
 
-from ..errors import OutputExistsError
 from ..io.atomic import replaced_directory
 from ..io.ms_create import ArrayLayout, Band, Field, _CONSTANT_SCALARS, _fill_subtables, create_ms
 from .scene_parts import BandSpec
@@ -95,8 +94,6 @@ def _create_wideband(path: Path, layout: ArrayLayout, band: BandSpec, corr_types
                      field: Field, columns, telescope: str) -> Path:
     from casacore import tables as pt
 
-    if path.exists() and not path.is_dir():
-        raise OutputExistsError(f"{path} exists and is not a Measurement Set directory")
     n_chan, n_corr = band.n_chan, len(corr_types)
     main = _main_columns(columns, n_chan, n_corr)
     with replaced_directory(path) as partial:
