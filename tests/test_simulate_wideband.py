@@ -275,3 +275,20 @@ def test_bad_wideband_scene_names_the_field(tmp_path, name, change, field):
                            str(tmp_path / "out")], capture_output=True, text=True)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert field in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_data_do_not_depend_on_the_block_size(tmp_path, monkeypatch):
+    """Blocks of 9 (230 GHz) or 18 (86 GHz) times give the set one block gives."""
+    import hitops.simulate.bands as bands
+
+    scene = wide_scene(minutes=4, corruptions={"seed": 4})
+    scene["stations"] = ["AP", {"code": "PV", "bands": {"230": {"instrumental": {
+        "delay_ns": 0.1, "phase_drift_deg_per_hour": 20}}}}, "GL", "PB", "KP"]
+    whole = simulate(scene, tmp_path / "whole")
+    monkeypatch.setattr(bands, "BLOCK_VISIBILITIES", 30 * 2 * 16 * 2 * 3)
+    blocked = simulate(scene, tmp_path / "blocked")
+    for band in ("86", "230"):
+        cols = ("DATA", "SIGMA", "TIME", "ANTENNA1", "ANTENNA2", "DATA_DESC_ID", "UVW")
+        for a, b in zip(main_table(whole[band], *cols), main_table(blocked[band], *cols)):
+            np.testing.assert_array_equal(a, b)
+    assert len(bands.row_blocks(np.repeat(np.arange(120), 10), 35)) == 40

@@ -25,7 +25,7 @@ from ..errors import OutputExistsError, SceneError
 from ..io.ms_create import ArrayLayout, Field
 from .. import radiometer
 from . import geometry, troposphere
-from .bands import band_columns, band_phase, instrumental_series, station_opacity
+from .bands import band_blocks, band_phase, instrumental_series, station_opacity
 from .ms_windows import write_band_ms
 from .scene import Scene, apply_overrides, parse_scene
 from .sources import C_LIGHT
@@ -168,13 +168,14 @@ def _write_band(scene: Scene, band_index: int, obs: Observation, path: Path) -> 
         positions=np.array([s.itrf for s in scene.stations]),
         diameters=np.array([s.diameter for s in scene.stations]))
     t0 = _time.perf_counter()
-    columns = band_columns(scene, band_index, obs)
-    t1 = _time.perf_counter()
+    rows = obs.ant1.size * band.n_window
+    time_range = (float(obs.times[obs.time_index].min()), float(obs.times[obs.time_index].max()))
     write_band_ms(path, layout, band, scene.correlations,
-                  Field(scene.source_name, scene.ra, scene.dec), columns, scene.telescope)
-    log.info("band %s: %d rows x %d window(s) x %d channel(s), visibilities %.1f s, "
-             "written %.1f s -> %s", band.name, obs.ant1.size, band.n_window, band.n_chan,
-             t1 - t0, _time.perf_counter() - t1, path)
+                  Field(scene.source_name, scene.ra, scene.dec),
+                  band_blocks(scene, band_index, obs), rows, time_range, scene.telescope)
+    log.info("band %s: %d rows x %d window(s) x %d channel(s), computed and written in %.1f s"
+             " -> %s", band.name, obs.ant1.size, band.n_window, band.n_chan,
+             _time.perf_counter() - t0, path)
     return path
 
 

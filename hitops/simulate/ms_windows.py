@@ -17,7 +17,7 @@ other than SPECTRAL_WINDOW and DATA_DESCRIPTION are filled by ms_create's own
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Mapping
+from typing import Iterator, Mapping
 
 import numpy as np
 
@@ -29,14 +29,20 @@ from .scene_parts import BandSpec
 _TILE_BYTES = 1 << 20
 
 
-def write_band_ms(path: Path, layout: ArrayLayout, band: BandSpec, corr_types,
-                  field: Field, columns: Mapping[str, np.ndarray], telescope: str) -> Path:
-    """The band's Measurement Set at ``path`` (replaced: the caller owns the name)."""
+def write_band_ms(path: Path, layout: ArrayLayout, band: BandSpec, corr_types, field: Field,
+                  blocks: Iterator[Mapping[str, np.ndarray]], n_row: int, time_range: tuple,
+                  telescope: str) -> Path:
+    """The band's Measurement Set at ``path`` (replaced: the caller owns the name).
+
+    ``blocks`` yields the main-table columns block after block in row order
+    (:func:`hitops.simulate.bands.band_blocks`), ``n_row`` rows in all; a one-channel
+    band comes as one block.  ``time_range`` (first, last TIME) fills the subtables.
+    """
     if not band.is_wideband:
         return create_ms(path, layout, Band(band.freq_hz, band.bandwidth_hz, tuple(corr_types)),
-                         field, columns, telescope=telescope, overwrite=True)
-    return _create_wideband(Path(path), layout, band, tuple(corr_types), field, columns,
-                            telescope)
+                         field, next(iter(blocks)), telescope=telescope, overwrite=True)
+    return _create_wideband(Path(path), layout, band, tuple(corr_types), field, blocks, n_row,
+                            time_range, telescope)
 
 
 def _table_desc(n_chan: int, n_corr: int):
@@ -91,19 +97,23 @@ def _main_columns(columns: Mapping[str, np.ndarray], n_chan: int, n_corr: int) -
 
 
 def _create_wideband(path: Path, layout: ArrayLayout, band: BandSpec, corr_types,
-                     field: Field, columns, telescope: str) -> Path:
+                     field: Field, blocks, n_row: int, time_range: tuple, telescope: str) -> Path:
     from casacore import tables as pt
 
     n_chan, n_corr = band.n_chan, len(corr_types)
-    main = _main_columns(columns, n_chan, n_corr)
     with replaced_directory(path) as partial:
         ms = pt.default_ms(str(partial), _table_desc(n_chan, n_corr), _dminfo(n_chan, n_corr))
-        ms.addrows(main["TIME"].size)
-        for name, value in main.items():
-            ms.putcol(name, value)
+        ms.addrows(n_row)
+        start = 0
+        for block in blocks:
+            main = _main_columns(block, n_chan, n_corr)
+            size = main["TIME"].size
+            for name, value in main.items():
+                ms.putcol(name, value, startrow=start, nrow=size)
+            start += size
         ms.close()
-        time = main["TIME"]
-        time_range = (float(time.min()), float(time.max())) if time.size else (0.0, 0.0)
+        if start != n_row:
+            raise RuntimeError(f"wrote {start} of {n_row} rows of {path}")
         _fill_subtables(str(partial), layout, Band(band.freq_hz, band.bandwidth_hz, corr_types),
                         field, time_range, telescope)
         _fill_windows(str(partial), band)
