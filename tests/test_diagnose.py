@@ -248,7 +248,7 @@ def test_plots_have_panels_wrap_markers_and_pixels(tmp_path):
     for name in ("phase-PV-PB.png", "coherence-PV-PB.png"):
         for colour in P.COLOURS[:3]:
             assert _has_colour(out / "plots" / name, to_rgb(colour)), (name, colour)
-    blank, (ax,) = P._figure(1)
+    blank, (ax,) = P.new_figure(1)
     ax.set_xlabel("time (h)")
     blank.savefig(tmp_path / "blank.png")
     assert _coloured_fraction(tmp_path / "blank.png") == 0.0   # the pixel test can fail

@@ -13,7 +13,7 @@ from casacore import tables as pt
 
 from hitops.errors import OutputExistsError, SceneError
 from hitops.simulate import parse_scene, simulate
-from hitops.simulate import noise as noise_mod
+from hitops import radiometer as noise_mod
 from hitops.simulate import troposphere as tp
 from hitops.simulate.api import observe
 from hitops.simulate.scene import load_scene_mapping

@@ -17,11 +17,16 @@ from ..errors import InputError
 from . import tables
 from .metrics import compute_coherence, parse_intervals, run_lengths
 from .read import read_grid
+from .spectral import SPECTRAL_CSV, spectral_coherence, summary_section
+from .spectral import render_text as spectral_text, write_csv as spectral_csv
+from .spectral_read import band_average, is_spectral, read_spectral
 
 log = logging.getLogger("hitops.diagnose")
 
 METRICS = ("coherence-factor", "coherence-time")
-PLOTS = ("phase", "coherence", "uv")
+PLOTS = ("phase", "coherence", "uv", "waterfall", "spectrum")
+#: plots that need several channels
+SPECTRAL_PLOTS = ("waterfall", "spectrum")
 PLOT_DIR = "plots"
 
 
@@ -82,9 +87,19 @@ def diagnose(ms, columns="DATA,CORRECTED_DATA", metric="coherence-factor", inter
     grid = parse_intervals(intervals)
     trange = _time_range(plot_time_range)
 
-    data = read_grid(str(ms), cols, correlations=correlations, baselines=baselines,
-                     want_uvw="uv" in plot_kinds)
+    spectral_grid = None
+    if is_spectral(str(ms)):
+        spectral_grid = read_spectral(str(ms), cols, correlations=correlations,
+                                      baselines=baselines, want_uvw="uv" in plot_kinds)
+        data = band_average(spectral_grid)
+    else:
+        data = read_grid(str(ms), cols, correlations=correlations, baselines=baselines,
+                         want_uvw="uv" in plot_kinds)
     warnings = list(data.warnings)
+    if spectral_grid is None and set(plot_kinds) & set(SPECTRAL_PLOTS):
+        warnings.append(f"{ms} has one channel in one spectral window: no waterfall or "
+                        "spectrum plot (they show phase and coherence across channels)")
+        plot_kinds = [k for k in plot_kinds if k not in SPECTRAL_PLOTS]
     t_read = time.perf_counter()
     log.info("read %s: %d baselines x %d times x %d correlations, %d column(s) in %.1f s",
              ms, data.n_bl, data.n_time, len(data.corr_names), len(cols), t_read - t_start)
@@ -116,6 +131,8 @@ def diagnose(ms, columns="DATA,CORRECTED_DATA", metric="coherence-factor", inter
 
     res = compute_coherence(data.vis_stack, cols, data.flag, data.times, data.scan, data.dt,
                             grid, interval, min_fill=min_fill, corr_names=data.corr_names)
+    spectral_res = (spectral_coherence(spectral_grid, interval, min_fill)
+                    if spectral_grid is not None else None)
     t_coh = time.perf_counter()
 
     names = data.baseline_names
@@ -158,6 +175,7 @@ def diagnose(ms, columns="DATA,CORRECTED_DATA", metric="coherence-factor", inter
         "baselines": records, "comparisons": comparisons, "warnings": warnings,
         "ref_ms": str(ref_ms) if ref_ms else None, "reference_wraps": None,
         "outputs": {}, "timing_s": {},
+        "spectral": summary_section(spectral_res) if spectral_res is not None else None,
     }
 
     wraps = None
@@ -184,13 +202,20 @@ def diagnose(ms, columns="DATA,CORRECTED_DATA", metric="coherence-factor", inter
             summary["outputs"]["plots"] = [str(p) for p in _make_plots(
                 plot_kinds, data, res, records, cols, wraps, trange, out / PLOT_DIR,
                 ref_ms)]
+        if spectral_res is not None:
+            paths["spectral_csv"] = out / SPECTRAL_CSV
+            summary["outputs"]["spectral_csv"] = str(paths["spectral_csv"])
+            spectral_csv(paths["spectral_csv"], spectral_res)
+            summary["outputs"]["plots"] += [str(p) for p in _spectral_plots(
+                plot_kinds, spectral_grid, spectral_res, cols, out / PLOT_DIR)]
         summary["timing_s"] = {"read": t_read - t_start, "coherence": t_coh - t_read,
                                "total": time.perf_counter() - t_start}
         tables.write_csv(paths["table_csv"], comparisons)
         tables.write_antenna_csv(paths["antenna_csv"], comparisons)
-        paths["table_txt"].write_text(tables.render_text(summary))
+        paths["table_txt"].write_text(tables.render_text(summary) + (
+            spectral_text(summary["spectral"]) if spectral_res is not None else ""))
         tables.write_json(paths["summary_json"], summary)
-        log.info("wrote %s, %s, %s, %s", *paths.values())
+        log.info("wrote %s", ", ".join(str(p) for p in paths.values()))
     else:
         summary["timing_s"] = {"read": t_read - t_start, "coherence": t_coh - t_read,
                                "total": time.perf_counter() - t_start}
@@ -220,4 +245,18 @@ def _make_plots(kinds, data, res, records, cols, wraps, trange, plot_dir: Path, 
         written.append(P.save(P.coherence_overview(res, names), plot_dir / "coherence-all.png"))
     if "uv" in kinds:
         written.append(P.save(P.uv_figure(data, res, records), plot_dir / "uv-coverage.png"))
+    return written
+
+
+def _spectral_plots(kinds, grid, res, cols, plot_dir: Path):
+    from . import plots as P
+    from . import spectral_plots as SP
+
+    written = []
+    if "waterfall" in kinds:
+        for b, name in enumerate(grid.baseline_names):
+            written.append(P.save(SP.waterfall_figure(grid, b, cols, res),
+                                  plot_dir / f"waterfall-{name}.png"))
+    if "spectrum" in kinds:
+        written.append(P.save(SP.spectrum_figure(res), plot_dir / "coherence-spectrum.png"))
     return written

@@ -81,7 +81,7 @@ def _identical_to(series: Dict[str, np.ndarray], columns: Sequence[str]) -> Dict
     return out
 
 
-def _figure(n_panels: int, ncols: int = 1, panel_size=(8.0, 3.0)):
+def new_figure(n_panels: int, ncols: int = 1, panel_size=(8.0, 3.0)):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -100,7 +100,7 @@ def phase_figure(data: GridData, b: int, columns: Sequence[str],
                  wrap_times: Optional[Dict[str, np.ndarray]] = None,
                  time_range: Optional[tuple] = None, ref_label: str = "reference"):
     """Phase against time on baseline ``b``, one panel per correlation."""
-    fig, axes = _figure(len(data.corr_names))
+    fig, axes = new_figure(len(data.corr_names))
     t0 = data.times[0]
     hours = (data.times - t0) / 3600.0
     sel = np.ones(data.n_time, bool)
@@ -184,7 +184,7 @@ def coherence_figure(res: CoherenceResult, b: int, name: str, records: List[dict
     """Correlation-mean C(T) against T on one baseline, with tau_c markers."""
     from matplotlib.lines import Line2D
 
-    fig, (ax,) = _figure(1, panel_size=(6.5, 4.0))
+    fig, (ax,) = new_figure(1, panel_size=(6.5, 4.0))
     coherence_axes(ax, res, b, name)
     rec = records[b]
     colours = column_colours(res.columns)
@@ -207,7 +207,7 @@ def coherence_overview(res: CoherenceResult, names: List[str]):
     """C(T) of every baseline, one small panel each."""
     n = len(names)
     ncols = min(4, n)
-    fig, axes = _figure(n, ncols=ncols, panel_size=(3.2, 2.3))
+    fig, axes = new_figure(n, ncols=ncols, panel_size=(3.2, 2.3))
     for b, (ax, name) in enumerate(zip(axes, names)):
         coherence_axes(ax, res, b, name, small=True)
     # one legend for the figure, readable: in the free cells of the last row if any,
@@ -237,7 +237,7 @@ def uv_figure(data: GridData, res: CoherenceResult, records: List[dict], step_s:
 
     before = res.columns[0]
     later = res.columns[1:] or res.columns[:1]
-    fig, axes = _figure(len(later), ncols=min(2, len(later)), panel_size=(5.5, 5.0))
+    fig, axes = new_figure(len(later), ncols=min(2, len(later)), panel_size=(5.5, 5.0))
     lam = C_LIGHT / data.freq_hz
     stride = max(1, int(round(step_s / data.dt)))
     ratios = {}

@@ -9,11 +9,11 @@ is not the bottleneck (GUIDE: ~0.1 s for a 1.2 M-row one-channel column), so
 the rows are then laid out in memory with
 :func:`hitops.io.layout.baseline_time_layout`.
 
-FLAG_ROW is folded into FLAG; several channels (the package expects
-frequency-averaged data) are vector-averaged over their unflagged channels
-with a warning; autocorrelations are dropped.  A set holding several fields
-or spectral windows is refused (FIELD_ID / DATA_DESC_ID are read only when
-the FIELD / DATA_DESCRIPTION subtables have more than one row).
+FLAG_ROW is folded into FLAG; several channels of one window are vector-averaged
+over their unflagged channels with a warning; autocorrelations are dropped.  A set
+holding several fields or spectral windows is refused here (FIELD_ID / DATA_DESC_ID
+are read only when the FIELD / DATA_DESCRIPTION subtables have more than one row):
+``hitops diagnose`` reads wideband sets with :mod:`hitops.diagnose.spectral_read`.
 """
 
 from __future__ import annotations
@@ -39,8 +39,23 @@ STOKES_NAMES = {1: "I", 2: "Q", 3: "U", 4: "V", 5: "RR", 6: "RL", 7: "LR", 8: "L
 PARALLEL_HANDS = ("RR", "LL", "XX", "YY", "I")
 
 
+class BaselineNames:
+    """Baseline names of a grid with ``antenna_names``, ``ant1`` and ``ant2``."""
+
+    @property
+    def n_bl(self) -> int:
+        return int(self.ant1.size)
+
+    def baseline_name(self, b: int) -> str:
+        return f"{self.antenna_names[self.ant1[b]]}-{self.antenna_names[self.ant2[b]]}"
+
+    @property
+    def baseline_names(self) -> List[str]:
+        return [self.baseline_name(b) for b in range(self.n_bl)]
+
+
 @dataclass
-class GridData:
+class GridData(BaselineNames):
     """Selected baselines of one Measurement Set on a (baseline, time) grid."""
 
     ms: str
@@ -59,22 +74,11 @@ class GridData:
     warnings: List[str] = field(default_factory=list)
 
     @property
-    def n_bl(self) -> int:
-        return int(self.ant1.size)
-
-    @property
     def n_time(self) -> int:
         return int(self.times.size)
 
-    def baseline_name(self, b: int) -> str:
-        return f"{self.antenna_names[self.ant1[b]]}-{self.antenna_names[self.ant2[b]]}"
 
-    @property
-    def baseline_names(self) -> List[str]:
-        return [self.baseline_name(b) for b in range(self.n_bl)]
-
-
-def _check_ms(ms: str) -> None:
+def check_ms(ms: str) -> None:
     path = Path(ms)
     if not (path / "table.dat").exists():
         raise MeasurementSetError(f"{ms}: not a Measurement Set (no table.dat); check the path")
@@ -83,10 +87,6 @@ def _check_ms(ms: str) -> None:
 
 def _subtable(ms: str, name: str, columns: Sequence[str]):
     return msio.read_subtable(ms, name, columns)
-
-
-def main_columns(ms: str) -> List[str]:
-    return msio.column_names(ms)
 
 
 def data_columns(ms: str) -> List[str]:
@@ -170,17 +170,37 @@ def select_baselines(pairs_ant1: np.ndarray, pairs_ant2: np.ndarray, names: List
     return mask
 
 
-def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = None,
-              baselines: Optional[str] = None, want_uvw: bool = False,
-              row_chunk: int = 400_000) -> GridData:
-    """Read ``columns`` of ``ms`` for the selected baselines and correlations."""
-    ms = str(ms)
-    _check_ms(ms)
+def check_columns(ms: str, columns: Sequence[str]) -> None:
+    """``ms`` is a readable Measurement Set holding every complex column of ``columns``."""
+    check_ms(ms)
     available = data_columns(ms)
     missing = [c for c in columns if c not in available]
     if missing:
         raise ColumnError(f"{ms}: column(s) {', '.join(missing)} not found; complex data "
                           f"columns present: {', '.join(available) or 'none'}")
+
+
+def sampling_interval(ms: str, times: np.ndarray) -> float:
+    """The median step of ``times`` (s); with one time only, the median INTERVAL."""
+    if times.size > 1:
+        dt = float(np.median(np.diff(times)))
+    else:
+        from casacore import tables as pt
+
+        with pt.table(ms, ack=False) as tab:   # one time step only: fall back on INTERVAL
+            dt = float(np.median(tab.getcol("INTERVAL")))
+    if not dt > 0:
+        raise MeasurementSetError(f"{ms}: cannot find a positive sampling interval "
+                                  "(TIME steps and INTERVAL are zero)")
+    return dt
+
+
+def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = None,
+              baselines: Optional[str] = None, want_uvw: bool = False,
+              row_chunk: int = 400_000) -> GridData:
+    """Read ``columns`` of ``ms`` for the selected baselines and correlations."""
+    ms = str(ms)
+    check_columns(ms, columns)
 
     # station codes (ANTENNA::STATION where NAME is only a number, as after importuvfits)
     ant_names = read_stations(ms).codes
@@ -268,16 +288,7 @@ def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = 
     flag_grid = layout.to_grid(flag, True)
     scan_grid = layout.to_grid(values["SCAN_NUMBER"][rows].astype(np.int32), -1)
 
-    if layout.n_time > 1:
-        dt = float(np.median(np.diff(layout.times)))
-    else:
-        from casacore import tables as pt
-
-        with pt.table(ms, ack=False) as tab:   # one time step only: fall back on INTERVAL
-            dt = float(np.median(tab.getcol("INTERVAL")))
-    if not dt > 0:
-        raise MeasurementSetError(f"{ms}: cannot find a positive sampling interval "
-                                  "(TIME steps and INTERVAL are zero)")
+    dt = sampling_interval(ms, layout.times)
 
     uvw = None
     if want_uvw:

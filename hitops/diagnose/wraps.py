@@ -4,7 +4,10 @@ The reference Measurement Set's phase (``--ref-column``, DATA by default)
 is read per baseline and correlation; a wrap is a step larger than pi
 between consecutive usable samples, the same detector PWC uses
 (:func:`hitops.tracking.count.count_wraps`).  Baselines are matched by
-station names, so the two bands' ANTENNA tables may be ordered differently.
+station names, so the two bands' ANTENNA tables may be ordered differently.  A
+wideband reference is read as the vector average of all its channels (the phase
+near its mean frequency: the troposphere's excess path makes every channel's phase
+proportional to its frequency).
 """
 
 from __future__ import annotations
@@ -15,7 +18,8 @@ from typing import Dict, List
 import numpy as np
 
 from ..tracking.count import count_wraps
-from .read import GridData, read_grid
+from .read import GridData
+from .spectral_read import read_band
 
 log = logging.getLogger("hitops.diagnose")
 
@@ -27,7 +31,7 @@ def reference_wraps(ref_ms: str, target: GridData, ref_column: str = "DATA"
     A target correlation missing from the reference uses the reference's
     first parallel hand.
     """
-    ref = read_grid(ref_ms, [ref_column], correlations="all")
+    ref = read_band(ref_ms, [ref_column], correlations="all")
     warnings: List[str] = []
     ref_index = {}
     for b in range(ref.n_bl):

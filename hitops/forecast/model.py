@@ -28,7 +28,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from ..simulate import noise as noise_mod
+from .. import radiometer as noise_mod
 from ..tracking import theory
 from ..tracking.windows import half_windows
 

@@ -1,4 +1,4 @@
-"""Dual-band mm-VLBI simulator: ``hitops simulate`` and :func:`simulate`."""
+"""Multi-band (one channel or wideband) mm-VLBI simulator: ``hitops simulate`` and :func:`simulate`."""
 
 from .api import simulate
 from .scene import Scene, apply_overrides, parse_scene

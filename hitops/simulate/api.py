@@ -1,9 +1,10 @@
-"""``simulate(scene, outdir, ...)``: dual-band Measurement Sets from a scene.
+"""``simulate(scene, outdir, ...)``: multi-band Measurement Sets from a scene.
 
 Steps: time grid -> geometry (casacore-anchored UVW, elevations) -> rows
 while both stations are above their limits -> one troposphere realisation
-at the coherence frequency, scaled to each band -> model x station phases +
-thermal noise -> one Measurement Set per band (+ truth .npz).  All outputs
+(an excess path per station) -> per band, window and channel: model x station
+phases + thermal noise (hitops.simulate.bands) -> one Measurement Set per band
+(hitops.simulate.ms_windows) (+ truth .npz).  All outputs
 are written under temporary names and renamed at the end, so a failure
 leaves nothing half-written.
 """
@@ -21,14 +22,16 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from ..errors import OutputExistsError, SceneError
-from ..io.ms_create import ArrayLayout, Band, Field, create_ms
-from . import geometry, noise as noise_mod, troposphere
-from .kernels import corrupt_visibilities
+from ..io.ms_create import ArrayLayout, Field
+from .. import radiometer
+from . import geometry, troposphere
+from .bands import band_blocks, band_phase, instrumental_series, station_opacity
+from .ms_windows import write_band_ms
 from .scene import Scene, apply_overrides, parse_scene
+from .sources import C_LIGHT
 
 log = logging.getLogger("hitops.simulate")
 
-C_LIGHT = 299792458.0
 
 
 @dataclass
@@ -43,7 +46,9 @@ class Observation:
     ant1: np.ndarray           # (n_row,) int32
     ant2: np.ndarray           # (n_row,) int32
     uvw: np.ndarray            # (n_row, 3) m, uvw[ant1] - uvw[ant2] (see geometry.py)
-    phase_ref: np.ndarray      # (n_station, n_time) troposphere phase at the coherence frequency
+    # (n_station, n_time) troposphere phase at the coherence frequency nu0: the excess
+    # path is L = phase_ref c / (2 pi nu0), and channel nu sees phase_ref nu / nu0
+    phase_ref: np.ndarray
     coherence_time: Optional[np.ndarray] = None   # (n_station, n_time) zenith t_c used (s), at nu0
     weather: Optional[List] = None                # per station: StationWeather or None
 
@@ -93,7 +98,7 @@ def observe(scene: Scene) -> Observation:
         floor_el = np.maximum(elevation, limits[:, None])
         if scene.airmass_elevation_floor is not None:
             floor_el = np.maximum(floor_el, np.radians(scene.airmass_elevation_floor))
-        air = noise_mod.airmass(floor_el)
+        air = radiometer.airmass(floor_el)
         first_up = np.where(up.any(axis=1), up.argmax(axis=1), 0)
         phase_ref = troposphere.station_phases(n_time, scene.integration, t_c, air, first_up, rng)
     else:
@@ -155,98 +160,6 @@ def coherence_times(scene: Scene, weather: List, n_time: int) -> np.ndarray:
     return t_c * scene.coherence_scale
 
 
-def model_visibilities(scene: Scene, band_index: int, uvw: np.ndarray) -> np.ndarray:
-    """Noise-free Stokes I visibility (Jy) per row: point source + Gaussians.
-
-    V = sum_k F_k exp(+2 pi i (u l_k + v m_k)) exp(-pi^2 (a_k^2 u'^2 + b_k^2 v'^2) / (4 ln 2)),
-    u, v the stored UVW (= uvw(ANT1) - uvw(ANT2)) in wavelengths, l east, m north,
-    a/b the FWHM along the major/minor axis.  In terms of the baseline
-    X2 - X1 this is the usual exp(-2 pi i (u l + v m)) (Thompson, Moran &
-    Swenson 2017, eq. 3.7); WSClean images it at +l (east), +m (north)
-    (tests/test_simulate_tools.py).
-    """
-    band = scene.bands[band_index]
-    model = np.full(uvw.shape[0], scene.flux[band.name], dtype=np.complex128)
-    if not scene.components:
-        return model
-    uas = np.radians(1.0 / 3600e6)
-    u = uvw[:, 0] * band.freq_hz / C_LIGHT
-    v = uvw[:, 1] * band.freq_hz / C_LIGHT
-    for comp in scene.components:
-        pa = np.radians(comp.position_angle)
-        along_major = u * np.sin(pa) + v * np.cos(pa)
-        along_minor = u * np.cos(pa) - v * np.sin(pa)
-        taper = np.exp(-(np.pi ** 2) / (4.0 * np.log(2.0)) *
-                       ((comp.fwhm_major * uas * along_major) ** 2 +
-                        (comp.fwhm_minor * uas * along_minor) ** 2))
-        shift = np.exp(2j * np.pi * (u * comp.offset_ra * uas + v * comp.offset_dec * uas))
-        model += comp.flux[band.name] * taper * shift
-    return model
-
-
-def band_sigma(scene: Scene, band_index: int, obs: Observation) -> np.ndarray:
-    """Per-row noise rms (Jy) of each of the real and imaginary parts."""
-    band = scene.bands[band_index]
-    elevation = obs.elevation
-    if scene.airmass_elevation_floor is not None:
-        elevation = np.maximum(elevation, np.radians(scene.airmass_elevation_floor))
-    air = noise_mod.airmass(elevation)
-    sefd = np.empty_like(obs.elevation)
-    for i, station in enumerate(scene.stations):
-        sb = station.bands[band.name]
-        tau, t_atm = station_opacity(scene, obs, i, band.name)
-        t_sys = noise_mod.system_temperature(sb.t_rx, t_atm, tau, air[i])
-        sefd[i] = noise_mod.sefd(t_sys, station.diameter, sb.aperture_efficiency)
-    return noise_mod.baseline_sigma(sefd[obs.ant1, obs.time_index], sefd[obs.ant2, obs.time_index],
-                                    band.bandwidth_hz, scene.integration,
-                                    scene.quantisation_efficiency)
-
-
-def station_opacity(scene: Scene, obs: Observation, index: int, band_name: str):
-    """(zenith opacity, T_atm) of a station in a band: arrays over time from the weather
-    (T_atm = Tb / (1 - exp(-tau)), so the zenith sky temperature is the tabulated Tb),
-    else the scene's scalars."""
-    w = obs.weather[index] if obs.weather else None
-    if w is not None and band_name in w.tau:
-        from ..weather import effective_temperature
-
-        return w.tau[band_name], effective_temperature(w.tau[band_name], w.tb[band_name])
-    sb = scene.stations[index].bands[band_name]
-    return sb.tau, sb.t_atm
-
-
-def band_phase(scene: Scene, band_index: int, obs: Observation) -> np.ndarray:
-    """Station phases at this band: non-dispersive, (nu / nu0) x phase at nu0."""
-    return obs.phase_ref * (scene.bands[band_index].freq_hz / scene.coherence_freq_hz)
-
-
-def band_columns(scene: Scene, band_index: int, obs: Observation) -> Dict[str, np.ndarray]:
-    """Main-table columns of one band's Measurement Set."""
-    n_corr = len(scene.correlations)
-    sigma = band_sigma(scene, band_index, obs)
-    parallel = np.array([c[0] == c[1] for c in scene.correlations])
-    if scene.noise:
-        rng = np.random.default_rng(np.random.SeedSequence([scene.seed, 2, band_index]))
-        draws = rng.standard_normal((obs.ant1.size, n_corr, 2), dtype=np.float32)
-    else:
-        draws = np.zeros((0, n_corr, 2), np.float32)
-    data = corrupt_visibilities(model_visibilities(scene, band_index, obs.uvw), obs.ant1,
-                                obs.ant2, obs.time_index, band_phase(scene, band_index, obs),
-                                parallel, draws, sigma)
-    sigma_col = np.repeat(sigma.astype(np.float32)[:, None], n_corr, axis=1)
-    return {
-        "TIME": obs.times[obs.time_index],
-        "ANTENNA1": obs.ant1,
-        "ANTENNA2": obs.ant2,
-        "UVW": obs.uvw,
-        "DATA": data,
-        "SIGMA": sigma_col,
-        "WEIGHT": 1.0 / sigma_col ** 2,
-        "SCAN_NUMBER": obs.scan[obs.time_index],
-        "INTERVAL": np.full(obs.ant1.size, scene.integration),
-    }
-
-
 def _write_band(scene: Scene, band_index: int, obs: Observation, path: Path) -> Path:
     band = scene.bands[band_index]
     layout = ArrayLayout(
@@ -255,18 +168,26 @@ def _write_band(scene: Scene, band_index: int, obs: Observation, path: Path) -> 
         positions=np.array([s.itrf for s in scene.stations]),
         diameters=np.array([s.diameter for s in scene.stations]))
     t0 = _time.perf_counter()
-    columns = band_columns(scene, band_index, obs)
-    t1 = _time.perf_counter()
-    create_ms(path, layout, Band(band.freq_hz, band.bandwidth_hz, tuple(scene.correlations)),
-              Field(scene.source_name, scene.ra, scene.dec), columns,
-              telescope=scene.telescope, overwrite=True)
-    log.info("band %s: %d rows, visibilities %.1f s, written %.1f s -> %s", band.name,
-             obs.ant1.size, t1 - t0, _time.perf_counter() - t1, path)
+    rows = obs.ant1.size * band.n_window
+    time_range = (float(obs.times[obs.time_index].min()), float(obs.times[obs.time_index].max()))
+    write_band_ms(path, layout, band, scene.correlations,
+                  Field(scene.source_name, scene.ra, scene.dec),
+                  band_blocks(scene, band_index, obs), rows, time_range, scene.telescope)
+    log.info("band %s: %d rows x %d window(s) x %d channel(s), computed and written in %.1f s"
+             " -> %s", band.name, obs.ant1.size, band.n_window, band.n_chan,
+             _time.perf_counter() - t0, path)
     return path
 
 
 def write_truth(scene: Scene, obs: Observation, path: Path) -> None:
-    """Per-station unwrapped troposphere phases per band, with names and times."""
+    """Per-station unwrapped troposphere phases per band, with names and times.
+
+    ``path_m`` is each station's excess path L(t) (m): the phase of channel nu is
+    2 pi nu L / c (``phase_BAND`` is that at the band's nominal frequency);
+    ``chan_freq_BAND`` (n_window, n_chan) the channel frequencies; a band with
+    instrumental terms adds ``inst_phase_BAND`` (rad, at the band's nominal
+    frequency) and ``inst_delay_BAND`` (s), each (n_station, n_time).
+    """
     arrays = {
         "stations": np.array([s.code for s in scene.stations]),
         "time": obs.times,
@@ -302,6 +223,11 @@ def write_truth(scene: Scene, obs: Observation, path: Path) -> None:
         arrays[f"phase_{band.name}"] = band_phase(scene, i, obs)
         arrays[f"antenna_names_{band.name}"] = np.array(
             [s.bands[band.name].antenna_name for s in scene.stations])
+        arrays[f"chan_freq_{band.name}"] = band.chan_freq()
+        inst = instrumental_series(scene, i, obs)
+        if inst is not None:
+            arrays[f"inst_phase_{band.name}"], arrays[f"inst_delay_{band.name}"] = inst
+    arrays["path_m"] = obs.phase_ref * (C_LIGHT / (2.0 * np.pi * scene.coherence_freq_hz))
     with open(path, "wb") as handle:
         np.savez(handle, **arrays)
 
@@ -314,7 +240,7 @@ def simulate(scene, outdir, prefix: str = "sim", seed: Optional[int] = None,
     """Simulate a scene; return {band name: MS path, ['truth': npz path]}.
 
     ``scene`` is a :class:`Scene`, a YAML path, a packaged scene name
-    ('paper', 'demo') or a mapping; keyword overrides replace the scene's
+    ('paper', 'demo', 'triband', 'ngeht') or a mapping; keyword overrides replace the scene's
     values (see :func:`hitops.simulate.scene.apply_overrides`).
     """
     scene = scene if isinstance(scene, Scene) else parse_scene(scene)

@@ -20,8 +20,10 @@ import numpy as np
 import yaml
 
 from ..errors import SceneError
+from .scene_parts import (BandSpec, Instrumental, SourceComponent, parse_band, parse_component,
+                          parse_instrumental)
 
-PACKAGED_SCENES = ("paper", "demo", "triband")
+PACKAGED_SCENES = ("paper", "demo", "triband", "ngeht")
 #: default phase coherence length at 230 GHz (m) turning a wind speed into t_c = r0 / v
 #: (10 m/s gives 10 s, the typical EHT value at 230 GHz; see docs/simulate.md)
 DEFAULT_R0_230 = 100.0
@@ -45,6 +47,7 @@ class StationBand:
     aperture_efficiency: float
     tau: float               # zenith opacity
     t_atm: float             # physical temperature of the absorbing atmosphere, K
+    instrumental: Optional[Instrumental] = None   # phase and delay of the signal chain
 
 
 @dataclass(frozen=True)
@@ -76,30 +79,13 @@ class Station:
 
 
 @dataclass(frozen=True)
-class BandSpec:
-    name: str
-    freq_hz: float
-    bandwidth_hz: float
-
-
-@dataclass(frozen=True)
-class GaussianComponent:
-    flux: Dict[str, float]   # Jy per band
-    offset_ra: float         # uas, towards east (l)
-    offset_dec: float        # uas, towards north (m)
-    fwhm_major: float        # uas
-    fwhm_minor: float        # uas
-    position_angle: float    # degrees east of north
-
-
-@dataclass(frozen=True)
 class Scene:
     name: str
     source_name: str
     ra: float                # rad, J2000
     dec: float               # rad, J2000
     flux: Dict[str, float]   # point-source flux density per band, Jy
-    components: List[GaussianComponent]
+    components: List[SourceComponent]
     start_mjd_s: float       # UTC, MJD seconds
     duration: float          # s
     integration: float       # s
@@ -351,8 +337,8 @@ def _station(reader: _Reader, entry, index: int, catalogue: dict, bands: List[Ba
         raw = merged_bands.get(band.name)
         if raw is None:
             reader.fail(bwhere, f"is missing: station {code} has no values for band {band.name}")
-        reader.check_keys(raw, ("name", "t_rx", "aperture_efficiency", "tau", "pwv", "t_atm"),
-                          bwhere)
+        reader.check_keys(raw, ("name", "t_rx", "aperture_efficiency", "tau", "pwv", "t_atm",
+                                "instrumental"), bwhere)
         raw = {**BAND_DEFAULTS, **raw}
         t_rx = reader.number(raw, "t_rx", bwhere, minimum=0.0)
         eff = reader.number(raw, "aperture_efficiency", bwhere, strictly_positive=True)
@@ -371,7 +357,9 @@ def _station(reader: _Reader, entry, index: int, catalogue: dict, bands: List[Ba
         else:
             reader.fail(f"{bwhere}.tau", "is missing (give tau, the zenith opacity, or pwv in mm, "
                         "or weather: {source: merra2})")
-        station_bands[band.name] = StationBand(str(raw.get("name", code)), t_rx, eff, tau, t_atm)
+        station_bands[band.name] = StationBand(
+            str(raw.get("name", code)), t_rx, eff, tau, t_atm,
+            parse_instrumental(reader, raw.get("instrumental"), f"{bwhere}.instrumental"))
     weather = _weather_spec(reader, options, entry, code, bands, where)
     return Station(code, str(merged.get("name", code)), itrf, diameter, elevation_limit,
                    coherence, station_bands, weather)
@@ -388,15 +376,7 @@ def parse_scene(scene: str | Path | dict) -> Scene:
     if not isinstance(raw_bands, list) or not raw_bands:
         reader.fail("bands", "is missing: give a list of {name, freq_ghz, bandwidth_ghz}, "
                              "reference band first")
-    bands = []
-    for i, b in enumerate(raw_bands):
-        where = f"bands[{i}]"
-        if not isinstance(b, dict) or "name" not in b:
-            reader.fail(f"{where}.name", "is missing")
-        reader.check_keys(b, ("name", "freq_ghz", "bandwidth_ghz"), where)
-        freq = reader.number(b, "freq_ghz", where, strictly_positive=True)
-        bandwidth = reader.number(b, "bandwidth_ghz", where, strictly_positive=True)
-        bands.append(BandSpec(str(b["name"]), freq * 1e9, bandwidth * 1e9))
+    bands = [parse_band(reader, b, f"bands[{i}]") for i, b in enumerate(raw_bands)]
     names = [b.name for b in bands]
     if len(set(names)) != len(names):
         reader.fail("bands", f"has repeated band names {names}")
@@ -411,22 +391,8 @@ def parse_scene(scene: str | Path | dict) -> Scene:
     if abs(dec) > np.pi / 2:
         reader.fail("source.dec", "must lie within +-90 degrees")
     flux = _per_band(reader, source["flux"], "source.flux", names)
-    components = []
-    for i, c in enumerate(source.get("components") or []):
-        where = f"source.components[{i}]"
-        if not isinstance(c, dict):
-            reader.fail(where, "must be a mapping")
-        reader.check_keys(c, ("flux", "offset_ra", "offset_dec", "fwhm_major", "fwhm_minor",
-                              "position_angle"), where)
-        if c.get("flux") is None:
-            reader.fail(f"{where}.flux", "is missing")
-        major = reader.number(c, "fwhm_major", where, minimum=0.0)
-        components.append(GaussianComponent(
-            _per_band(reader, c["flux"], f"{where}.flux", names),
-            reader.number(c, "offset_ra", where, default=0.0),
-            reader.number(c, "offset_dec", where, default=0.0),
-            major, reader.number(c, "fwhm_minor", where, default=major, minimum=0.0),
-            reader.number(c, "position_angle", where, default=0.0)))
+    components = [parse_component(reader, c, f"source.components[{i}]", names, _per_band)
+                  for i, c in enumerate(source.get("components") or [])]
 
     obs = reader.section(data, "observation")
     reader.check_keys(obs, ("start", "duration", "integration", "scan_length", "scan_gap",

@@ -24,6 +24,7 @@ import math
 
 import numpy as np
 
+from hitops import radiometer as noise
 from hitops.errors import InputError
 
 ETA_2BIT = 0.88
@@ -32,9 +33,8 @@ ETA_2BIT = 0.88
 def system_temperature(t_rx: float, tau_zenith: float, elevation_deg: float, t_atm: float = 260.0) -> float:
     """Tsys* (K) above the atmosphere for receiver temperature ``t_rx`` and zenith opacity.
 
-    Same formula as the simulator's noise (hitops.simulate.noise), which it calls.
+    Same formula as the simulator's noise (hitops.radiometer), which it calls.
     """
-    from hitops.simulate import noise
 
     if not 0 < elevation_deg <= 90:
         raise InputError(f"elevation must be in (0, 90] deg, got {elevation_deg}")
@@ -43,8 +43,7 @@ def system_temperature(t_rx: float, tau_zenith: float, elevation_deg: float, t_a
 
 
 def sefd(tsys: float, diameter_m: float, aperture_efficiency: float = 0.6) -> float:
-    """System equivalent flux density (Jy) of a dish of ``diameter_m`` (hitops.simulate.noise.sefd)."""
-    from hitops.simulate import noise
+    """System equivalent flux density (Jy) of a dish of ``diameter_m`` (hitops.radiometer.sefd)."""
 
     return float(noise.sefd(np.float64(tsys), diameter_m, aperture_efficiency))
 

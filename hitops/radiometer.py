@@ -1,4 +1,8 @@
-"""Thermal noise: system temperature, SEFD and per-visibility sigma.
+"""Radiometer physics: system temperature, SEFD and per-visibility sigma.
+
+Shared by the simulator's thermal noise (hitops.simulate), the tracking
+thresholds (hitops.tracking.stations) and the forecasts (hitops.forecast);
+it sits below all of them and imports nothing of hitops.
 
 Radiometer equation for a complex visibility (Thompson, Moran & Swenson
 2017, ch. 6; the form used by MeqSilhouette and Simelane et al. 2024):
@@ -43,5 +47,9 @@ def sefd(t_sys: np.ndarray, diameter: float, aperture_efficiency: float) -> np.n
 
 def baseline_sigma(sefd_p: np.ndarray, sefd_q: np.ndarray, bandwidth_hz: float,
                    integration_s: float, eta_q: float = 0.88) -> np.ndarray:
-    """Per-visibility rms (Jy) of the real and of the imaginary part."""
+    """Per-visibility rms (Jy) of the real and of the imaginary part.
+
+    ``bandwidth_hz`` is the bandwidth one visibility integrates: the channel
+    width for channelised data (each channel's noise is independent).
+    """
     return np.sqrt(sefd_p * sefd_q / (2.0 * bandwidth_hz * integration_s)) / eta_q
