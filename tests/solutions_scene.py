@@ -91,10 +91,10 @@ def excess_path(times: np.ndarray, n_ant: int, seed: int, scale_m: float) -> np.
     t = (times - times[0]) / max(times[-1] - times[0], 1.0)
     path = np.zeros((times.size, n_ant))
     for a in range(n_ant):
-        for period in (2.0, 0.7, 0.3, 0.11):
+        for period in (2.0, 0.7, 0.3):
             amp = scale_m * rng.normal() * period
             path[:, a] += amp * np.sin(2 * np.pi * t / period + rng.uniform(0, 2 * np.pi))
-        path[:, a] += scale_m * rng.normal() * t           # a drift: many wraps one way
+        path[:, a] += 4 * scale_m * rng.normal() * t       # a drift: many wraps one way
     return path
 
 

@@ -35,13 +35,18 @@ N_RECEPTOR = 2
 
 
 def _set_centres(path: str, ms: str) -> None:
-    """One channel per window in the table's SPECTRAL_WINDOW: the window's centre."""
+    """One channel per window in the table's SPECTRAL_WINDOW: the window's centre.
+
+    createcaltable leaves one channel per window at the MS's channel n_chan/2 (227.1625
+    GHz for 16 channels centred on 227.1 GHz), so the centre comes from the MS itself.
+    """
     from casacore import tables as pt
 
+    with pt.table(f"{ms}::SPECTRAL_WINDOW", ack=False) as t:
+        freqs = [np.asarray(t.getcell("CHAN_FREQ", i), float) for i in range(t.nrows())]
+        widths = [np.abs(np.asarray(t.getcell("CHAN_WIDTH", i), float)) for i in range(t.nrows())]
     with pt.table(f"{path}/SPECTRAL_WINDOW", readonly=False, ack=False) as t:
-        for row in range(t.nrows()):
-            freq = np.asarray(t.getcell("CHAN_FREQ", row), float)
-            width = np.abs(np.asarray(t.getcell("CHAN_WIDTH", row), float))
+        for row, (freq, width) in enumerate(zip(freqs, widths)):
             centre = 0.5 * (freq.min() + freq.max())
             total = float(width.sum())
             t.putcell("NUM_CHAN", row, 1)
