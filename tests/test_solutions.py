@@ -115,16 +115,28 @@ def test_phase_referred_to_ref_frequency_fails(solved, tmp_path):
     assert _worst(_apply(pair.target_ms, tmp_path / "wrong.fringe")) < COHERENCE_MIN
 
 
-def test_gaincal_phase_table_transfers(solved, tmp_path):
+@pytest.mark.parametrize("gaintype", ["G", "T"])
+def test_gaincal_phase_table_transfers(solved, tmp_path, gaintype):
     pair, _ = solved
-    table = tmp_path / "ref.G"
-    # 2-s phase-only solutions: no rates, so the steps between them must stay below pi
-    gaincal(str(pair.ref_ms), str(table), solint="2s", refant="PV,PB", calmode="p",
-            minsnr=3.0, minblperant=2)
+    table = tmp_path / f"ref.{gaintype}"
+    # 4-s phase-only solutions: no rates, so the steps between them must stay below pi
+    gaincal(str(pair.ref_ms), str(table), solint="4s", refant="PV,PB", calmode="p",
+            gaintype=gaintype, minsnr=3.0, minblperant=2)
     report = transfer_table(table, pair.ref_ms, pair.target_ms, tmp_path / "target.fringe")
-    assert report.kind == "G Jones"
+    assert report.kind == f"{gaintype} Jones"
     assert max(a.max_residual_rad for a in report.antennas) < np.pi / 2   # gaps included
     assert _worst(_apply(pair.target_ms, tmp_path / "target.fringe")) >= COHERENCE_MIN
+    sol = read_solutions(table, pair.ref_ms)
+    assert sol.n_receptor == (2 if gaintype == "G" else 1) and not sol.has_rates
+    if gaintype == "G":
+        # applycal carries a Fringe Jones phase between solutions with the rate: the same
+        # transfer written with zero rates (as the table has none) fails
+        unwrapped = unwrap_window(sol.windows[0], max_gap=60.0, has_rates=False)
+        targets = [dataclasses.replace(transfer_window(unwrapped, spw, 0, centre, has_rates=False),
+                                       rate=np.zeros(unwrapped.unwrapped.shape))
+                   for spw, centre in enumerate(TARGET_CENTRES_HZ)]
+        write_fringe_table(tmp_path / "zero_rates.fringe", pair.target_ms, targets, n_ant=4)
+        assert _worst(_apply(pair.target_ms, tmp_path / "zero_rates.fringe")) < COHERENCE_MIN
 
 
 def test_reference_antenna_change_during_the_track(solved, tmp_path):

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from hitops.solutions.wraps import BRIDGED, NO_SWITCH, segment_starts, unwrap_solutions
+from hitops.solutions.wraps import (BRIDGED, NO_SWITCH, PREDICT_NONE, PREDICT_RATES, PREDICT_SLOPE,
+                                    segment_starts, unwrap_solutions)
 
 
 def _wrap(x):
@@ -30,9 +31,9 @@ def _truth(n_sol, n_ant, dt, seed, speed):
     return t, phase, rate
 
 
-def _run(wrapped, valid, t, rate, refant, starts=None):
+def _run(wrapped, valid, t, rate, refant, starts=None, predict=PREDICT_RATES):
     starts = np.zeros(t.size, bool) if starts is None else starts
-    return unwrap_solutions(wrapped, valid, t, rate, refant, starts)
+    return unwrap_solutions(wrapped, valid, t, rate, refant, starts, predict)
 
 
 def _baseline_errors(unwrapped, truth):
@@ -58,8 +59,8 @@ def test_rates_bridge_steps_larger_than_pi():
     assert np.nanmax(np.abs(residual)) < 1.0
     np.testing.assert_allclose(unwrapped, wrapped + offset[:, None] + 2 * np.pi * wraps)
     assert wraps.dtype == np.int64 and unwrapped.dtype == np.float64
-    # without the rates the same series is miscounted (a wrong implementation fails)
-    plain = _run(wrapped, valid, t, np.zeros_like(rate), refant)[0]
+    # without the rates (the paper's step counter) the same series is miscounted
+    plain = _run(wrapped, valid, t, rate, refant, predict=PREDICT_NONE)[0]
     assert max(np.ptp(err) for err in _baseline_errors(plain, truth)) > 6.0
 
 
@@ -121,3 +122,47 @@ def test_segments_start_at_scans_and_gaps():
     scan = np.array([1, 1, 1, 1, 1, 2, 2])
     np.testing.assert_array_equal(segment_starts(times, scan, max_gap=60.0),
                                   [True, False, False, True, False, True, False])
+
+
+def test_per_channel_transfer_is_pwc_per_channel():
+    """R_k*(phi + 2*pi*n) is PWC's correction R_k*phi + 2*pi*eps_k*n mod 2*pi, channel by channel.
+
+    (n counted as here, u = phi + 2*pi*n; the paper's n has the other sign, unwrap = x - 2*pi*n.)
+    """
+    from hitops.solutions.transfer import channel_phases
+
+    t, truth, rate = _truth(300, 3, 4.0, seed=8, speed=0.3)
+    truth -= truth[:, :1]
+    rate -= rate[:, :1]
+    wrapped = _wrap(truth)
+    unwrapped, wraps, offset, _, _ = _run(wrapped, np.ones(truth.shape, bool), t, rate,
+                                          np.zeros(t.size, np.int64))
+    assert np.abs(wraps).max() >= 3 and not offset.any()
+    nu_ref = 86.0e9
+    chan = 226.1625e9 + 125e6 * np.arange(16)
+    ratio = chan / nu_ref
+    eps = ratio - np.floor(ratio)
+    ours = channel_phases(unwrapped, nu_ref, chan)
+    pwc = ratio * wrapped[..., None] + 2 * np.pi * eps * wraps[..., None]
+    np.testing.assert_allclose(np.angle(np.exp(1j * (ours - pwc))), 0.0, atol=1e-9)
+    # and it is the truth scaled per channel, up to a constant per antenna
+    err = np.angle(np.exp(1j * (ours - ratio * truth[..., None])))
+    assert np.ptp(err, axis=0).max() < 1e-9
+
+
+def test_series_without_rates_are_bridged_by_their_slope():
+    # 4-s solutions whose phase moves by up to 2.4 rad per step, a 12-s gap in one antenna
+    # where it moves fast: the last two solutions' slope predicts well; the step counter fails
+    t, truth, rate = _truth(600, 4, 4.0, seed=4, speed=0.1)
+    truth -= truth[:, :1]
+    steps = np.abs(np.diff(truth, axis=0))
+    assert np.pi > steps.max() > 2.0
+    valid = np.ones(truth.shape, bool)
+    valid[300:302, 2] = False
+    zero = np.zeros_like(truth)
+    refant = np.zeros(t.size, np.int64)
+    slope, _, _, residual, _ = _run(_wrap(truth), valid, t, zero, refant, predict=PREDICT_SLOPE)
+    assert all(np.nanmax(err) - np.nanmin(err) < 1e-9 for err in _baseline_errors(slope, truth))
+    assert np.nanmax(np.abs(residual[2:])) < 1.0      # the first step has no slope yet
+    plain = _run(_wrap(truth), valid, t, zero, refant, predict=PREDICT_NONE)[0]
+    assert max(np.nanmax(err) - np.nanmin(err) for err in _baseline_errors(plain, truth)) > 6.0

@@ -171,11 +171,13 @@ def transfer_table(ref_table, ref_ms, target_ms, out_table, *, wrap_counting: bo
     if not common:
         raise TableMismatchError(f"no field of reference table '{table.path}' "
                                  f"({', '.join(by_field)}) is in {target_ms} ({', '.join(target_fields)})")
-    unwrapped = tuple(unwrap_window(by_field[name], max_gap_s, wrap_counting) for name in common)
+    unwrapped = tuple(unwrap_window(by_field[name], max_gap_s, wrap_counting, table.has_rates)
+                      for name in common)
     if wrap_counting:
         for u in unwrapped:
             check_interval(u, table.antenna_names, table.path)
-    targets = [_on_target_antennas(transfer_window(u, spw, target_fields.index(name), centre),
+    targets = [_on_target_antennas(transfer_window(u, spw, target_fields.index(name), centre,
+                                                   table.has_rates),
                                    ref_to_tgt, tgt_stations.n_ant)
                for name, u in zip(common, unwrapped) for spw, centre in windows]
     n_rows = write_fringe_table(out_table, target_ms, targets, tgt_stations.n_ant, overwrite)

@@ -14,8 +14,8 @@ the frequency in the table's SPECTRAL_WINDOW::CHAN_FREQ (one channel: the centre
 the solved window, 86.0 GHz for a 16 x 125 MHz window from 85.0625 GHz), not to
 REF_FREQUENCY (the MS's first channel, 85.0625 GHz): scaling by the wrong one
 measured a whole-track coherence of 0.59 instead of 0.99995 (GUIDE section 3).
-CASA's own FringeJones::calcAllJones evaluates phase + 2*pi*delay*(nu - nu_ref) +
-2*pi*rate*nu_ref*(t - t_sol) with nu_ref that CHAN_FREQ.
+CASA's own FringeJones::calcAllJones evaluates phase + 2*pi*delay*(nu - nu_ref) per
+channel with nu_ref that CHAN_FREQ.
 """
 
 from __future__ import annotations
@@ -238,5 +238,7 @@ def read_solutions(path, ref_ms) -> SolutionTable:
             f"which {ms} observes; re-solve with a lower minsnr or another refant list, or flag "
             "the station(s) in both sets")
     n_rec = windows[0].phase.shape[2]
-    return SolutionTable(path=path, kind=kind, has_rates=kind == "Fringe Jones",
+    # fringefit with zerorates=True writes rates of 0: such a table is bridged like G Jones
+    has_rates = kind == "Fringe Jones" and any(bool(np.any(w.rate[w.valid])) for w in windows)
+    return SolutionTable(path=path, kind=kind, has_rates=has_rates,
                          antenna_names=names, n_receptor=n_rec, windows=tuple(windows))

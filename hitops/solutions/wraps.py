@@ -26,6 +26,10 @@ rates are not trusted: the branch nearest the last unwrapped phase is taken, whi
 leaves each antenna an unknown integer per segment (antenna-based, so closure phases
 keep; a later per-scan phase calibration absorbs it).
 
+Tables without rates (G, T Jones) are bridged with the slope of each antenna's last two
+unwrapped solutions instead (a linear extrapolation; the paper's step counter is the
+zero-slope case, ``PREDICT_NONE``).
+
 The kernel is pure: it never mutates its inputs.
 """
 
@@ -39,6 +43,9 @@ import numpy as np
 TWO_PI = 2.0 * math.pi
 #: switch codes of :func:`unwrap_solutions`
 NO_SWITCH, BRIDGED, UNBRIDGED = 0, 1, 2
+#: predictions of :func:`unwrap_solutions`: none (the paper's step counter), the table's
+#: rates (Fringe Jones), or the slope of the last two solutions (tables without rates)
+PREDICT_NONE, PREDICT_RATES, PREDICT_SLOPE = 0, 1, 2
 
 
 @numba.njit(cache=True, nogil=True)
@@ -69,13 +76,15 @@ def _frame_offset(phase, valid, s, have, last_u, last_rate, last_t, times, new_s
 
 
 @numba.njit(cache=True, nogil=True)
-def unwrap_solutions(phase, valid, times, phase_rate, refant, new_segment):
+def unwrap_solutions(phase, valid, times, phase_rate, refant, new_segment, predict):
     """Unwrapped common-frame phases of every antenna of one receptor.
 
     phase: (n_sol, n_ant) float64 wrapped solution phases (rad); valid: (n_sol, n_ant) bool;
     times: (n_sol,) float64 s; phase_rate: (n_sol, n_ant) float64 rad/s (2*pi*nu_ref*rate;
     zeros when the table has none); refant: (n_sol,) int reference antenna (-1: unknown,
-    taken as unchanged); new_segment: (n_sol,) bool, True where a scan or a gap starts.
+    taken as unchanged); new_segment: (n_sol,) bool, True where a scan or a gap starts;
+    predict: PREDICT_NONE, PREDICT_RATES (trapezoid of the table's rates) or
+    PREDICT_SLOPE (the slope of the antenna's last two unwrapped solutions in the segment).
 
     Returns unwrapped (n_sol, n_ant) float64 (NaN where invalid), wraps (n_sol, n_ant)
     int64 (unwrapped = phase + offset + 2*pi*wraps), offset (n_sol,) float64 (the frame
@@ -112,21 +121,25 @@ def unwrap_solutions(phase, valid, times, phase_rate, refant, new_segment):
             n = last_n[a]
             if have[a]:
                 dt = times[s] - last_t[a]
-                if new_segment[s]:
+                if new_segment[s] or predict == PREDICT_NONE:
                     predicted = last_u[a]
-                elif changed:
-                    # the rates after a switch are in the new frame: extrapolate the old one
+                elif changed or predict == PREDICT_SLOPE:
+                    # after a switch the table's rates are in the new frame: extrapolate the old
                     predicted = last_u[a] + last_rate[a] * dt
                 else:
                     predicted = last_u[a] + 0.5 * (last_rate[a] + phase_rate[s, a]) * dt
                 n = np.int64(round((predicted - x) / TWO_PI))
                 residual[s, a] = x + TWO_PI * n - predicted
             u = x + TWO_PI * n
+            if predict == PREDICT_SLOPE:
+                same = have[a] and not new_segment[s] and times[s] > last_t[a]
+                last_rate[a] = (u - last_u[a]) / (times[s] - last_t[a]) if same else 0.0
+            else:
+                last_rate[a] = phase_rate[s, a]
             unwrapped[s, a] = u
             wraps[s, a] = n
             have[a] = True
             last_u[a] = u
-            last_rate[a] = phase_rate[s, a]
             last_t[a] = times[s]
             last_n[a] = n
     return unwrapped, wraps, offsets, residual, switch

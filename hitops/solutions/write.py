@@ -6,15 +6,16 @@ SPECTRAL_WINDOW subtables.  Then, as fringefit leaves its own tables:
 
 * SPECTRAL_WINDOW: one channel per window, CHAN_FREQ the window's centre (the
   frequency the FPARAM phase refers to: CASA's FringeJones evaluates
-  phase + 2*pi*delay*(nu - CHAN_FREQ) + 2*pi*rate*CHAN_FREQ*(t - t_sol)), CHAN_WIDTH the
-  window's total bandwidth;
+  phase + 2*pi*delay*(nu - CHAN_FREQ) per channel), CHAN_WIDTH the window's total
+  bandwidth;
 * one row per solution time, target window and antenna (time-major), FPARAM
   (1, 4 * n_receptor) = [phase rad, delay ns, rate s/s, 0] per receptor, FLAG on every
   parameter of a missing solution, ANTENNA2 the reference antenna, INTERVAL 0.
 
 The phase is written unwrapped (float32 keeps 1e-5 rad at a few hundred radians), so
-linear interpolation between solutions follows the phase instead of cutting across a
-wrap.  The table is built beside ``path`` and renamed into place when whole.
+whatever applycal does between solutions never cuts across a wrap; between solutions it
+follows the rate (docs/solutions.md).  The table is built beside ``path`` and renamed
+into place when whole.
 """
 
 from __future__ import annotations
