@@ -193,6 +193,8 @@ def test_refuses_a_table_of_another_type(solved, tmp_path):
              bandpass, pair.ref_ms, pair.target_ms, out)
     _refused(SolutionTableError, "does not exist or is not a CASA table", tmp_path / "nothing",
              pair.ref_ms, pair.target_ms, out)
+    _refused(UnsupportedTableError, r"not a calibration table \(type 'Measurement Set'\)",
+             pair.ref_ms, pair.ref_ms, pair.target_ms, out)
 
 
 def test_refuses_a_table_solved_on_another_set(solved, tmp_path):

@@ -29,6 +29,8 @@ import numpy as np
 from .errors import NoSolutionsError, SolutionTableError, TableMismatchError, UnsupportedTableError
 
 SUPPORTED = ("Fringe Jones", "G Jones", "T Jones")
+#: the remedy every TableMismatchError ends with
+SAME_SET = "give the table that was solved on REF_MS, or the REF_MS it was solved on"
 #: FPARAM entries per receptor in a Fringe Jones table: phase, delay (ns), rate (s/s), dispersive
 FRINGE_PARS = 4
 
@@ -67,11 +69,13 @@ def _table_kind(path: str) -> str:
         raise SolutionTableError(f"reference table '{path}' does not exist or is not a CASA "
                                  "table; give the table fringefit or gaincal wrote on REF_MS")
     with pt.table(path, ack=False) as t:
-        kind = t.info().get("subType", "") or t.getkeywords().get("VisCal", "")
+        info = t.info()
+        kind = info.get("subType", "") if info.get("type") == "Calibration" else ""
         if kind not in SUPPORTED:
+            what = f"'{kind}' table" if kind else f"not a calibration table (type '{info.get('type', '')}')"
             raise UnsupportedTableError(
-                f"reference table '{path}' is a '{kind or t.info().get('type', '?')}' table; "
-                f"supported: {', '.join(SUPPORTED)} (fringefit, gaincal calmode 'p', gaintype 'T')")
+                f"reference table '{path}' is {'a ' if kind else ''}{what}; supported: "
+                f"{', '.join(SUPPORTED)} (fringefit, gaincal calmode 'p', gaincal gaintype 'T')")
         if t.nrows() == 0:
             raise SolutionTableError(f"reference table '{path}' has no rows; re-run the solve")
     return kind
@@ -98,12 +102,12 @@ def _check_subtables(path: str, ms: str, names, fields, ms_chan_freq, ms_ref_fre
         tab_names = tuple(str(n) for n in t.getcol("NAME"))
     if tab_names != names:
         raise TableMismatchError(f"reference table '{path}' was solved on another set: its "
-                                 f"antennas {list(tab_names)} are not {ms}'s {list(names)}")
+                                 f"antennas {list(tab_names)} are not {ms}'s {list(names)}; {SAME_SET}")
     with pt.table(f"{path}/FIELD", ack=False) as t:
         tab_fields = tuple(str(n) for n in t.getcol("NAME"))
     if tab_fields != fields:
         raise TableMismatchError(f"reference table '{path}' was solved on another set: its "
-                                 f"fields {list(tab_fields)} are not {ms}'s {list(fields)}")
+                                 f"fields {list(tab_fields)} are not {ms}'s {list(fields)}; {SAME_SET}")
     with pt.table(f"{path}/SPECTRAL_WINDOW", ack=False) as t:
         tab_ref = t.getcol("REF_FREQUENCY")
         centres = [np.asarray(t.getcell("CHAN_FREQ", i), float) for i in range(t.nrows())]
@@ -111,7 +115,7 @@ def _check_subtables(path: str, ms: str, names, fields, ms_chan_freq, ms_ref_fre
         raise TableMismatchError(
             f"reference table '{path}' was solved on another set: its spectral windows "
             f"(REF_FREQUENCY {np.round(tab_ref / 1e9, 6).tolist()} GHz) are not {ms}'s "
-            f"({np.round(ms_ref_freq / 1e9, 6).tolist()} GHz)")
+            f"({np.round(ms_ref_freq / 1e9, 6).tolist()} GHz); {SAME_SET}")
     return centres
 
 
@@ -127,7 +131,8 @@ def _solution_centre(path: str, spw: int, centres, ms_chan_freq, ms: str) -> flo
     if not lo - width <= freq[0] <= hi + width:
         raise TableMismatchError(
             f"reference table '{path}': spectral window {spw}'s solution frequency "
-            f"{freq[0] / 1e9:.6f} GHz lies outside {ms}'s window ({lo / 1e9:.6f}-{hi / 1e9:.6f} GHz)")
+            f"{freq[0] / 1e9:.6f} GHz lies outside {ms}'s window ({lo / 1e9:.6f}-{hi / 1e9:.6f} GHz); "
+            f"{SAME_SET}")
     return float(freq[0])
 
 
@@ -195,7 +200,7 @@ def _check_times(path: str, ms: str, windows) -> None:
             raise TableMismatchError(
                 f"reference table '{path}' was solved on another set: solution time "
                 f"{w.times[outside][0]:.1f} s (MJD seconds) of spectral window {w.spw} lies outside "
-                f"{ms}'s {t_min:.1f}-{t_max:.1f} s")
+                f"{ms}'s {t_min:.1f}-{t_max:.1f} s; {SAME_SET}")
 
 
 def _observed_antennas(ms: str, n_ant: int) -> np.ndarray:
