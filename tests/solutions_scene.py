@@ -122,13 +122,14 @@ def write_path_phases(ms: Path, times: np.ndarray, path_m: np.ndarray) -> None:
 
 def make_solution_pair(workdir: Path, stations: Sequence[str] = ("PV", "PB", "AP", "GL"),
                        duration_s: float = 1200.0, seed: int = 1, scale_m: float = 0.01,
-                       start_utc: str = "2023/04/10/03:00:00") -> Pair:
+                       start_utc: str = "2023/04/10/03:00:00",
+                       ref_centres_hz: Sequence[float] = REF_CENTRES_HZ) -> Pair:
     from casacore import tables as pt
 
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     ref_ms, target_ms = workdir / "ref.ms", workdir / "target.ms"
-    lay_out(ref_ms, REF_CENTRES_HZ, duration_s, start_utc, stations)
+    lay_out(ref_ms, ref_centres_hz, duration_s, start_utc, stations)
     lay_out(target_ms, TARGET_CENTRES_HZ, duration_s, start_utc, stations)
     with pt.table(str(ref_ms), ack=False) as t:
         times = np.unique(t.getcol("TIME"))

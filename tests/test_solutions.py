@@ -163,6 +163,21 @@ def test_reference_antenna_change_during_the_track(solved, tmp_path):
     assert _worst(coherence) >= COHERENCE_MIN
 
 
+def test_several_reference_windows_each_at_its_own_centre(tmp_path):
+    """Two reference windows (86 and 88 GHz): each series refers to its own CHAN_FREQ."""
+    pair = make_solution_pair(tmp_path, duration_s=600.0, seed=3,
+                              ref_centres_hz=(86.0e9, 88.0e9))
+    table = tmp_path / "ref.fringe"
+    fringefit(str(pair.ref_ms), str(table), solint="4s", refant="PV,PB", minsnr=3.0)
+    sol = read_solutions(table, pair.ref_ms)
+    assert [w.spw for w in sol.windows] == [0, 1]
+    assert [w.ref_freq_hz for w in sol.windows] == pytest.approx([86.0e9, 88.0e9])
+    report = transfer_table(table, pair.ref_ms, pair.target_ms, tmp_path / "from88.fringe",
+                            ref_spw=1)
+    assert report.reference_freq_hz == pytest.approx((88.0e9,))
+    assert _worst(_apply(pair.target_ms, tmp_path / "from88.fringe")) >= COHERENCE_MIN
+
+
 # ---- bad input: one line naming the table and the remedy, nothing written -------------------
 
 def _refused(error, match, table, ref_ms, target_ms, out):
@@ -209,6 +224,10 @@ def test_refuses_a_table_solved_on_another_set(solved, tmp_path):
              pair.target_ms, out)
     next_day = _copy_ms(pair.ref_ms, tmp_path / "next_day.ms", "TIME", lambda t: t + 86400.0)
     _refused(TableMismatchError, "solution time", table, next_day, pair.target_ms, out)
+    target_next_day = _copy_ms(pair.target_ms, tmp_path / "target_next_day.ms", "TIME",
+                               lambda t: t + 86400.0)
+    _refused(TableMismatchError, "does not overlap the solutions", table, pair.ref_ms,
+             target_next_day, out)
 
 
 def test_refuses_a_station_without_unflagged_solutions(solved, tmp_path):

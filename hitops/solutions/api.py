@@ -19,7 +19,7 @@ import numpy as np
 from ..io.match import pair_antennas
 from ..io.stations import read_stations
 from .errors import TableMismatchError, TransferOptionError
-from .read import SolutionTable, WindowSolutions, read_solutions
+from .read import SolutionTable, WindowSolutions, _ms_time_range, read_solutions
 from .transfer import TargetWindow, UnwrappedWindow, check_interval, transfer_window, unwrap_window
 from .wraps import UNBRIDGED
 
@@ -75,6 +75,18 @@ def _target_windows(target_ms: str):
     with pt.table(target_ms, ack=False) as t:
         ant1, ant2 = t.getcol("ANTENNA1"), t.getcol("ANTENNA2")
     return windows, fields, ant1, ant2
+
+
+def _check_overlap(table: SolutionTable, target_ms: str) -> None:
+    """The target set must be the other band of the same observation: its times meet the solutions'."""
+    t_min, t_max, interval = _ms_time_range(target_ms)
+    times = np.concatenate([w.times for w in table.windows])
+    slack = interval + 1.0
+    if not np.any((times >= t_min - slack) & (times <= t_max + slack)):
+        raise TableMismatchError(
+            f"TARGET_MS '{target_ms}' ({t_min:.1f}-{t_max:.1f} s, MJD seconds) does not overlap the "
+            f"solutions of reference table '{table.path}' ({times.min():.1f}-{times.max():.1f} s); "
+            "the two sets must be the two bands of one observation")
 
 
 def _reference_windows(table: SolutionTable, ref_spw: Optional[int]) -> Dict[str, WindowSolutions]:
@@ -163,6 +175,7 @@ def transfer_table(ref_table, ref_ms, target_ms, out_table, *, wrap_counting: bo
         raise TransferOptionError(f"max_gap_s must be > 0 seconds, not {max_gap_s}")
     target_ms = str(target_ms).rstrip("/")
     table = read_solutions(ref_table, ref_ms)
+    _check_overlap(table, target_ms)
     windows, target_fields, ant1, ant2 = _target_windows(target_ms)
     ref_stations, tgt_stations = read_stations(str(ref_ms), "REF_MS"), read_stations(target_ms, "TARGET_MS")
     ref_to_tgt = pair_antennas(ref_stations, tgt_stations, {}, ant1, ant2)
