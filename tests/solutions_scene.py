@@ -17,7 +17,7 @@ from __future__ import annotations
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -29,6 +29,8 @@ STATIONS = {
     "AP": (2225039.5297, -5441197.6292, -2479303.3597),
     "GL": (541547.0, -1387978.6, 6180982.0),
 }
+#: J2000 directions of the fields a pair may observe
+FIELDS = {"M87": ("12h30m49.42s", "+12d23m28.04s"), "3C273": ("12h29m06.70s", "+02d03m08.6s")}
 CHAN_WIDTH_HZ = 125e6
 N_CHAN = 16
 REF_CENTRES_HZ = (86.0e9,)
@@ -49,9 +51,10 @@ def _first_channel(centre_hz: float) -> float:
     return centre_hz - (N_CHAN - 1) / 2 * CHAN_WIDTH_HZ
 
 
-def lay_out(ms: Path, centres_hz: Sequence[float], duration_s: float, start_utc: str,
-            stations: Sequence[str], integration_s: float = 1.0) -> None:
-    """An empty (zero DATA) set laid out by casatools.simulator: one window per centre."""
+def lay_out(ms: Path, centres_hz: Sequence[float], scans: Sequence[Tuple[str, float, float]],
+            start_utc: str, stations: Sequence[str], integration_s: float = 1.0) -> None:
+    """An empty (zero DATA) set laid out by casatools.simulator: one window per centre, one
+    scan per (field, start s, stop s) of ``scans``."""
     from hitops.casa_env import ensure_casa_offline
 
     ensure_casa_offline()
@@ -72,15 +75,16 @@ def lay_out(ms: Path, centres_hz: Sequence[float], duration_s: float, start_utc:
                        deltafreq=f"{CHAN_WIDTH_HZ}Hz", freqresolution=f"{CHAN_WIDTH_HZ}Hz",
                        nchannels=N_CHAN, stokes="RR LL")
     sm.setfeed(mode="perfect R L")
-    sm.setfield(sourcename="M87", sourcedirection=me.direction("J2000", "12h30m49.42s",
-                                                               "+12d23m28.04s"))
+    for name in dict.fromkeys(field for field, _, _ in scans):
+        sm.setfield(sourcename=name, sourcedirection=me.direction("J2000", *FIELDS[name]))
     sm.setlimits(shadowlimit=0.001, elevationlimit="0deg")
     sm.setauto(autocorrwt=0.0)
     sm.settimes(integrationtime=f"{integration_s}s", usehourangle=False,
                 referencetime=me.epoch("UTC", start_utc))
-    for k in range(len(centres_hz)):
-        sm.observe(sourcename="M87", spwname=f"spw{k}", starttime="0s",
-                   stoptime=f"{duration_s}s")
+    for field, start, stop in scans:
+        for k in range(len(centres_hz)):
+            sm.observe(sourcename=field, spwname=f"spw{k}", starttime=f"{start}s",
+                       stoptime=f"{stop}s")
     sm.close()
     sm.done()
 
@@ -123,14 +127,17 @@ def write_path_phases(ms: Path, times: np.ndarray, path_m: np.ndarray) -> None:
 def make_solution_pair(workdir: Path, stations: Sequence[str] = ("PV", "PB", "AP", "GL"),
                        duration_s: float = 1200.0, seed: int = 1, scale_m: float = 0.01,
                        start_utc: str = "2023/04/10/03:00:00",
-                       ref_centres_hz: Sequence[float] = REF_CENTRES_HZ) -> Pair:
+                       ref_centres_hz: Sequence[float] = REF_CENTRES_HZ,
+                       scans: Optional[Sequence[Tuple[str, float, float]]] = None) -> Pair:
+    """The pair: ``scans`` (field, start s, stop s) default to one scan of M87 of ``duration_s``."""
     from casacore import tables as pt
 
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     ref_ms, target_ms = workdir / "ref.ms", workdir / "target.ms"
-    lay_out(ref_ms, ref_centres_hz, duration_s, start_utc, stations)
-    lay_out(target_ms, TARGET_CENTRES_HZ, duration_s, start_utc, stations)
+    scans = scans or (("M87", 0.0, duration_s),)
+    lay_out(ref_ms, ref_centres_hz, scans, start_utc, stations)
+    lay_out(target_ms, TARGET_CENTRES_HZ, scans, start_utc, stations)
     with pt.table(str(ref_ms), ack=False) as t:
         times = np.unique(t.getcol("TIME"))
     path = excess_path(times, len(stations), seed, scale_m)

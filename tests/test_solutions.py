@@ -44,12 +44,17 @@ def solved(tmp_path_factory):
     return pair, table
 
 
-def _coherence(ms):
-    """Whole-track coherence of CORRECTED_DATA per (window, baseline, channel, correlation)."""
+def _coherence(ms, scan_starts=None):
+    """Whole-track coherence of CORRECTED_DATA per (window, baseline, channel, correlation);
+    with ``scan_starts`` (s from the first row) per scan and field as well."""
     with pt.table(str(ms), ack=False) as t:
         data = t.getcol("CORRECTED_DATA")
         flag = t.getcol("FLAG")
         key = t.getcol("DATA_DESC_ID") * 10000 + t.getcol("ANTENNA1") * 100 + t.getcol("ANTENNA2")
+        if scan_starts is not None:
+            time = t.getcol("TIME")
+            block = np.searchsorted(np.asarray(scan_starts), time - time.min(), side="right")
+            key = key + 100000 * (block + 100 * t.getcol("FIELD_ID"))
     out = {}
     for k in np.unique(key):
         sel = key == k
@@ -59,10 +64,10 @@ def _coherence(ms):
     return out
 
 
-def _apply(ms, table):
+def _apply(ms, table, scan_starts=None):
     run_task("applycal", vis=str(ms), gaintable=[str(table)], interp=["linear"],
              applymode="calflag", calwt=[False], flagbackup=False)
-    return _coherence(ms)
+    return _coherence(ms, scan_starts)
 
 
 def _worst(coherence):
@@ -176,6 +181,25 @@ def test_several_reference_windows_each_at_its_own_centre(tmp_path):
                             ref_spw=1)
     assert report.reference_freq_hz == pytest.approx((88.0e9,))
     assert _worst(_apply(pair.target_ms, tmp_path / "from88.fringe")) >= COHERENCE_MIN
+
+
+def test_two_fields_in_alternating_scans(tmp_path):
+    """Per field, one series; each field's next scan starts a segment (a 120-s gap)."""
+    scans = [("M87" if k % 2 == 0 else "3C273", 110.0 * k, 110.0 * k + 100.0) for k in range(6)]
+    pair = make_solution_pair(tmp_path, seed=5, scans=scans)
+    table = tmp_path / "ref.fringe"
+    fringefit(str(pair.ref_ms), str(table), solint="4s", refant="PV,PB", minsnr=3.0)
+    sol = read_solutions(table, pair.ref_ms)
+    assert sorted({(w.field_name, w.spw) for w in sol.windows}) == [("3C273", 0), ("M87", 0)]
+    report = transfer_table(table, pair.ref_ms, pair.target_ms, tmp_path / "target.fringe")
+    assert report.n_segments == 6
+    with pt.table(str(tmp_path / "target.fringe"), ack=False) as t:
+        assert sorted(set(t.getcol("FIELD_ID").tolist())) == [0, 1]
+    # every scan of every field coherent; across scans each antenna may carry its own
+    # integer per segment (antenna-based: a later per-scan phase calibration absorbs it)
+    coherence = _apply(pair.target_ms, tmp_path / "target.fringe", [110.0 * k for k in range(6)])
+    assert len(coherence) == 6 * 2 * 6
+    assert _worst(coherence) >= COHERENCE_MIN
 
 
 # ---- bad input: one line naming the table and the remedy, nothing written -------------------
