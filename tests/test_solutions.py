@@ -163,6 +163,7 @@ def test_reference_antenna_change_during_the_track(solved, tmp_path):
     assert len(report.refant_changes) == 1
     change = report.refant_changes[0]
     assert (change.from_antenna, change.to_antenna, change.bridged) == ("PV", "PB", True)
+    assert report.common_refant == ("PV",)
     coherence = _apply(pair.target_ms, tmp_path / "target.fringe")
     # PV's baselines lose their second half (flagged solutions flag the data they touch)
     assert _worst(coherence) >= COHERENCE_MIN

@@ -55,6 +55,7 @@ class TransferReport:
     target_centres_hz: Tuple[float, ...]   # per target window written
     n_rows: int
     n_segments: int                        # scans/gaps after which the count restarts its branch
+    common_refant: Tuple[str, ...]         # per reference window used: the frame all are re-referred to
     antennas: Tuple[AntennaSummary, ...]
     refant_changes: Tuple[RefantChange, ...]
 
@@ -142,6 +143,12 @@ def _summaries(table: SolutionTable, unwrapped: Tuple[UnwrappedWindow, ...]):
     return tuple(out)
 
 
+def _first_refant(table: SolutionTable, u: UnwrappedWindow) -> str:
+    """The reference antenna of the window's first solution: the frame of every series."""
+    known = u.source.refant[u.source.refant >= 0]
+    return table.antenna_names[known[0]] if known.size else ""
+
+
 def _refant_changes(table: SolutionTable, unwrapped: Tuple[UnwrappedWindow, ...]):
     changes = []
     names = table.antenna_names
@@ -200,8 +207,17 @@ def transfer_table(ref_table, ref_ms, target_ms, out_table, *, wrap_counting: bo
         reference_freq_hz=tuple(u.source.ref_freq_hz for u in unwrapped),
         target_centres_hz=tuple(c for _, c in windows), n_rows=n_rows,
         n_segments=int(sum(u.new_segment.sum() for u in unwrapped)),
+        common_refant=tuple(_first_refant(table, u) for u in unwrapped),
         antennas=_summaries(table, unwrapped), refant_changes=_refant_changes(table, unwrapped))
     log.info("transferred %s (%s, phase at %s GHz) to %s: %d rows, %d reference antenna change(s)",
              table.path, table.kind, ", ".join(f"{f / 1e9:.4f}" for f in report.reference_freq_hz),
              out_table, n_rows, len(report.refant_changes))
+    for change in report.refant_changes:
+        log.info("reference antenna %s -> %s at %.1f s (spectral window %d, field %d): %s",
+                 change.from_antenna, change.to_antenna, change.time, change.spw, change.field,
+                 "re-referred to the window's first reference antenna" if change.bridged
+                 else "no antenna solved on both sides: not re-referred")
+    for ant in report.antennas:
+        log.info("station %s: %d solutions, %d flagged, %d wraps, largest bridged residual %.2f rad",
+                 ant.name, ant.n_solutions, ant.n_flagged, ant.n_wraps, ant.max_residual_rad)
     return report
