@@ -163,8 +163,9 @@ def write_gain_table(path, ms, time, antenna_phase, valid, corr_names: Sequence[
     return str(path)
 
 
-def _create_empty(ms: str, path: str) -> None:
-    """An empty G Jones table laid out by CASA itself (calibrater.createcaltable)."""
+def _create_empty(ms: str, path: str, par_type: str = "Complex", vis_cal: str = "G Jones") -> None:
+    """An empty table laid out by CASA itself (calibrater.createcaltable): G Jones by
+    default; hitops.solutions.write makes a 'Float' 'Fringe Jones' one."""
     from ..casa_env import ensure_casa_offline
 
     ensure_casa_offline()
@@ -177,7 +178,7 @@ def _create_empty(ms: str, path: str) -> None:
         # open without adding MODEL_DATA/CORRECTED_DATA: the set is not changed
         if not cb.open(ms, False, False, False):
             raise MeasurementSetError(f"CASA cannot open '{ms}' for calibration")
-        cb.createcaltable(path, "Complex", "G Jones", True)
+        cb.createcaltable(path, par_type, vis_cal, True)
     finally:
         cb.close()
         cb.done()

@@ -1,0 +1,223 @@
+"""transfer_table: a reference band's calibration table in, a target-band Fringe Jones table out.
+
+Stages, each with its type: ``read_solutions`` (REF_MS's table -> ``SolutionTable``,
+refused when solved on another set) -> ``unwrap_window`` per reference window
+(``UnwrappedWindow``; ``check_interval`` refuses a table whose phase moves by more
+than pi between solutions) -> ``transfer_window`` per target window and field
+(``TargetWindow``) -> ``write_fringe_table``.  Every check runs before anything is
+written; the table appears whole or not at all.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Dict, Optional, Tuple
+
+import numpy as np
+
+from ..io.match import pair_antennas
+from ..io.stations import read_stations
+from .errors import TableMismatchError, TransferOptionError
+from .read import SolutionTable, WindowSolutions, _ms_time_range, read_solutions
+from .transfer import TargetWindow, UnwrappedWindow, check_interval, transfer_window, unwrap_window
+from .wraps import UNBRIDGED
+
+log = logging.getLogger("hitops.solutions")
+
+
+@dataclass(frozen=True)
+class AntennaSummary:
+    name: str
+    n_solutions: int          # unflagged solutions, all windows and receptors of the reference
+    n_flagged: int            # solution slots without an unflagged solution
+    n_wraps: int              # wraps counted (sum of |steps| of the count)
+    max_residual_rad: float   # largest |bridged residual|: how close to the Itoh limit
+
+
+@dataclass(frozen=True)
+class RefantChange:
+    time: float
+    spw: int
+    field: int
+    from_antenna: str
+    to_antenna: str
+    bridged: bool             # re-referred through antennas solved on both sides
+
+
+@dataclass(frozen=True)
+class TransferReport:
+    table: str
+    reference_table: str
+    kind: str
+    wrap_counting: bool
+    reference_freq_hz: Tuple[float, ...]   # per reference window used: the table's CHAN_FREQ
+    target_centres_hz: Tuple[float, ...]   # per target window written
+    n_rows: int
+    n_segments: int                        # scans/gaps after which the count restarts its branch
+    common_refant: Tuple[str, ...]         # per reference window used: the frame all are re-referred to
+    antennas: Tuple[AntennaSummary, ...]
+    refant_changes: Tuple[RefantChange, ...]
+
+
+def _target_windows(target_ms: str):
+    """(spw id, centre Hz) of every spectral window the target's data use; field names."""
+    from casacore import tables as pt
+
+    with pt.table(f"{target_ms}::DATA_DESCRIPTION", ack=False) as t:
+        used = sorted(set(t.getcol("SPECTRAL_WINDOW_ID").tolist()))
+    with pt.table(f"{target_ms}::SPECTRAL_WINDOW", ack=False) as t:
+        windows = []
+        for spw in used:
+            freq = np.asarray(t.getcell("CHAN_FREQ", spw), float)
+            windows.append((spw, 0.5 * (freq.min() + freq.max())))
+    with pt.table(f"{target_ms}::FIELD", ack=False) as t:
+        fields = [str(n) for n in t.getcol("NAME")]
+    with pt.table(target_ms, ack=False) as t:
+        ant1, ant2 = t.getcol("ANTENNA1"), t.getcol("ANTENNA2")
+    return windows, fields, ant1, ant2
+
+
+def _check_overlap(table: SolutionTable, target_ms: str) -> None:
+    """The target set must be the other band of the same observation: its times meet the solutions'."""
+    t_min, t_max, interval = _ms_time_range(target_ms)
+    times = np.concatenate([w.times for w in table.windows])
+    slack = interval + 1.0
+    if not np.any((times >= t_min - slack) & (times <= t_max + slack)):
+        raise TableMismatchError(
+            f"TARGET_MS '{target_ms}' ({t_min:.1f}-{t_max:.1f} s, MJD seconds) does not overlap the "
+            f"solutions of reference table '{table.path}' ({times.min():.1f}-{times.max():.1f} s); "
+            "the two sets must be the two bands of one observation")
+
+
+def _reference_windows(table: SolutionTable, ref_spw: Optional[int]) -> Dict[str, WindowSolutions]:
+    """The reference window used for each field: ``ref_spw``, else the best-solved one."""
+    chosen: Dict[str, WindowSolutions] = {}
+    spws = sorted({w.spw for w in table.windows})
+    if ref_spw is not None and ref_spw not in spws:
+        raise TransferOptionError(f"reference table '{table.path}' has no solutions in spectral "
+                                  f"window {ref_spw}; it has {spws}")
+    for w in table.windows:
+        if ref_spw is not None and w.spw != ref_spw:
+            continue
+        best = chosen.get(w.field_name)
+        if best is None or w.valid.sum() > best.valid.sum():
+            chosen[w.field_name] = w
+    return chosen
+
+
+def _on_target_antennas(window: TargetWindow, ref_to_tgt: np.ndarray, n_ant_t: int) -> TargetWindow:
+    """The same solutions indexed by the target's ANTENNA rows (missing stations flagged)."""
+    def pick(values, fill):
+        out = np.full((values.shape[0], n_ant_t) + values.shape[2:], fill, values.dtype)
+        for ref_ant, tgt_ant in enumerate(ref_to_tgt):
+            if tgt_ant >= 0:
+                out[:, tgt_ant] = values[:, ref_ant]
+        return out
+
+    refant = np.where(window.refant >= 0,
+                      ref_to_tgt[np.clip(window.refant, 0, None)], -1).astype(np.int32)
+    return TargetWindow(window.spw, window.field, window.centre_hz, window.times, window.scan,
+                        pick(window.phase, 0.0), pick(window.delay_s, 0.0), pick(window.rate, 0.0),
+                        pick(window.valid, False), refant)
+
+
+def _wrap_steps(u: UnwrappedWindow, ant: int) -> int:
+    """Wraps counted on one antenna: the sum of |steps| of its count over its valid solutions."""
+    total = 0
+    for rec in range(u.wraps.shape[2]):
+        counts = u.wraps[:, ant, rec][u.source.valid[:, ant, rec]]
+        total += int(np.abs(np.diff(counts)).sum())
+    return total
+
+
+def _summaries(table: SolutionTable, unwrapped: Tuple[UnwrappedWindow, ...]):
+    out = []
+    for ant, name in enumerate(table.antenna_names):
+        valid = sum(int(u.source.valid[:, ant].sum()) for u in unwrapped)
+        slots = sum(u.source.valid[:, ant].size for u in unwrapped)
+        res = [np.nanmax(np.abs(u.residual[:, ant])) for u in unwrapped
+               if np.isfinite(u.residual[:, ant]).any()]
+        out.append(AntennaSummary(name, valid, slots - valid, sum(_wrap_steps(u, ant) for u in unwrapped),
+                                  float(max(res)) if res else 0.0))
+    return tuple(out)
+
+
+def _first_refant(table: SolutionTable, u: UnwrappedWindow) -> str:
+    """The reference antenna of the window's first solution: the frame of every series."""
+    known = u.source.refant[u.source.refant >= 0]
+    return table.antenna_names[known[0]] if known.size else ""
+
+
+def _refant_changes(table: SolutionTable, unwrapped: Tuple[UnwrappedWindow, ...]):
+    changes = []
+    names = table.antenna_names
+    for u in unwrapped:
+        w = u.source
+        for s in np.flatnonzero(u.switch.max(axis=1) > 0):
+            before = w.refant[:s][w.refant[:s] >= 0]
+            changes.append(RefantChange(float(w.times[s]), w.spw, w.field,
+                                        names[before[-1]] if before.size else "?",
+                                        names[w.refant[s]],
+                                        bool(np.all(u.switch[s] != UNBRIDGED))))
+    return tuple(changes)
+
+
+def transfer_table(ref_table, ref_ms, target_ms, out_table, *, wrap_counting: bool = True,
+                   ref_spw: Optional[int] = None, max_gap_s: float = 60.0,
+                   overwrite: bool = False) -> TransferReport:
+    """Transfer a reference band's fringefit/gaincal table to a target-band Fringe Jones table.
+
+    ``ref_table`` was solved on ``ref_ms``; ``out_table`` is written for ``target_ms``
+    (one row per solution, antenna and target window, the phase R_c*u at the window's
+    centre, the delay u/(2*pi*nu_ref), the rate carried over).  ``wrap_counting=False``
+    transfers the wrapped phases (R*phi, the CFPT analogue; for comparison only).
+    ``ref_spw``: the reference window to transfer from (default: per field, the window
+    with the most solutions).  ``max_gap_s``: a longer gap between solutions (or a new
+    scan) restarts the rate prediction.  Nothing is written when any check fails.
+    """
+    from .write import write_fringe_table
+
+    if not max_gap_s > 0:
+        raise TransferOptionError(f"max_gap_s must be > 0 seconds, not {max_gap_s}")
+    target_ms = str(target_ms).rstrip("/")
+    table = read_solutions(ref_table, ref_ms)
+    _check_overlap(table, target_ms)
+    windows, target_fields, ant1, ant2 = _target_windows(target_ms)
+    ref_stations, tgt_stations = read_stations(str(ref_ms), "REF_MS"), read_stations(target_ms, "TARGET_MS")
+    ref_to_tgt = pair_antennas(ref_stations, tgt_stations, {}, ant1, ant2)
+    by_field = _reference_windows(table, ref_spw)
+    common = [name for name in by_field if name in target_fields]
+    if not common:
+        raise TableMismatchError(f"no field of reference table '{table.path}' "
+                                 f"({', '.join(by_field)}) is in {target_ms} ({', '.join(target_fields)})")
+    unwrapped = tuple(unwrap_window(by_field[name], max_gap_s, wrap_counting, table.has_rates)
+                      for name in common)
+    if wrap_counting:
+        for u in unwrapped:
+            check_interval(u, table.antenna_names, table.path)
+    targets = [_on_target_antennas(transfer_window(u, spw, target_fields.index(name), centre,
+                                                   table.has_rates),
+                                   ref_to_tgt, tgt_stations.n_ant)
+               for name, u in zip(common, unwrapped) for spw, centre in windows]
+    n_rows = write_fringe_table(out_table, target_ms, targets, tgt_stations.n_ant, overwrite)
+    report = TransferReport(
+        table=str(out_table), reference_table=table.path, kind=table.kind,
+        wrap_counting=wrap_counting,
+        reference_freq_hz=tuple(u.source.ref_freq_hz for u in unwrapped),
+        target_centres_hz=tuple(c for _, c in windows), n_rows=n_rows,
+        n_segments=int(sum(u.new_segment.sum() for u in unwrapped)),
+        common_refant=tuple(_first_refant(table, u) for u in unwrapped),
+        antennas=_summaries(table, unwrapped), refant_changes=_refant_changes(table, unwrapped))
+    log.info("transferred %s (%s, phase at %s GHz) to %s: %d rows, %d reference antenna change(s)",
+             table.path, table.kind, ", ".join(f"{f / 1e9:.4f}" for f in report.reference_freq_hz),
+             out_table, n_rows, len(report.refant_changes))
+    for change in report.refant_changes:
+        log.info("reference antenna %s -> %s at %.1f s (spectral window %d, field %d): %s",
+                 change.from_antenna, change.to_antenna, change.time, change.spw, change.field,
+                 "re-referred to the window's first reference antenna" if change.bridged
+                 else "no antenna solved on both sides: not re-referred")
+    for ant in report.antennas:
+        log.info("station %s: %d solutions, %d flagged, %d wraps, largest bridged residual %.2f rad",
+                 ant.name, ant.n_solutions, ant.n_flagged, ant.n_wraps, ant.max_residual_rad)
+    return report
