@@ -83,7 +83,8 @@ def test_every_fresh_checked_step_depends_on_its_parameter_file(recipe):
 
 
 def test_parameter_files_change_only_for_the_steps_that_use_a_value(tmp_path):
-    from hitops.run import effective_values, load_recipe, parse_overrides, write_parameter_files
+    from hitops.recipe_params import write_parameter_files
+    from hitops.run import effective_values, load_recipe, parse_overrides
 
     rec = load_recipe(RECIPES / "fpt-demo.yml")
 
