@@ -168,7 +168,7 @@ class Progress:
         elif _SKIP_FRESH in line or _SKIP_COND in line:
             self.inner_skipped += 1
         elif self.current not in self.names and _PARAMS_NOTE.search(line):
-            self.params_note = _PARAMS_NOTE.search(line).group(0)
+            self.params_note = _PARAMS_NOTE.search(line).group(0).rstrip(", ")
 
     def begin(self, step: str) -> None:
         self.current, self.start = step, time.monotonic()
