@@ -72,11 +72,28 @@ def _type_error(name: str, dtype: str, value) -> Optional[str]:
     return None
 
 
+def _check_dotted(recipe: RecipeFile, name: str) -> None:
+    """A dotted name must start with a step (or config., log.): Stimela 2.1.4 drops
+    any other one silently, ``steps.X.params.Y`` included (docs/recipes.md)."""
+    head = name.split(".", 1)[0]
+    if head in recipe.steps or head in ("config", "log"):
+        return
+    parts = name.split(".")
+    if head == "steps" and len(parts) == 4 and parts[2] == "params" and parts[1] in recipe.steps:
+        hint = f"write '{parts[1]}.{parts[3]}=...' "
+    else:
+        close = difflib.get_close_matches(head, list(recipe.steps), n=1, cutoff=0.6)
+        hint = f"did you mean '{close[0]}'? " if close else ""
+    raise UsageError(f"'{name}': '{head}' is not a step of recipe {recipe.name} "
+                     f"(Stimela would ignore it): {hint}(steps: {', '.join(recipe.steps)})")
+
+
 def parse_overrides(recipe: RecipeFile, args: Sequence[str]) -> Dict[str, object]:
     """``name=value`` arguments checked against the recipe's inputs.
 
     Values are read as YAML, as Stimela reads them.  Dotted names
-    (``steps.x.params.y=...``, ``opts.*``) are Stimela settings and pass unchecked.
+    (``STEP.PARAM=...``, ``config.*``, ``log.*``) go to Stimela, which checks the
+    parameter's name; a STEP that is not one of the recipe's is refused here.
     """
     values: Dict[str, object] = {}
     valid = sorted(recipe.inputs)
@@ -86,6 +103,7 @@ def parse_overrides(recipe: RecipeFile, args: Sequence[str]) -> Dict[str, object
         if not sep or not name:
             raise UsageError(f"'{arg}' is not name=value (recipe inputs: {', '.join(valid)})")
         if "." in name:
+            _check_dotted(recipe, name)
             values[name] = raw
             continue
         if name not in recipe.inputs:

@@ -118,6 +118,18 @@ def test_a_params_step_leaving_an_input_out_is_refused(tmp_path):
     assert not (tmp_path / "params").exists()     # nothing written
 
 
+def test_the_runner_refuses_a_dotted_name_stimela_would_drop():
+    from hitops.run import UsageError, parse_overrides
+
+    rec = load_recipe(RECIPES / "fpt-demo.yml")
+    assert parse_overrides(rec, ["fringefit.minsnr=5", "log.level=INFO"]) == {
+        "fringefit.minsnr": "5", "log.level": "INFO"}
+    with pytest.raises(UsageError, match=r"'fringefitt' is not a step .* did you mean 'fringefit'"):
+        parse_overrides(rec, ["fringefitt.minsnr=5"])
+    with pytest.raises(UsageError, match=r"write 'diagnose.interval=...'"):
+        parse_overrides(rec, ["steps.diagnose.params.interval=45"])
+
+
 # ---------------------------------------------------------------------------
 # real Stimela
 
