@@ -32,7 +32,18 @@ ROOT = Path(__file__).resolve().parent.parent
 RECIPES = ROOT / "recipes"
 SMALL = ROOT / "tests" / "data" / "recipes" / "freshness.yml"
 BIN = Path(sys.executable).parent
-SHIPPED = ["fpt-demo.yml", "fpt-paper.yml", "fpt-uvfits.yml"]
+
+
+def _recipe_files():
+    """Every recipe file under recipes/ (fpt-lib.yml holds only a sub-recipe)."""
+    import yaml
+
+    return sorted(p.name for p in RECIPES.glob("*.yml")
+                  if any(isinstance(v, dict) and "steps" in v
+                         for v in (yaml.safe_load(p.read_text()) or {}).values()))
+
+
+SHIPPED = _recipe_files()
 
 
 # ---------------------------------------------------------------------------
@@ -40,6 +51,7 @@ SHIPPED = ["fpt-demo.yml", "fpt-paper.yml", "fpt-uvfits.yml"]
 
 @pytest.mark.parametrize("recipe", SHIPPED + [str(SMALL)])
 def test_every_recipe_starts_with_the_params_step_given_every_input(recipe):
+    assert {"fpt-demo.yml", "fpt-paper.yml", "fpt-uvfits.yml"} <= set(SHIPPED)
     rec = load_recipe(RECIPES / recipe)
     first, sdef = next(iter(rec.steps.items()))
     assert sdef["cab"] == PARAMS_CAB, f"{recipe}: first step {first}"
