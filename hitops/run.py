@@ -8,12 +8,11 @@ What it adds to ``stimela run`` (which it calls):
   an unknown name is an error naming the closest valid one (Stimela 2.1.4
   accepts ``fringefit_soltint=30s`` silently and ignores it), and a value that
   is not of the input's type (int, float, bool) is refused.
-* **No stale results**: for every step it writes ``{dir}/params/STEP.json``,
-  the values of the recipe inputs the step uses and the step's definition
-  (with the sub-recipe's, for ``images``), rewritten only when they change.
-  The recipes list that file among each step's ``depends``, so a changed
-  parameter makes the step's outputs older than an input and Stimela's
-  ``skip_if_outputs: fresh`` reruns it, and everything downstream with it.
+* **No stale results**, as under plain ``stimela run``: the recipe's first
+  step (``params``, ``hitops/recipe_params.py``) writes ``{dir}/params/STEP.json``
+  for every step, rewritten only when the values it holds change, and the
+  steps list that file in ``depends``; this runner prints which steps'
+  parameters changed (the step itself has no progress line).
 * **Quiet**: one line per recipe step (step k of n, what it does, how long or
   "up to date"); Stimela's whole output goes to ``{dir}/logs/run-DATE/output.txt``
   beside its per-step logs and CASA's log (``casa.log``); ``{dir}/logs/latest``
@@ -40,80 +39,24 @@ import subprocess
 import sys
 import time
 from collections import deque
-from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, TextIO
 
 import yaml
 
-#: Top-level sections of a recipe file that are configuration, not recipes
-CONFIG_SECTIONS = {"_include", "_use", "opts", "lib", "cabs", "vars", "images", "run"}
+from .errors import HitopsError
+from .recipe_params import PARAMS_CAB, RecipeFile, load_recipe
 
-#: Recipe inputs that do not change what a step computes: where the outputs go
-#: (the parameter files live there already) and how many threads compute them
-NOT_DEFINING = {"dir", "threads"}
-
-_RECIPE_REF = re.compile(r"\brecipe\.([A-Za-z_]\w*)")
 _STEP_START = re.compile(r"STIMELA\.(?P<logger>[\w.-]+) INFO: processing step '(?P<step>[^']+)'")
 _SKIP_FRESH = "all required outputs are OK, skipping this step"
 _SKIP_COND = "skipping step based on conditonal settings"   # sic, Stimela 2.1.4
+_PARAMS_NOTE = re.compile(r"parameters changed for: [\w, -]+")
 _ERROR = re.compile(r"\b(ERROR|CRITICAL|[A-Za-z]*Error:)|CASA \w+: \d+ x |^# hitops: |# hitops [a-z]+: ")
 
 
 class UsageError(Exception):
     """A bad command line: printed as one line, exit status 2."""
-
-
-# ---------------------------------------------------------------------------
-# the recipe file
-
-@dataclass
-class RecipeFile:
-    path: Path
-    name: str
-    info: str
-    inputs: Dict[str, dict]
-    steps: Dict[str, dict]
-    libs: Dict[str, dict] = field(default_factory=dict)
-
-    def referenced_inputs(self, step: str) -> List[str]:
-        """The recipe inputs a step's definition refers to (recipe.NAME)."""
-        text = yaml.safe_dump(self.steps[step], sort_keys=True)
-        return sorted({m for m in _RECIPE_REF.findall(text) if m in self.inputs})
-
-
-def _load_yaml(path: Path) -> dict:
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except OSError as err:
-        raise UsageError(f"cannot read the recipe {path}: {err.strerror}") from err
-    except yaml.YAMLError as err:
-        raise UsageError(f"{path} is not valid YAML: {err}") from err
-    if not isinstance(doc, dict):
-        raise UsageError(f"{path} is not a Stimela recipe file (no sections)")
-    return doc
-
-
-def load_recipe(path: str | Path) -> RecipeFile:
-    """The recipe defined in ``path``, with the sub-recipes its includes define."""
-    path = Path(path)
-    doc = _load_yaml(path)
-    names = [k for k, v in doc.items() if k not in CONFIG_SECTIONS and isinstance(v, dict)
-             and "steps" in v]
-    if len(names) != 1:
-        raise UsageError(f"{path} defines {len(names)} recipes ({', '.join(names) or 'none'}); "
-                         "this runner takes a file with exactly one")
-    body = doc[names[0]]
-    libs: Dict[str, dict] = {}
-    for include in doc.get("_include") or []:
-        inc = (path.parent / str(include)) if not os.path.isabs(str(include)) else Path(include)
-        if inc.is_file():
-            libs.update(((_load_yaml(inc).get("lib") or {}).get("recipes") or {}))
-    libs.update(((doc.get("lib") or {}).get("recipes") or {}))
-    return RecipeFile(path=path, name=names[0], info=str(body.get("info", "")),
-                      inputs=dict(body.get("inputs") or {}), steps=dict(body.get("steps") or {}),
-                      libs=libs)
 
 
 # ---------------------------------------------------------------------------
@@ -129,11 +72,28 @@ def _type_error(name: str, dtype: str, value) -> Optional[str]:
     return None
 
 
+def _check_dotted(recipe: RecipeFile, name: str) -> None:
+    """A dotted name must start with a step (or config., log.): Stimela 2.1.4 drops
+    any other one silently, ``steps.X.params.Y`` included (docs/recipes.md)."""
+    head = name.split(".", 1)[0]
+    if head in recipe.steps or head in ("config", "log"):
+        return
+    parts = name.split(".")
+    if head == "steps" and len(parts) == 4 and parts[2] == "params" and parts[1] in recipe.steps:
+        hint = f"write '{parts[1]}.{parts[3]}=...' "
+    else:
+        close = difflib.get_close_matches(head, list(recipe.steps), n=1, cutoff=0.6)
+        hint = f"did you mean '{close[0]}'? " if close else ""
+    raise UsageError(f"'{name}': '{head}' is not a step of recipe {recipe.name} "
+                     f"(Stimela would ignore it): {hint}(steps: {', '.join(recipe.steps)})")
+
+
 def parse_overrides(recipe: RecipeFile, args: Sequence[str]) -> Dict[str, object]:
     """``name=value`` arguments checked against the recipe's inputs.
 
     Values are read as YAML, as Stimela reads them.  Dotted names
-    (``steps.x.params.y=...``, ``opts.*``) are Stimela settings and pass unchecked.
+    (``STEP.PARAM=...``, ``config.*``, ``log.*``) go to Stimela, which checks the
+    parameter's name; a STEP that is not one of the recipe's is refused here.
     """
     values: Dict[str, object] = {}
     valid = sorted(recipe.inputs)
@@ -143,6 +103,7 @@ def parse_overrides(recipe: RecipeFile, args: Sequence[str]) -> Dict[str, object
         if not sep or not name:
             raise UsageError(f"'{arg}' is not name=value (recipe inputs: {', '.join(valid)})")
         if "." in name:
+            _check_dotted(recipe, name)
             values[name] = raw
             continue
         if name not in recipe.inputs:
@@ -168,53 +129,6 @@ def effective_values(recipe: RecipeFile, overrides: Dict[str, object]) -> Dict[s
     return values
 
 
-def _without_info(obj):
-    if isinstance(obj, dict):
-        return {k: _without_info(v) for k, v in obj.items() if k != "info"}
-    if isinstance(obj, list):
-        return [_without_info(v) for v in obj]
-    return obj
-
-
-def step_parameters(recipe: RecipeFile, step: str, values: Dict[str, object]) -> dict:
-    """What defines a step's outputs: the input values it uses and its definition."""
-    definition = recipe.steps[step]
-    payload = {
-        "recipe": recipe.name,
-        "step": step,
-        "inputs": {k: values.get(k) for k in recipe.referenced_inputs(step)
-                   if k not in NOT_DEFINING},
-        "definition": _without_info(definition),
-    }
-    sub = definition.get("recipe") if isinstance(definition, dict) else None
-    if isinstance(sub, str) and sub in recipe.libs:
-        payload["sub_recipe"] = _without_info(recipe.libs[sub])
-    return payload
-
-
-def write_parameter_files(recipe: RecipeFile, values: Dict[str, object],
-                          outdir: Path) -> List[str]:
-    """Write {outdir}/params/STEP.json for every step; return the steps whose file changed.
-
-    A file is rewritten only when its content changes, so its modification
-    time is the time the step's parameters last changed.
-    """
-    pdir = outdir / "params"
-    pdir.mkdir(parents=True, exist_ok=True)
-    changed = []
-    for step in recipe.steps:
-        text = json.dumps(step_parameters(recipe, step, values), indent=2, sort_keys=True,
-                          default=str) + "\n"
-        path = pdir / f"{step}.json"
-        if path.is_file() and path.read_text() == text:
-            continue
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        tmp.write_text(text)
-        tmp.replace(path)
-        changed.append(step)
-    return changed
-
-
 def substitute(value, values: Dict[str, object]):
     """Evaluate the simple Stimela forms the recipes use: =recipe.X and {recipe.X}."""
     if not isinstance(value, str):
@@ -234,11 +148,16 @@ def _seconds(s: float) -> str:
 
 
 class Progress:
-    """Turns Stimela's output into one line per top-level step."""
+    """Turns Stimela's output into one line per top-level step.
+
+    The step writing the parameter files is bookkeeping: it gets no line of
+    its own, only "parameters changed for: ..." when some (not all) changed.
+    """
 
     def __init__(self, recipe: RecipeFile, out: TextIO, enabled: bool = True):
         self.recipe, self.out, self.enabled = recipe, out, enabled
-        self.names = list(recipe.steps)
+        self.names = [s for s, d in recipe.steps.items() if d.get("cab") != PARAMS_CAB]
+        self.params_note = ""
         self.current: Optional[str] = None
         self.start = 0.0
         self.skip_note = ""
@@ -266,12 +185,14 @@ class Progress:
             self.skip_note = "skipped (condition not met)"
         elif _SKIP_FRESH in line or _SKIP_COND in line:
             self.inner_skipped += 1
+        elif self.current not in self.names and _PARAMS_NOTE.search(line):
+            self.params_note = _PARAMS_NOTE.search(line).group(0).rstrip(", ")
 
     def begin(self, step: str) -> None:
         self.current, self.start = step, time.monotonic()
         self.skip_note, self.inner_started, self.inner_skipped = "", 0, 0
         self.tail.clear()
-        if not self.enabled:
+        if not self.enabled or step not in self.names:
             return
         k = self.names.index(step) + 1 if step in self.names else 0
         info = str(self.recipe.steps.get(step, {}).get("info", "")).strip()
@@ -295,9 +216,13 @@ class Progress:
         else:
             status = _seconds(took)
         self.results[self.current] = status
-        if self.enabled:
+        if self.enabled and self.current not in self.names:
+            # the parameter files: a line only when some changed, or the step failed
+            note = f"parameter files ({self.current}) {status}" if failed else self.params_note
+            self.out.write(f"{note}\n" if note else "")
+        elif self.enabled:
             self.out.write(f" .. {status}\n")
-            self.out.flush()
+        self.out.flush()
         self.current = None
 
 
@@ -448,7 +373,6 @@ def run(recipe_path: str, args: Sequence[str], verbose: bool = False, force: boo
     if not values.get("dir"):
         raise UsageError(f"recipe {recipe.name} has no 'dir' input: this runner needs one")
     outdir = Path(str(values["dir"]))
-    changed = write_parameter_files(recipe, values, outdir)
     logs_root = outdir / "logs"
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     logdir = logs_root / f"run-{stamp}"
@@ -462,9 +386,7 @@ def run(recipe_path: str, args: Sequence[str], verbose: bool = False, force: boo
     progress = Progress(recipe, out, enabled=not verbose)
     what = f"{recipe.name}: {recipe.info}" if recipe.info else recipe.name
     out.write(f"{what}\n")
-    note = "" if not changed or len(changed) == len(recipe.steps) else \
-        f"; parameters changed for: {', '.join(changed)}"
-    out.write(f"output in {_rel(outdir)}/, full log in {_rel(logdir)}/output.txt{note}\n")
+    out.write(f"output in {_rel(outdir)}/, full log in {_rel(logdir)}/output.txt\n")
     out.flush()
     started = time.monotonic()
     with open(logdir / "output.txt", "w") as full:
@@ -525,7 +447,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     opts = parser.parse_args(argv)
     try:
         return run(opts.recipe, opts.params, verbose=opts.verbose, force=opts.force, extra=extra)
-    except UsageError as err:
+    except (UsageError, HitopsError) as err:
         print(f"hitops run: {err}", file=sys.stderr)
         return 2
 

@@ -2,8 +2,9 @@
 
 * ``python -m hitops.run`` (what ``make run`` calls) refuses a misspelt or
   mistyped parameter before anything runs, naming the closest valid one;
-* each step's parameter file changes only when a value that step uses
-  changes, so only that step and what follows from it rerun;
+* each step lists its parameter file (which the recipe's first step
+  rewrites only when a value that step uses changes: tests/test_recipe_params.py),
+  so only that step and what follows from it rerun;
 * in a fresh clone with its own HOME and TMPDIR, the demo prints at most ~50
   lines ending with the table and the paths, leaves nothing outside ``out/``
   (nor in TMPDIR), reruns nothing when nothing changed, and reruns exactly
@@ -80,30 +81,6 @@ def test_every_fresh_checked_step_depends_on_its_parameter_file(recipe):
     lib = rec.libs["image-fit"]
     assert lib["steps"]["image"]["params"]["depends"] == "=recipe.depends"
     assert lib["steps"]["image"]["skip_if_outputs"] == "fresh"
-
-
-def test_parameter_files_change_only_for_the_steps_that_use_a_value(tmp_path):
-    from hitops.run import effective_values, load_recipe, parse_overrides, write_parameter_files
-
-    rec = load_recipe(RECIPES / "fpt-demo.yml")
-
-    def write(*args):
-        values = effective_values(rec, parse_overrides(rec, args))
-        return write_parameter_files(rec, values, tmp_path)
-
-    assert write() == list(rec.steps)            # first run: every file written
-    assert set(DEMO_STEPS) <= set(rec.steps)
-    mtimes = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "params").iterdir()}
-    assert write() == []                         # nothing changed: nothing rewritten
-    assert mtimes == {p.name: p.stat().st_mtime_ns for p in (tmp_path / "params").iterdir()}
-    assert write("fringefit_solint=60s") == ["fringefit"]
-    assert write("fringefit_solint=60s", "plots=coherence") == ["diagnose"]
-    assert write("image_size=512") == ["fringefit", "diagnose", "images"]  # back to defaults too
-    assert write("seed=11") == ["simulate", "images"]
-    assert write("seed=11", "threads=1") == []   # threads do not change a result
-    stored = json.loads((tmp_path / "params" / "simulate.json").read_text())
-    assert stored["inputs"]["seed"] == 11 and stored["inputs"]["scene"] == "demo"
-    assert "dir" not in stored["inputs"]
 
 
 # ---------------------------------------------------------------------------

@@ -11,6 +11,7 @@ stand-ins, tests/test_cluster_slurm.py a real one-node slurm when present):
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import stat
@@ -143,9 +144,16 @@ def test_singularity_and_slurm_commands_name_the_image(tmp_path):
     lines = log.read_text().splitlines()
     build = [l for l in lines if l.startswith("singularity build")]
     assert build and build[0].endswith(f"docker://{IMAGE}")
-    srun = [l for l in lines if l.startswith("srun")]
-    assert srun and srun[0].startswith("srun -J simulate.fpt-demo --cpus-per-task 2")
-    assert "singularity exec" in srun[0] and "hitops simulate" in srun[0]
-    assert "ghcr.io-hitops-hitops:0.1.0.simg hitops simulate" in srun[0]
-    # the wrapped command really ran
+    # the recipe's parameter step (tagged always, so kept by -s) runs first, in the image too
+    srun = {l.split()[2]: l for l in lines if l.startswith("srun")}
+    assert list(srun) == ["params.fpt-demo", "simulate.fpt-demo"], list(srun)
+    assert srun["simulate.fpt-demo"].startswith("srun -J simulate.fpt-demo --cpus-per-task 2")
+    assert "singularity exec" in srun["simulate.fpt-demo"]
+    assert "ghcr.io-hitops-hitops:0.1.0.simg hitops simulate" in srun["simulate.fpt-demo"]
+    assert "ghcr.io-hitops-hitops:0.1.0.simg python" in srun["params.fpt-demo"]
+    # the recipe file (read by the parameter step) is bound into the container
+    assert str(ROOT / "recipes") in srun["params.fpt-demo"]
+    # the wrapped commands really ran
     assert (out / "sim-86.ms").is_dir() and (out / "sim-230.ms").is_dir()
+    written = json.loads((out / "params" / "fringefit.json").read_text())
+    assert written["inputs"]["fringefit_solint"] == "20s"
