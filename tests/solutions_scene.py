@@ -1,0 +1,138 @@
+"""A noise-free multi-channel reference/target pair laid out by casatools.simulator.
+
+CASA's own simulator lays the rows out (antennas, UVW, times, windows), so the
+truth the solution-space tests check against comes from outside hitops.  The
+visibilities are then written with python-casacore: a point source of unit
+amplitude seen through a per-antenna excess path L_p(t) (the troposphere is
+non-dispersive: channel k sees 2*pi*nu_k*L/c, GUIDE section 3 "Wideband"), so
+baseline p-q carries exp(i 2*pi*nu_k*(L_p - L_q)/c) on every channel of every
+window, with the convention V_pq = g_p g_q^* of CASA's measurement equation.
+
+Reference: one window of 16 x 125 MHz centred on 86.0 GHz; target: two windows
+of 16 x 125 MHz centred on 227.1 and 229.1 GHz; 1-s integrations.
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+C_LIGHT = 299_792_458.0
+#: four of the paper's stations (ITRF metres, GUIDE section 2): all up together over M87 at the start time
+STATIONS = {
+    "PV": (5088967.74544, -301681.18586, 3825012.20561),
+    "PB": (4524000.43, 468042.14, 4460309.76),
+    "AP": (2225039.5297, -5441197.6292, -2479303.3597),
+    "GL": (541547.0, -1387978.6, 6180982.0),
+}
+CHAN_WIDTH_HZ = 125e6
+N_CHAN = 16
+REF_CENTRES_HZ = (86.0e9,)
+TARGET_CENTRES_HZ = (227.1e9, 229.1e9)
+
+
+@dataclass(frozen=True)
+class Pair:
+    """The two sets and the truth written into them."""
+
+    ref_ms: Path
+    target_ms: Path
+    times: np.ndarray          # (n_time,) MS TIME of the integrations
+    path_m: np.ndarray         # (n_time, n_ant) excess path L_p(t), metres
+
+
+def _first_channel(centre_hz: float) -> float:
+    return centre_hz - (N_CHAN - 1) / 2 * CHAN_WIDTH_HZ
+
+
+def lay_out(ms: Path, centres_hz: Sequence[float], duration_s: float, start_utc: str,
+            stations: Sequence[str], integration_s: float = 1.0) -> None:
+    """An empty (zero DATA) set laid out by casatools.simulator: one window per centre."""
+    from hitops.casa_env import ensure_casa_offline
+
+    ensure_casa_offline()
+    from casatools import measures, simulator
+
+    me = measures()
+    sm = simulator()
+    shutil.rmtree(ms, ignore_errors=True)
+    xyz = np.array([STATIONS[s] for s in stations])
+    sm.open(str(ms))
+    sm.setconfig(telescopename="EHT", x=xyz[:, 0].tolist(), y=xyz[:, 1].tolist(),
+                 z=xyz[:, 2].tolist(), dishdiameter=[12.0] * len(stations),
+                 mount=["alt-az"] * len(stations), antname=list(stations),
+                 padname=list(stations), coordsystem="global",
+                 referencelocation=me.position("ITRF", *(f"{v}m" for v in xyz[0])))
+    for k, centre in enumerate(centres_hz):
+        sm.setspwindow(spwname=f"spw{k}", freq=f"{_first_channel(centre)}Hz",
+                       deltafreq=f"{CHAN_WIDTH_HZ}Hz", freqresolution=f"{CHAN_WIDTH_HZ}Hz",
+                       nchannels=N_CHAN, stokes="RR LL")
+    sm.setfeed(mode="perfect R L")
+    sm.setfield(sourcename="M87", sourcedirection=me.direction("J2000", "12h30m49.42s",
+                                                               "+12d23m28.04s"))
+    sm.setlimits(shadowlimit=0.001, elevationlimit="0deg")
+    sm.setauto(autocorrwt=0.0)
+    sm.settimes(integrationtime=f"{integration_s}s", usehourangle=False,
+                referencetime=me.epoch("UTC", start_utc))
+    for k in range(len(centres_hz)):
+        sm.observe(sourcename="M87", spwname=f"spw{k}", starttime="0s",
+                   stoptime=f"{duration_s}s")
+    sm.close()
+    sm.done()
+
+
+def excess_path(times: np.ndarray, n_ant: int, seed: int, scale_m: float) -> np.ndarray:
+    """Smooth per-antenna excess paths (metres): a random walk of sinusoids, antenna 0 included."""
+    rng = np.random.default_rng(seed)
+    t = (times - times[0]) / max(times[-1] - times[0], 1.0)
+    path = np.zeros((times.size, n_ant))
+    for a in range(n_ant):
+        for period in (2.0, 0.7, 0.3):
+            amp = scale_m * rng.normal() * period
+            path[:, a] += amp * np.sin(2 * np.pi * t / period + rng.uniform(0, 2 * np.pi))
+        path[:, a] += 4 * scale_m * rng.normal() * t       # a drift: many wraps one way
+    return path
+
+
+def write_path_phases(ms: Path, times: np.ndarray, path_m: np.ndarray) -> None:
+    """DATA = exp(i 2*pi*nu_k*(L_p - L_q)/c) on every row, channel and parallel hand; MODEL_DATA 1."""
+    from casacore import tables as pt
+
+    with pt.table(f"{ms}::SPECTRAL_WINDOW", ack=False) as t:
+        chan_freq = t.getcol("CHAN_FREQ")                 # (n_spw, n_chan)
+    with pt.table(f"{ms}::DATA_DESCRIPTION", ack=False) as t:
+        spw_of_ddid = t.getcol("SPECTRAL_WINDOW_ID")
+    with pt.table(str(ms), readonly=False, ack=False) as t:
+        it = np.searchsorted(times, t.getcol("TIME"))
+        a1, a2 = t.getcol("ANTENNA1"), t.getcol("ANTENNA2")
+        freq = chan_freq[spw_of_ddid[t.getcol("DATA_DESC_ID")]]   # (n_row, n_chan)
+        delta = (path_m[it, a1] - path_m[it, a2])[:, None]
+        phase = 2 * np.pi * freq * delta / C_LIGHT
+        n_corr = t.getcell("DATA", 0).shape[1]
+        data = np.repeat(np.exp(1j * phase)[:, :, None], n_corr, axis=2).astype(np.complex64)
+        t.putcol("DATA", data)
+        t.putcol("FLAG", np.zeros(data.shape, bool))
+        # the simulator leaves MODEL_DATA zero; gaincal divides by the model (a 1 Jy point)
+        t.putcol("MODEL_DATA", np.ones(data.shape, np.complex64))
+
+
+def make_solution_pair(workdir: Path, stations: Sequence[str] = ("PV", "PB", "AP", "GL"),
+                       duration_s: float = 1200.0, seed: int = 1, scale_m: float = 0.01,
+                       start_utc: str = "2023/04/10/03:00:00") -> Pair:
+    from casacore import tables as pt
+
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    ref_ms, target_ms = workdir / "ref.ms", workdir / "target.ms"
+    lay_out(ref_ms, REF_CENTRES_HZ, duration_s, start_utc, stations)
+    lay_out(target_ms, TARGET_CENTRES_HZ, duration_s, start_utc, stations)
+    with pt.table(str(ref_ms), ack=False) as t:
+        times = np.unique(t.getcol("TIME"))
+    path = excess_path(times, len(stations), seed, scale_m)
+    write_path_phases(ref_ms, times, path)
+    write_path_phases(target_ms, times, path)
+    return Pair(ref_ms, target_ms, times, path)
