@@ -85,6 +85,18 @@ def channel_plan(pair: GroupPair, ratio: float, average_channels: bool,
     return plan
 
 
+def check_channel_counts(ms: str, role: str, column: str, ds, n_chan: int, spw: int) -> None:
+    """The column's channel axis in dataset ``ds`` agrees with SPECTRAL_WINDOW::NUM_CHAN."""
+    n_data = int(ds[column].shape[1])
+    if n_data != n_chan:
+        from ..errors import MeasurementSetError
+
+        raise MeasurementSetError(
+            f"{role} '{ms}': column {column} has {n_data} channel(s) but spectral window "
+            f"{spw} has {n_chan} in the SPECTRAL_WINDOW table; the set is inconsistent: "
+            "rewrite it (CASA mstransform) or take the window out (CASA split spw=...)")
+
+
 def reduce_rows(data: np.ndarray, good: np.ndarray, chan_freq: np.ndarray, at_freq: float):
     """(n_row, n_corr) complex64 visibility at ``at_freq`` and its validity, from
     (n_row, n_chan, n_corr) channels: the delay fit of :mod:`hitops.kernels.wideband`."""

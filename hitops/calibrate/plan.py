@@ -25,7 +25,7 @@ from ..io.stations import Stations, read_stations
 from ..tracking.options import TrackingSetup
 from .band_index import INDEX_COLUMNS, ROW_COLUMNS, BandIndex, index_bands
 from .chunks import ChunkMatch, ChunkRows
-from .channels import ChannelPlan, channel_plan
+from .channels import ChannelPlan, channel_plan, check_channel_counts
 from .groups import GroupPair, describe_groups, pair_groups
 from .inputs import CalibrateOptions, Columns
 
@@ -227,6 +227,11 @@ def plan_group(run: RunPlan, pair: GroupPair, ref_band: BandIndex, tgt_band: Ban
     timings["metadata"] = time.perf_counter() - stage
     ratio, r, eps, source = _ratio(opts, pair, label)
     channels = channel_plan(pair, ratio, opts.average_channels, label)
+    for band, group, role, column in ((ref_band, pair.ref, "reference-band Measurement Set",
+                                       columns.ref_data),
+                                      (tgt_band, pair.tgt, "target-band Measurement Set",
+                                       columns.target_data)):
+        check_channel_counts(band.ms, role, column, band.ds, group.n_chan, group.spw)
 
     stage = time.perf_counter()
     match = ChunkMatch(ref_band, tgt_band, ref_stations, tgt_stations, list(pair.ref.corr),
