@@ -520,9 +520,7 @@ def test_average_channels(tmp_path):
     ref2, tgt2 = tmp_path / "ref2.ms", tmp_path / "tgt2.ms"
     _two_channel_copy(truth.ref_ms, ref2, flag_second=np.arange(0, 600, 7))
     data, flag = _two_channel_copy(truth.target_ms, tgt2, flag_second=np.arange(3, 600, 5))
-    from hitops.errors import MeasurementSetError
-    with pytest.raises(MeasurementSetError, match="has 2 channels"):
-        calibrate(ref2, tgt2)
+    # (without --average-channels each channel gets its own ratio: tests/test_calibrate_wideband.py)
     calibrate(ref2, tgt2, average_channels=True)
     out = col(tgt2, "PWC_DATA")
     assert out.shape == (600, 2, 2)

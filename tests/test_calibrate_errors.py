@@ -157,12 +157,18 @@ def test_fields_that_cannot_be_told_apart(tmp_path):
           r"data;.*rename them")
 
 
-def test_more_than_one_channel(tmp_path):
+def test_channel_counts_that_disagree_are_refused(tmp_path):
+    # several channels are calibrated one ratio each (issue 26), but the window's tables must
+    # agree: NUM_CHAN against CHAN_FREQ, then the DATA column against NUM_CHAN
     truth = make_pair(tmp_path, n_time=40, seed=26)
     with pt.table(f"{truth.ref_ms}::SPECTRAL_WINDOW", readonly=False, ack=False) as t:
         t.putcol("NUM_CHAN", np.array([4], np.int32))
-    check(truth, MeasurementSetError, r"reference-band .* has 4 channels in spectral window 0.*"
-          r"--average-channels")
+    check(truth, MeasurementSetError, r"reference-band .* spectral window 0 has NUM_CHAN 4 "
+          r"but 1 CHAN_FREQ values")
+    with pt.table(f"{truth.ref_ms}::SPECTRAL_WINDOW", readonly=False, ack=False) as t:
+        t.putcell("CHAN_FREQ", 0, t.getcell("CHAN_FREQ", 0)[0] + np.arange(4) * 1e6)
+    check(truth, MeasurementSetError, r"reference-band .* column DATA has 1 channel\(s\) but "
+          r"spectral window 0 has 4")
 
 
 @pytest.mark.slow

@@ -1,7 +1,9 @@
 """Read one time chunk of both bands onto the (baseline, time) grid.
 
 :func:`read_chunk` reads the chunk's target rows and its reference rows
-(plus the tracker's context on either side), averages channels, and returns
+(plus the tracker's context on either side), reduces channels to one visibility
+per row (averaged, or with one ratio per channel referred by a delay fit to the
+window's centre: hitops/calibrate/channels.py), and returns
 a :class:`ChunkData`: per-row visibilities and validity, the row grids
 ``tgt_grid`` / ``ref_grid`` ((n_bl, n_time) row index or -1) and, for the
 trackers that ask for it (smooth, antenna), the reference band gridded over the
@@ -19,6 +21,7 @@ from ..io import read as msio
 from ..tracking.base import ReferenceGrid
 from ..tracking.grid import gather_grid
 from .band_index import ROW_COLUMNS
+from .channels import ChannelPlan, reduce_rows
 from .chunks import ChunkRows
 from .plan import GroupPlan, RunPlan
 
@@ -33,7 +36,7 @@ class ChunkData:
     tgt_data: np.ndarray            # (n_row, n_chan, n_corr) the target column as stored
     tgt_flag: np.ndarray            # (n_row, n_chan, n_corr) the input flags
     tgt_flag_row: np.ndarray
-    tgt_vis: np.ndarray             # (n_row, n_corr) channel-averaged
+    tgt_vis: np.ndarray             # (n_row, n_corr) channels reduced (see reduce)
     tgt_ok: np.ndarray
     ref_vis: np.ndarray             # (n_ref_row, n_corr_ref) reference, inside [t0, t1)
     ref_ok: np.ndarray
@@ -60,6 +63,19 @@ def average(data: np.ndarray, flag: np.ndarray, flag_row: np.ndarray):
     total = np.where(good, data, 0).sum(axis=1)
     vis = (total / np.maximum(n_good, 1)).astype(np.complex64)
     return vis, n_good > 0
+
+
+def reduce(data: np.ndarray, flag: np.ndarray, flag_row: np.ndarray,
+           channels: Optional[ChannelPlan], band: str):
+    """One visibility per (row, correlation): :func:`average` on the single-ratio path;
+    with a :class:`ChannelPlan`, the delay-fit reduction to the reference frequency
+    (``band`` 'ref') or the target window's centre ('tgt')."""
+    if channels is None:
+        return average(data, flag, flag_row)
+    good = ~flag & ~flag_row[:, None, None]
+    if band == "ref":
+        return reduce_rows(data, good, channels.ref_chan_freq, channels.ref_freq)
+    return reduce_rows(data, good, channels.tgt_chan_freq, channels.tgt_centre)
 
 
 def _keep(rows: ChunkRows, keep: np.ndarray, flag_row: bool) -> ChunkRows:
@@ -138,9 +154,15 @@ def read_chunk(run: RunPlan, group: GroupPlan, k: int, extent: Tuple[int, int],
         r_idx = _keep(r_idx, keep, flag_row=True)
     if columns.flag != "FLAG":   # --overwrite: the flags before hitops's first run
         tgt["FLAG"] = tgt.pop(columns.flag)
-    tvis, tok = average(tgt[columns.target_data], tgt["FLAG"], t_idx.flag_row)
-    rvis, rok = average(ref[columns.ref_data], ref["FLAG"], r_idx.flag_row)
-    if columns.ref_model:
+    channels = group.channels
+    tvis, tok = reduce(tgt[columns.target_data], tgt["FLAG"], t_idx.flag_row, channels, "tgt")
+    if columns.ref_model and channels is not None:
+        # the model divides out channel by channel, before the channels are reduced
+        rvis, rok = reduce(ref[columns.ref_data] * np.conj(ref[columns.ref_model]), ref["FLAG"],
+                           r_idx.flag_row, channels, "ref")
+    else:
+        rvis, rok = reduce(ref[columns.ref_data], ref["FLAG"], r_idx.flag_row, channels, "ref")
+    if columns.ref_model and channels is None:
         mvis, _ = average(ref[columns.ref_model], np.zeros_like(ref["FLAG"]),
                           np.zeros_like(r_idx.flag_row))
         rvis = rvis * np.conj(mvis)
@@ -159,7 +181,7 @@ def read_chunk(run: RunPlan, group: GroupPlan, k: int, extent: Tuple[int, int],
         ovis = np.ones(tvis.shape, np.complex64)          # --offset-model point
         ook = np.ones(tvis.shape, bool)
     elif columns.offset:
-        ovis, ook = average(tgt[columns.offset], tgt["FLAG"], t_idx.flag_row)
+        ovis, ook = reduce(tgt[columns.offset], tgt["FLAG"], t_idx.flag_row, channels, "tgt")
     n_t = t1 - t0
     return ChunkData(t0=t0, t1=t1, tgt_rows=t_idx.rows, tgt_data=tgt[columns.target_data],
                      tgt_flag=tgt["FLAG"], tgt_flag_row=t_idx.flag_row, tgt_vis=tvis, tgt_ok=tok,

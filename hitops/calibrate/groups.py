@@ -12,7 +12,9 @@ module pairs the two bands' groups:
   window with the lowest target window, and so on), or every target window
   with the one reference window when the reference band has one; any other
   count is refused, naming the windows;
-* each pair has its own R = nu_target / nu_reference (mean channel frequency).
+* each pair has its own R = nu_target / nu_reference (mean channel frequency);
+  with several channels each target channel gets its own R_k = nu_k / nu_reference
+  (hitops/calibrate/channels.py).
 
 Rows of one group never meet another's: each pair is matched, tracked and
 transferred on its own.
@@ -42,6 +44,7 @@ class BandGroup:
     freq: float               # mean channel frequency (Hz)
     n_chan: int
     corr: Tuple[int, ...]     # CORR_TYPE of the group's polarisation setup
+    chan_freq: Tuple[float, ...] = ()   # CHAN_FREQ (Hz), increasing
 
 
 @dataclass(frozen=True)
@@ -56,7 +59,7 @@ class GroupPair:
         return f"field {self.tgt.field}, spectral windows {self.ref.spw} -> {self.tgt.spw}"
 
 
-def describe_groups(ms: str, keys, role: str, average_channels: bool) -> List[BandGroup]:
+def describe_groups(ms: str, keys, role: str) -> List[BandGroup]:
     """The :class:`BandGroup` of each (FIELD_ID, DATA_DESC_ID) key; channels checked."""
     ddt = msio.read_subtable(ms, "DATA_DESCRIPTION", ["SPECTRAL_WINDOW_ID", "POLARIZATION_ID"])
     spw_t = msio.read_subtable(ms, "SPECTRAL_WINDOW", ["CHAN_FREQ", "NUM_CHAN"])
@@ -70,17 +73,31 @@ def describe_groups(ms: str, keys, role: str, average_channels: bool) -> List[Ba
                 "which the DATA_DESCRIPTION / FIELD tables do not hold; the set is damaged")
         spw = int(ddt["SPECTRAL_WINDOW_ID"][ddid])
         n_chan = int(spw_t["NUM_CHAN"][spw])
-        if n_chan > 1 and not average_channels:
-            raise MeasurementSetError(
-                f"{role} '{ms}' has {n_chan} channels in spectral window {spw}; FPT works on "
-                "one channel per band: average first (CASA split/mstransform with "
-                "chanaverage) or pass --average-channels to average the unflagged channels "
-                "on the fly")
-        freq = float(np.mean(np.asarray(spw_t["CHAN_FREQ"][spw], dtype=np.float64)))
+        chan_freq = _channels(ms, role, spw, n_chan, spw_t["CHAN_FREQ"][spw])
+        freq = float(np.mean(chan_freq))
         corr = tuple(int(c) for c in corr_t[int(ddt["POLARIZATION_ID"][ddid])])
         field = str(names[field_id]) if len(names) else ""
-        groups.append(BandGroup((field_id, ddid), field, spw, freq, n_chan, corr))
+        groups.append(BandGroup((field_id, ddid), field, spw, freq, n_chan, corr,
+                                tuple(float(f) for f in chan_freq)))
     return groups
+
+
+def _channels(ms: str, role: str, spw: int, n_chan: int, chan_freq) -> np.ndarray:
+    """A window's CHAN_FREQ, checked: one frequency per channel, finite, strictly increasing."""
+    freq = np.asarray(chan_freq, dtype=np.float64).ravel()
+    if freq.size != n_chan:
+        raise MeasurementSetError(
+            f"{role} '{ms}': spectral window {spw} has NUM_CHAN {n_chan} but {freq.size} "
+            "CHAN_FREQ values; the SPECTRAL_WINDOW table is damaged: rewrite it (CASA "
+            "mstransform) or take the window out (CASA split spw=...)")
+    if not np.isfinite(freq).all() or (freq.size > 1 and not (np.diff(freq) > 0).all()):
+        order = "decreasing or repeated" if np.isfinite(freq).all() else "not finite"
+        raise MeasurementSetError(
+            f"{role} '{ms}': the channel frequencies of spectral window {spw} are {order} "
+            f"({freq[0] / 1e9:.6g} .. {freq[-1] / 1e9:.6g} GHz); per-channel ratios need "
+            "them strictly increasing: reverse the window (CASA mstransform "
+            "regridms=True outframe='') or pass --average-channels")
+    return freq
 
 
 def pair_groups(ref_ms: str, target_ms: str, ref: List[BandGroup],

@@ -20,6 +20,7 @@ import numpy as np
 from ..errors import RollbackError
 from ..io import access
 from ..io import read as msio
+from ..kernels.wideband import rotate_channels
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -155,14 +156,22 @@ class OutputTransaction:
         return [n for n, _ in new]
 
     def write_chunk(self, rows: np.ndarray, data: np.ndarray, phasors: Dict[str, np.ndarray],
-                    new_flag: np.ndarray, scheduler=None) -> None:
+                    new_flag: np.ndarray, scheduler=None,
+                    delays: Optional[Dict[str, np.ndarray]] = None,
+                    chan_offset: Optional[np.ndarray] = None) -> None:
         """One chunk's outputs (data times each method's phasor) and new flags, staged.
 
         ``rows`` (n,) target rows; ``data`` (n, n_chan, n_corr); ``phasors``:
-        method -> (n, n_corr); ``new_flag`` (n, n_chan, n_corr).
+        method -> (n, n_corr); ``new_flag`` (n, n_chan, n_corr); ``delays``: method ->
+        (n, n_corr) seconds across the window, channel k at ``chan_offset[k]`` Hz from the
+        phasor's frequency (per-channel transfers: hitops/calibrate/channels.py).
         """
-        arrays = {self.staging[m]: (data * p[:, None, :]).astype(np.complex64, copy=False)
-                  for m, p in phasors.items()}
+        if delays is None:
+            arrays = {self.staging[m]: (data * p[:, None, :]).astype(np.complex64, copy=False)
+                      for m, p in phasors.items()}
+        else:
+            arrays = {self.staging[m]: rotate_channels(data, p, delays[m], chan_offset)
+                      for m, p in phasors.items()}
         arrays[STAGING_FLAG] = new_flag
         msio.write_main_columns(self.target_ms, rows, arrays,
                                 {name: VIS_DIMS for name in arrays}, scheduler=scheduler)

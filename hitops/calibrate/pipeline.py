@@ -87,11 +87,20 @@ class GroupResult:
 
 
 @dataclass
+class RowOutputs:
+    """One chunk's transfer in the target rows' order."""
+
+    phasor_rows: Dict[int, np.ndarray]            # method code -> (n_row, n_corr) complex64
+    calibrated: np.ndarray                        # (n_row, n_corr) bool
+    # a per-channel transfer's delay across the target window, seconds (channels.py)
+    delay_rows: Optional[Dict[int, np.ndarray]] = None
+
+
+@dataclass
 class KeptChunk:
     """The first pass's output of one chunk, kept for the writing pass."""
 
-    phasor_rows: Dict[int, np.ndarray]
-    calibrated: np.ndarray
+    outputs: RowOutputs
     segment_keys: Optional[np.ndarray]
 
 
@@ -180,9 +189,9 @@ class GroupPipeline:
                 yield k, chunk, pending
 
     def transfer(self, chunk: ChunkData, tracked: ChunkTracking, offsets: Optional[np.ndarray],
-                 tgt_carry: Carry, sum_in_groups: bool):
-        """The chunk's baseline groups as dask tasks: (phasor_rows, calibrated, [(placed
-        group, its result)])."""
+                 tgt_carry: Carry, sum_in_groups: bool, offset_k: Optional[np.ndarray] = None):
+        """The chunk's baseline groups as dask tasks: (RowOutputs, [(placed group, its
+        result)])."""
         import dask
 
         match, group = self.group.match, self.group
@@ -203,55 +212,68 @@ class GroupPipeline:
                 n_scan=match.scans.size, methods=self.codes, ratio=group.ratio, eps=group.eps,
                 reference=tracked.for_group(bls), tgt_carry=tgt_carry.subset(bls),
                 offsets=None if offsets is None else offsets[bls],
+                offset_k=None if offset_k is None else offset_k[bls],
+                nu_ref=None if group.channels is None else group.channels.ref_freq,
                 segment_keys=tracked.segment_keys[bls] if sum_segments else None)
             placed.append(PlacedGroup(bls, picked, None if picked is None else rows.tgt_rows))
             tasks.append(dask.delayed(transfer_group, pure=False)(inputs))
         results = dask.compute(*tasks, scheduler=self.scheduler)
         del tasks, inputs   # drop the group inputs as soon as possible
-        phasor_rows, calibrated = self._to_rows(chunk, placed, results)
-        return phasor_rows, calibrated, list(zip(placed, results))
+        return self._to_rows(chunk, placed, results), list(zip(placed, results))
 
     def _to_rows(self, chunk: ChunkData, placed: List[PlacedGroup],
-                 results: List[TransferResult]):
-        """Each method's phasors and the calibrated mask in the chunk's row order."""
+                 results: List[TransferResult]) -> RowOutputs:
+        """Each method's phasors (and delays), the calibrated mask, in the chunk's row order."""
         n_rows, n_corr = chunk.tgt_rows.size, self.group.n_corr
+        with_delays = results[0].delays is not None
         if placed[0].local_grid is None:
             # threads: the groups are consecutive baselines whose cells hold chunk rows, so
             # their grids stacked are the chunk's grid (one numba pass to row order)
-            phasor_rows = {c: fpt.scatter_rows(
-                chunk.tgt_grid, np.concatenate([r.phasors[c] for r in results]),
-                n_rows, np.complex64(0)) for c in self.codes}
-            calibrated = fpt.scatter_rows(
-                chunk.tgt_grid, np.concatenate([r.calibrated for r in results]),
-                n_rows, False)
-            return phasor_rows, calibrated
+            def rows_of(cells, fill):
+                return fpt.scatter_rows(chunk.tgt_grid, np.concatenate(cells), n_rows, fill)
+
+            return RowOutputs(
+                {c: rows_of([r.phasors[c] for r in results], np.complex64(0)) for c in self.codes},
+                rows_of([r.calibrated for r in results], False),
+                {c: rows_of([r.delays[c] for r in results], 0.0) for c in self.codes}
+                if with_delays else None)
         # remote workers: each group's cells hold its own compact rows
-        phasor_rows = {c: np.zeros((n_rows, n_corr), np.complex64) for c in self.codes}
-        calibrated = np.zeros((n_rows, n_corr), dtype=bool)
+        out = RowOutputs({c: np.zeros((n_rows, n_corr), np.complex64) for c in self.codes},
+                         np.zeros((n_rows, n_corr), dtype=bool),
+                         {c: np.zeros((n_rows, n_corr)) for c in self.codes}
+                         if with_delays else None)
         for where, res in zip(placed, results):
             for c in self.codes:
-                phasor_rows[c][where.picked] = fpt.scatter_rows(
+                out.phasor_rows[c][where.picked] = fpt.scatter_rows(
                     where.local_grid, res.phasors[c], where.picked.size, np.complex64(0))
-            calibrated[where.picked] = fpt.scatter_rows(where.local_grid, res.calibrated,
-                                                        where.picked.size, False)
-        return phasor_rows, calibrated
+                if with_delays:
+                    out.delay_rows[c][where.picked] = fpt.scatter_rows(
+                        where.local_grid, res.delays[c], where.picked.size, 0.0)
+            out.calibrated[where.picked] = fpt.scatter_rows(where.local_grid, res.calibrated,
+                                                            where.picked.size, False)
+        return out
 
-    def write(self, chunk: ChunkData, phasor_rows, calibrated) -> None:
+    def write(self, chunk: ChunkData, out: RowOutputs) -> None:
         """Stage one chunk: each method's output and the new flags (FLAG | FLAG_ROW | not calibrated)."""
         stage = time.perf_counter()
         names = {v: k for k, v in fpt.METHOD_CODES.items()}
-        new_flag = chunk.tgt_flag | chunk.tgt_flag_row[:, None, None] | ~calibrated[:, None, :]
+        new_flag = chunk.tgt_flag | chunk.tgt_flag_row[:, None, None] | ~out.calibrated[:, None, :]
+        channels = self.group.channels
         self.tx.write_chunk(chunk.tgt_rows, chunk.tgt_data,
-                            {names[c]: phasor_rows[c] for c in self.codes}, new_flag,
-                            self.io_scheduler)
+                            {names[c]: out.phasor_rows[c] for c in self.codes}, new_flag,
+                            self.io_scheduler,
+                            delays=None if out.delay_rows is None else
+                            {names[c]: out.delay_rows[c] for c in self.codes},
+                            chan_offset=None if channels is None else channels.chan_offset)
         self.timings["write"] += time.perf_counter() - stage
 
     # ---- the passes
     def run_pass(self, offsets: Optional[np.ndarray] = None,
                  segment_k: Optional[Dict[tuple, int]] = None, write: bool = True,
                  kept: Optional[Dict[int, KeptChunk]] = None,
-                 keep_reads: bool = False) -> PassResult:
-        """One pass over the chunks.  ``offsets``: per-scan n0 shifts (count); ``segment_k``:
+                 keep_reads: bool = False, offset_k: Optional[np.ndarray] = None) -> PassResult:
+        """One pass over the chunks.  ``offsets``: per-scan n0 shifts (count) and ``offset_k``
+        their integers (a per-channel transfer's delays need them); ``segment_k``:
         per-segment integers (segmented trackers); ``kept``: a dict that collects the output
         instead of writing (a first pass whose writing pass only shifts)."""
         match, n_corr, n_scan = self.group.match, self.group.n_corr, self.group.match.scans.size
@@ -267,22 +289,23 @@ class GroupPipeline:
             # a kept first pass sums the offsets here, from the rows (the groups then need
             # neither the target phases nor the reference/model column)
             sum_in_groups = offsets is None and kept is None
-            phasor_rows, calibrated, parts = self.transfer(chunk, tracked, offsets, tgt_carry,
-                                                           sum_in_groups)
+            out, parts = self.transfer(chunk, tracked, offsets, tgt_carry, sum_in_groups,
+                                       offset_k)
             _add_parts(result, tracker, tgt_carry, parts)
             tracker.finish_chunk(chunk.t1)
             tgt_carry.last_scan = int(match.scan_of_time[chunk.t1 - 1])
             if kept is not None:
-                kept[k] = KeptChunk(phasor_rows, calibrated, tracked.segment_keys)
+                kept[k] = KeptChunk(out, tracked.segment_keys)
                 if offsets is None and off_col:
-                    self._sum_kept(result, chunk, tracked.segment_keys, phasor_rows, calibrated)
+                    self._sum_kept(result, chunk, tracked.segment_keys, out.phasor_rows,
+                                   out.calibrated)
             self.timings["transfer"] += time.perf_counter() - stage
             if next_read is not None:
                 # the next chunk's read ends before this chunk's write starts: the two never
                 # touch the target table at the same time
                 next_read.result()
             if write:
-                self.write(chunk, phasor_rows, calibrated)
+                self.write(chunk, out)
         return result
 
     def _sum_kept(self, result: PassResult, chunk: ChunkData, seg_keys, phasor_rows,
@@ -306,11 +329,11 @@ class GroupPipeline:
             shifted = [c for c in self.codes if c in (fpt.PWC, fpt.CWU)]
             for c, out in zip(shifted, offset_shifted_rows(
                     chunk.tgt_grid, self.group.eps, segment_k, part.segment_keys,
-                    [part.phasor_rows[c] for c in shifted])):
-                part.phasor_rows[c] = out
+                    [part.outputs.phasor_rows[c] for c in shifted])):
+                part.outputs.phasor_rows[c] = out
             self.timings["offset_apply"] = (self.timings.get("offset_apply", 0.0)
                                             + time.perf_counter() - stage)
-            self.write(chunk, part.phasor_rows, part.calibrated)
+            self.write(chunk, part.outputs)
 
 
 def _add_parts(result: PassResult, tracker: WrapTracker, tgt_carry: Carry, parts) -> None:
@@ -362,12 +385,15 @@ def run_group(run: RunPlan, group: GroupPlan, tx: OutputTransaction, client) -> 
     # with a tracker whose n0 step is per segment the first pass's output is kept when it
     # fits (a fifth of the budget), and the writing pass shifts it; otherwise the writing
     # pass runs again
-    keep = pipeline.segmented and kept_bytes(group, len(codes)) <= run.budget // 5
+    # (not for a per-channel transfer: its delays would need the same shift)
+    keep = (pipeline.segmented and group.channels is None
+            and kept_bytes(group, len(codes)) <= run.budget // 5)
     kept = {} if keep else None
     first = pipeline.run_pass(write=False, kept=kept, keep_reads=group.n_chunks == 1)
     solution = solve_offsets(run, group, first.tracker, first.sums)
     if keep:
         pipeline.write_kept(kept, solution.segment_k)
         return GroupResult.of(first, solution, group.n_chunks)
-    final = pipeline.run_pass(offsets=solution.offsets, segment_k=solution.segment_k)
+    final = pipeline.run_pass(offsets=solution.offsets, segment_k=solution.segment_k,
+                              offset_k=solution.offset_k)
     return GroupResult.of(final, solution, group.n_chunks)

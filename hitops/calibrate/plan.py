@@ -25,6 +25,7 @@ from ..io.stations import Stations, read_stations
 from ..tracking.options import TrackingSetup
 from .band_index import INDEX_COLUMNS, ROW_COLUMNS, BandIndex, index_bands
 from .chunks import ChunkMatch, ChunkRows
+from .channels import ChannelPlan, channel_plan, check_channel_counts
 from .groups import GroupPair, describe_groups, pair_groups
 from .inputs import CalibrateOptions, Columns
 
@@ -49,6 +50,8 @@ class GroupPlan:
     tracking: Optional[TrackingSetup]
     n_target_rows: int
     antenna_names: List[str]        # station codes of the target set, by antenna index
+    # several channels: one ratio per target channel (hitops/calibrate/channels.py)
+    channels: Optional[ChannelPlan] = None
 
     @property
     def n_chunks(self) -> int:
@@ -158,10 +161,8 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
     ref_stations = read_stations(ref_ms, "reference-band Measurement Set")
     tgt_stations = read_stations(target_ms, "target-band Measurement Set")
     pairs = pair_groups(ref_ms, target_ms,
-                        describe_groups(ref_ms, ref_groups, "reference-band Measurement Set",
-                                        opts.average_channels),
-                        describe_groups(target_ms, tgt_groups, "target-band Measurement Set",
-                                        opts.average_channels))
+                        describe_groups(ref_ms, ref_groups, "reference-band Measurement Set"),
+                        describe_groups(target_ms, tgt_groups, "target-band Measurement Set"))
     if len(pairs) > 1:
         log.info("%d (field, spectral window) groups calibrated one by one: %s", len(pairs),
                  "; ".join(p.label for p in pairs))
@@ -225,6 +226,12 @@ def plan_group(run: RunPlan, pair: GroupPair, ref_band: BandIndex, tgt_band: Ban
     index_bands([ref_band, tgt_band], [INDEX_COLUMNS, INDEX_COLUMNS], run.chunk_rows)
     timings["metadata"] = time.perf_counter() - stage
     ratio, r, eps, source = _ratio(opts, pair, label)
+    channels = channel_plan(pair, ratio, opts.average_channels, label)
+    for band, group, role, column in ((ref_band, pair.ref, "reference-band Measurement Set",
+                                       columns.ref_data),
+                                      (tgt_band, pair.tgt, "target-band Measurement Set",
+                                       columns.target_data)):
+        check_channel_counts(band.ms, role, column, band.ds, group.n_chan, group.spw)
 
     stage = time.perf_counter()
     match = ChunkMatch(ref_band, tgt_band, ref_stations, tgt_stations, list(pair.ref.corr),
@@ -248,7 +255,8 @@ def plan_group(run: RunPlan, pair: GroupPair, ref_band: BandIndex, tgt_band: Ban
     _log_match(run, match, tgt_band.n_row)
     return GroupPlan(pair=pair, label=label, match=match, bounds=bounds, first_chunk=first_chunk,
                      ratio=ratio, r=r, eps=eps, ratio_source=source, tracking=setup,
-                     n_target_rows=tgt_band.n_row, antenna_names=list(tgt_stations.codes))
+                     n_target_rows=tgt_band.n_row, antenna_names=list(tgt_stations.codes),
+                     channels=channels)
 
 
 def _split_long_gaps(match: ChunkMatch, coherence_time: float) -> None:

@@ -63,7 +63,7 @@ def group_report(run: RunPlan, group: GroupPlan, result: GroupResult, tx: Output
                                                  for c, cn in enumerate(match.corr_names)))
     tracking = _tracking_entry(run, group, result)
     columns = run.columns
-    return {
+    report = {
         "ref_ms": run.ref_ms, "target_ms": run.target_ms, "methods": run.methods,
         "columns": run.outputs, "ratio": group.ratio, "r": group.r, "eps": group.eps,
         "ratio_source": group.ratio_source, "time_tolerance_s": match.tolerance,
@@ -101,6 +101,9 @@ def group_report(run: RunPlan, group: GroupPlan, result: GroupResult, tx: Output
         "time_s": time.perf_counter() - started,
         "timings_s": {k: round(v, 4) for k, v in run.timings.items()},
     }
+    if group.channels is not None:   # per-channel ratios: the frequencies and R_k range
+        report["channels"] = group.channels.as_report()
+    return report
 
 
 def combined_report(run: RunPlan, reports: List[Dict]) -> Dict:

@@ -19,7 +19,7 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from ..kernels import fpt
+from ..kernels import fpt, wideband
 from ..kernels.segments import SegmentSums, segment_run_sums
 from ..tracking.base import GroupWraps
 from ..tracking.count import Carry, count_scans
@@ -56,7 +56,10 @@ class TransferInputs:
     reference: the tracker's share of the chunk; tgt_carry: CWU's own count of the
     target phase, carried across chunks; offsets (n_bl, n_corr, n_scan): the n0
     shifts per scan of a writing pass, or None; segment_keys (n_bl, n_corr, n_time):
-    sum the n0 step per segment (robust trackers' first pass), or None.
+    sum the n0 step per segment (robust trackers' first pass), or None; nu_ref: the
+    reference frequency of a per-channel transfer (hitops/calibrate/channels.py), which
+    then also returns each cell's delay; offset_k (n_bl, n_corr, n_scan) int64: the n0
+    integers behind ``offsets`` (the delay needs the turns, not only their phase).
     """
 
     rows: GroupRows
@@ -70,6 +73,8 @@ class TransferInputs:
     tgt_carry: Carry
     offsets: Optional[np.ndarray] = None
     segment_keys: Optional[np.ndarray] = None
+    nu_ref: Optional[float] = None
+    offset_k: Optional[np.ndarray] = None
 
 
 @dataclass
@@ -102,7 +107,9 @@ class TransferResult:
     carried out (``ResolvedWraps.carry``); tgt_carry: CWU's target count after the
     chunk; wrap_events (n_bl, n_corr) int64 counted here; samples: the causes;
     scan_sums / scan_counts (n_bl, n_corr, n_scan): the n0 step's sums per scan, and
-    segment_sums per segment (group-local baselines), when the task sums the step.
+    segment_sums per segment (group-local baselines), when the task sums the step;
+    delays: method code -> (n_bl, n_time, n_corr) float64 seconds across the target
+    window (per-channel transfers only).
     """
 
     phasors: Dict[int, np.ndarray]
@@ -114,6 +121,7 @@ class TransferResult:
     scan_sums: Optional[np.ndarray] = None
     scan_counts: Optional[np.ndarray] = None
     segment_sums: Optional[SegmentSums] = None
+    delays: Optional[Dict[int, np.ndarray]] = None
 
 
 def transfer_group(inputs: TransferInputs) -> TransferResult:
@@ -150,6 +158,8 @@ def transfer_group(inputs: TransferInputs) -> TransferResult:
                          tgt_carry=tgt_carry, wrap_events=reference.wrap_events,
                          samples=sample_causes(tgt_rows, ref_rows, tgt_valid, reference.ref_valid,
                                                calibrated, n_corr))
+    if inputs.nu_ref is not None:
+        out.delays = channel_delays(inputs, reference, calibrated)
     offset_method = fpt.PWC if fpt.PWC in phasors else (fpt.CWU if fpt.CWU in phasors else None)
     if rows.off_vis is not None and offset_method is not None:
         off_phase, off_valid = fpt.gather_phase(tgt_rows, rows.off_vis, rows.off_ok,
@@ -163,6 +173,23 @@ def transfer_group(inputs: TransferInputs) -> TransferResult:
                                                 phasors[offset_method], calibrated,
                                                 off_phase, off_valid)
     return out
+
+
+def channel_delays(inputs: TransferInputs, reference, calibrated) -> Dict[int, np.ndarray]:
+    """Each method's delay per cell: PWC and CWU from the unwrapped reference phase (the
+    two agree, GUIDE.md section 1), CFPT from the wrapped one."""
+    n_bl, _, n_corr = calibrated.shape
+    offset_k = inputs.offset_k
+    if offset_k is None:
+        offset_k = np.zeros((n_bl, n_corr, inputs.n_scan), np.int64)
+    delays: Dict[int, np.ndarray] = {}
+    for unwrap in (True, False):
+        codes = [m for m in inputs.methods if (m != fpt.CFPT) == unwrap]
+        if codes:
+            delay = wideband.cell_delays(calibrated, reference.ref_phase, reference.ref_wraps,
+                                         offset_k, inputs.scan_of_time, inputs.nu_ref, unwrap)
+            delays.update({m: delay for m in codes})
+    return delays
 
 
 def sample_causes(tgt_rows, ref_rows, tgt_valid, ref_valid, calibrated, n_corr: int) -> SampleCounts:

@@ -314,3 +314,30 @@ def rotate_channels(data, phasor, delay, chan_offset):
                 out[r, k, c] = data[r, k, c] * rotor
                 rotor *= step
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def cell_delays(calibrated, ref_phase, ref_wraps, offset_k, scan_of_time, nu_ref, unwrap):
+    """The delay psi / (2*pi*nu_ref), seconds, of every calibrated (baseline, time) cell.
+
+    calibrated: (n_bl, n_time, n_corr) bool; ref_phase, ref_wraps: (n_bl, n_corr,
+    n_time) the tracked reference phase and its wrap counts; offset_k: (n_bl, n_corr,
+    n_scan) int64, the n0 step's integers per scan (zeros without it); unwrap: psi =
+    phi - 2*pi*(n + k) (PWC, CWU) or the wrapped phi itself (CFPT).  With
+    :func:`rotate_channels` this gives channel k the phase -R_k*psi.
+    Returns (n_bl, n_time, n_corr) float64, 0 where not calibrated.
+    """
+    n_bl, n_time, n_corr = calibrated.shape
+    out = np.zeros((n_bl, n_time, n_corr))
+    scale = 1.0 / (TWO_PI * nu_ref)
+    for b in range(n_bl):
+        for t in range(n_time):
+            s = scan_of_time[t]
+            for c in range(n_corr):
+                if not calibrated[b, t, c]:
+                    continue
+                psi = ref_phase[b, c, t]
+                if unwrap:
+                    psi -= TWO_PI * (ref_wraps[b, c, t] + offset_k[b, c, s])
+                out[b, t, c] = psi * scale
+    return out

@@ -43,10 +43,13 @@ class OffsetSolution:
     for the robust trackers, whose integers are in ``segment_k``), None without a
     step; ``segment_k``: {(baseline, correlation, segment key): k}; ``antennas``
     and ``solves``: the antenna lattice's per-antenna entries and per-solve
-    summaries (None when no lattice solve ran); ``series``: the report's entries.
+    summaries (None when no lattice solve ran); ``series``: the report's entries;
+    ``offset_k``: the count tracker's integers behind ``offsets`` (a per-channel
+    transfer's delay needs the turns themselves).
     """
 
     offsets: Optional[np.ndarray] = None
+    offset_k: Optional[np.ndarray] = None
     segment_k: Optional[Dict[tuple, int]] = None
     antennas: List[dict] = field(default_factory=list)
     solves: Optional[List[dict]] = None
@@ -80,7 +83,8 @@ def solve_offsets(run: RunPlan, group: GroupPlan, tracker: WrapTracker,
     stage = time.perf_counter()
     match = group.match
     max_k, ambiguity = int(run.opts.max_offset_wraps), float(run.opts.offset_ambiguity_deg)
-    solution = OffsetSolution(offsets=np.zeros((match.n_bl, group.n_corr, match.scans.size)))
+    shape = (match.n_bl, group.n_corr, match.scans.size)
+    solution = OffsetSolution(offsets=np.zeros(shape), offset_k=np.zeros(shape, np.int64))
     if not tracker.segmented:
         _per_scan(solution, group, sums.scan_sums, sums.scan_counts, max_k, ambiguity)
     else:
@@ -165,6 +169,7 @@ def _per_scan(solution: OffsetSolution, group: GroupPlan, sums, counts, max_k: i
                         "scan": int(match.scans[s])}
                 if choice is not None:
                     solution.offsets[b, c, s] = 2 * math.pi * group.eps * choice.k
+                    solution.offset_k[b, c, s] = choice.k
                 solution.series.append(_entry(choice, base, segment=False))
 
 
