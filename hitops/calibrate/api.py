@@ -179,5 +179,5 @@ def _run(run: RunPlan, client, started: float, prepared: PreparedInputs) -> Dict
     reports = [group_report(run, group, result, tx, started)
                for group, result in zip(run.groups, results)]
     if len(reports) == 1:
-        return write_report(run, reports[0], results[0], started, prepared)
-    return write_report(run, combined_report(run, reports), None, started, prepared)
+        return write_report(run, reports[0], results[0], started, prepared, results)
+    return write_report(run, combined_report(run, reports), None, started, prepared, results)

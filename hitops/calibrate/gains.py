@@ -40,3 +40,39 @@ def antenna_gain_phases(antenna_phase: np.ndarray, antenna_segment: np.ndarray,
         phase[a, c, where] -= 2.0 * math.pi * eps * k
     valid = np.isfinite(phase)
     return np.transpose(np.where(valid, phase, 0.0), (2, 0, 1)), np.transpose(valid, (2, 0, 1))
+
+
+def antenna_turns(antenna_phase: np.ndarray, antenna_segment: np.ndarray,
+                  scan_of_time: np.ndarray, offsets: Optional[Iterable[Dict]] = None):
+    """(psi, valid), both (n_time, n_ant, n_corr): each antenna's unwrapped reference
+    phase with the n0 step's turns put back, psi = phi - 2 pi k on every segment the
+    step gave an integer k (a per-channel transfer needs the turns, not their phase)."""
+    psi = np.array(antenna_phase, dtype=np.float64)
+    for entry in offsets or ():
+        k = int(entry.get("k", 0))
+        if not k:
+            continue
+        a, c = int(entry["antenna_index"]), int(entry["correlation_index"])
+        where = (antenna_segment[a, c] == int(entry["segment"])) & \
+            (scan_of_time == int(entry["scan_index"]))
+        psi[a, c, where] -= 2.0 * math.pi * k
+    valid = np.isfinite(psi)
+    return np.transpose(np.where(valid, psi, 0.0), (2, 0, 1)), np.transpose(valid, (2, 0, 1))
+
+
+def fringe_window(psi: np.ndarray, valid: np.ndarray, times: np.ndarray, scans: np.ndarray,
+                  ratio: float, ref_freq: float, spw: int, field: int, centre_hz: float):
+    """One target window of a 'Fringe Jones' table from the antennas' psi (n_time, n_ant,
+    n_corr): phase R_0*psi at the window centre (wrapped: float32 keeps it to ~2e-7 rad,
+    and the table holds a solution at every integration, so applycal never interpolates
+    across a wrap) and delay psi / (2 pi nu_ref), so applycal gives channel k
+    exp(-i R_k psi), the column's correction (hitops/calibrate/channels.py)."""
+    from ..solutions.transfer import TargetWindow
+
+    phase = np.remainder(ratio * psi + math.pi, 2.0 * math.pi) - math.pi
+    return TargetWindow(spw=int(spw), field=int(field), centre_hz=float(centre_hz),
+                        times=np.asarray(times, np.float64),
+                        scan=np.asarray(scans, np.int32), phase=np.where(valid, phase, 0.0),
+                        delay_s=np.where(valid, psi / (2.0 * math.pi * ref_freq), 0.0),
+                        rate=np.zeros(psi.shape), valid=valid,
+                        refant=np.full(psi.shape[0], -1, np.int32))

@@ -166,10 +166,6 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
     if len(pairs) > 1:
         log.info("%d (field, spectral window) groups calibrated one by one: %s", len(pairs),
                  "; ".join(p.label for p in pairs))
-        if opts.caltable:
-            raise InputError(f"--caltable {opts.caltable}: the sets hold {len(pairs)} field/"
-                             "spectral-window groups and the table holds one; split them "
-                             "(CASA split field=/spw=) and write one table per group")
     run = RunPlan(opts=opts, methods=methods, outputs=outputs, ref_ms=ref_ms,
                   target_ms=target_ms, columns=columns, chunk_rows=chunk_rows, budget=budget,
                   timings=timings)
@@ -180,6 +176,12 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
                          ordered[target_ms], in_time_order[target_ms])
         run.groups.append(plan_group(run, pair, ref_band, tgt_band, ref_stations, tgt_stations,
                                      antenna_map, label=pair.label if len(pairs) > 1 else ""))
+    if opts.caltable and len(pairs) > 1 and any(g.channels is None for g in run.groups):
+        # a per-channel transfer's Fringe Jones table holds every window and field; the
+        # single-ratio G Jones table holds one group
+        raise InputError(f"--caltable {opts.caltable}: the sets hold {len(pairs)} field/"
+                         "spectral-window groups and the G Jones table holds one; split them "
+                         "(CASA split field=/spw=) and write one table per group")
     return run
 
 

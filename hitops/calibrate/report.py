@@ -11,7 +11,7 @@ import json
 import logging
 import time
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Sequence
 
 from ..errors import HitopsError
 from .output import FLAG_BACKUP, OutputTransaction
@@ -129,10 +129,12 @@ def combined_report(run: RunPlan, reports: List[Dict]) -> Dict:
 
 
 def write_report(run: RunPlan, report: Dict, result: Optional[GroupResult],
-                 started: float, prepared: PreparedInputs) -> Dict:
+                 started: float, prepared: PreparedInputs,
+                 group_results: Sequence[GroupResult] = ()) -> Dict:
     """The verdict, the calibration table and conversions of a run; the JSON report written.
 
-    ``result``: the one group's GroupResult, or None for a run of several groups.
+    ``result``: the one group's GroupResult, or None for a run of several groups;
+    ``group_results``: every group's (a per-channel --caltable holds all windows).
     """
     opts = run.opts
     if opts.no_verdict:
@@ -151,7 +153,10 @@ def write_report(run: RunPlan, report: Dict, result: Optional[GroupResult],
         report["verdict"] = {"skipped": f"{result.n_chunks} chunks"}
     report_path = Path(opts.report) if opts.report else Path(run.target_ms + ".hitops-calibrate.json")
     report_path.write_text(json.dumps(report, indent=1))
-    if opts.caltable:
+    if opts.caltable and run.groups[0].channels is not None:
+        report["caltable"] = _write_fringe_table(run, group_results)
+        report_path.write_text(json.dumps(report, indent=1))
+    elif opts.caltable:
         report["caltable"] = _write_caltable(run, run.groups[0], result)
         report_path.write_text(json.dumps(report, indent=1))
     # the input conversions in the report, --export-uvfits (hitops/calibrate/rules.py)
@@ -182,6 +187,37 @@ def no_offset_step_warning(run: RunPlan, group: GroupPlan, solution) -> Optional
             "imaging, run the offset step (--offset-model point, or a model column; "
             "--offset-reference-column) or self-calibrate; imaged as it is, CLEAN can diverge "
             "(docs/calibrate.md, 'The n0 offset step')")
+
+
+def _write_fringe_table(run: RunPlan, results: Sequence[GroupResult]) -> Dict:
+    """--caltable of a per-channel transfer: one CASA 'Fringe Jones' table for every target
+    window, phase at the window centre and a delay across it (hitops/calibrate/gains.py)."""
+    from ..solutions.write import write_fringe_table
+    from .gains import antenna_turns, fringe_window
+
+    windows = []
+    for group, result in zip(run.groups, results):
+        match = group.match
+        psi, valid = antenna_turns(result.tracker.antenna_phase, result.tracker.antenna_segment,
+                                   match.scan_of_time, offsets=result.offsets.antennas)
+        windows.append(fringe_window(
+            psi, valid, match.times, _scan_numbers(run.target_ms, match.times), group.ratio,
+            group.channels.ref_freq, group.pair.tgt.spw, group.pair.tgt.key[0],
+            group.channels.tgt_centre))
+    n_ant = len(run.groups[0].antenna_names)
+    n_row = write_fringe_table(run.opts.caltable, run.target_ms, windows, n_ant,
+                               overwrite=bool(run.opts.overwrite))
+    n_valid = int(sum(w.valid.sum() for w in windows))
+    log.info("wrote the antenna solutions to %s (CASA Fringe Jones: phase at each window's "
+             "centre and a delay, %d rows for %d window(s); %d solutions)", run.opts.caltable,
+             n_row, len(windows), n_valid)
+    return {"path": str(run.opts.caltable), "type": "Fringe Jones", "rows": n_row,
+            "solutions": n_valid}
+
+
+def _scan_numbers(ms: str, times):
+    from ..io.caltable import scan_of_times
+    return scan_of_times(ms, times)
 
 
 def _write_caltable(run: RunPlan, group: GroupPlan, result: GroupResult) -> Dict:

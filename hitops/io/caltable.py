@@ -44,7 +44,7 @@ log = logging.getLogger("hitops.io")
 RECEPTOR = {"RR": 0, "LL": 1, "XX": 0, "YY": 1}
 
 
-def _scan_of_times(ms: str, time: np.ndarray) -> np.ndarray:
+def scan_of_times(ms: str, time: np.ndarray) -> np.ndarray:
     """SCAN_NUMBER of the Measurement Set at each solution time (the nearest row's)."""
     from casacore import tables as pt
 
@@ -121,7 +121,7 @@ def write_gain_table(path, ms, time, antenna_phase, valid, corr_names: Sequence[
         raise InputError(f"caltable: no parallel-hand correlation among {corr_names}; a G "
                          "Jones table needs RR/LL or XX/YY solutions")
     if scan is None:
-        scan = _scan_of_times(ms, time)
+        scan = scan_of_times(ms, time)
     scan = np.asarray(scan, dtype=np.int32).ravel()
     if scan.size != n_time:
         raise InputError(f"caltable: {scan.size} scan numbers for {n_time} solution times")
