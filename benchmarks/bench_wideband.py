@@ -8,6 +8,12 @@ Two measurements, written to the ``wideband`` section of docs/performance.md:
   (one ratio per target channel) on ``--rows`` rows x 64 channels x 4
   correlations, beside a plain copy of the same array (the memory floor the
   kernels cannot beat), median of ``--repeat`` runs after a warm-up;
+* ``hitops calibrate`` as a whole process on a simulated pair of ``--cal-rows`` rows
+  x 64 channels x 4 correlations per band (5 stations, the demo scene's hour cut
+  into short integrations, no noise), default options and ``--no-verdict``, beside
+  the same-columns I/O floor (benchmarks/_floors.py: both bands' metadata, DATA
+  and FLAG read, one column written), run by run (interleaved), with the peak
+  resident memory; ``--cal-rows 0`` skips it;
 * the n0 step's ambiguity: PWC counted from n'(t0) = 0 while the true count
   started at n0 (uniform in [-100, 100]); the reference column is good to
   sigma degrees (one error common to all channels); the candidate k in
@@ -21,13 +27,16 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
 from hitops.kernels import wideband
 
-from ._report import machine_line, replace_section
+from ._floors import measure_floors
+from ._report import machine_line, replace_section, run_process
 
 REF_FREQ = 86.0e9
 REF_CHANS = REF_FREQ + (np.arange(64) - 31.5) * 31.25e6
@@ -85,13 +94,55 @@ def ambiguity(trials: int = 200) -> list:
     return out
 
 
+SCENE = """name: bench-wideband
+source: {{name: M87, ra: "12h30m49.42s", dec: "+12d23m28.04s", flux: {{"86": 1.1, "230": 1.0}}}}
+observation:
+  start: "2023-04-10T02:00:00"
+  duration: 3600
+  integration: {integration}
+  correlations: [RR, RL, LR, LL]
+bands:
+  - {{name: "86", freq_ghz: 86, bandwidth_ghz: 2, n_chan: 64}}
+  - {{name: "230", freq_ghz: 230, bandwidth_ghz: 2, n_chan: 64}}
+corruptions: {{troposphere: true, noise: false, seed: 7, coherence_freq_ghz: 230}}
+stations: [AP, PV, GL, PB, KP]
+"""
+
+
+def calibrate_runs(workdir: Path, n_rows: int, repeats: int) -> dict:
+    """Whole-process calibrate (default, --no-verdict) and the same-columns floor, interleaved."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    scene = workdir / "scene.yml"
+    # 10 baselines, all up for the hour: n_rows / 10 integrations
+    scene.write_text(SCENE.format(integration=3600 * 10 / n_rows))
+    ref, tgt = workdir / "sim-86.ms", workdir / "sim-230.ms"
+    if not (tgt / "table.dat").exists():
+        run_process([sys.executable, "-m", "hitops.cli", "simulate", str(scene), "--outdir",
+                     str(workdir), "--overwrite"])
+    base = [sys.executable, "-m", "hitops.cli", "calibrate", str(ref), str(tgt), "--method",
+            "pwc", "--overwrite", "--report", str(workdir / "report.json")]
+    commands = {"default": base, "no_verdict": base + ["--no-verdict"]}
+    run_process(commands["no_verdict"])           # warm-up: numba cache, page cache
+    runs = {name: [] for name in (*commands, "floor")}
+    for _ in range(repeats):
+        for name, cmd in commands.items():
+            runs[name].append(run_process(cmd))
+        runs["floor"].append(measure_floors(workdir, ref, tgt, repeats=1,
+                                            names=["same_columns"])["same_columns"])
+    return {name: {"wall_s": [r["wall_s"] for r in rs],
+                   "peak_rss_mb": max(r["peak_rss_mb"] for r in rs)} for name, rs in runs.items()}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--rows", type=int, default=250_000)
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--cal-rows", type=int, default=1_000_000)
+    parser.add_argument("--workdir", type=Path, default=Path("bench-out/wideband"))
     args = parser.parse_args(argv)
     speed = throughput(args.rows, args.repeat)
     n0 = ambiguity()
+    cal = calibrate_runs(args.workdir, args.cal_rows, args.repeat) if args.cal_rows else None
     load = os.getloadavg()[0]
     lines = ["## Wideband kernels", "",
              f"Machine: {machine_line()}, load average {load:.1f}; {args.rows} rows x 64 channels x 4 correlations "
@@ -103,6 +154,20 @@ def main(argv=None) -> int:
               "[-100, 100], candidates [-200, 200]:", "",
               "| sigma (deg) | target | wrong n0 |", "|---|---|---|"]
     lines += [f"| {sigma} | {name} | {wrong}/{trials} |" for sigma, name, wrong, trials in n0]
+    if cal:
+        floor = statistics.median(cal["floor"]["wall_s"])
+        n_vis = 2 * args.cal_rows * 64 * 4
+        lines += ["", f"`hitops calibrate --method pwc` on {args.cal_rows} rows x 64 channels x 4 "
+                  "correlations per band (both bands, a 2-GHz window each; troposphere, no "
+                  "noise), whole process, interleaved runs:", "",
+                  "| run | wall (s), each run | median / floor | visibilities per second | peak memory (MB) |",
+                  "|---|---|---|---|---|"]
+        for name, label in (("floor", "same-columns I/O floor"), ("default", "default options"),
+                             ("no_verdict", "`--no-verdict`")):
+            walls = cal[name]["wall_s"]
+            med = statistics.median(walls)
+            lines.append(f"| {label} | {', '.join(f'{w:.1f}' for w in walls)} | {med / floor:.2f} "
+                         f"| {n_vis / med / 1e6:.1f} M | {cal[name]['peak_rss_mb']:.0f} |")
     text = "\n".join(lines)
     print(text)
     replace_section("wideband", text)

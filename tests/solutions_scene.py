@@ -14,7 +14,10 @@ of 16 x 125 MHz centred on 227.1 and 229.1 GHz; 1-s integrations.
 
 from __future__ import annotations
 
+import json
 import shutil
+import subprocess
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence, Tuple
@@ -54,7 +57,26 @@ def _first_channel(centre_hz: float) -> float:
 def lay_out(ms: Path, centres_hz: Sequence[float], scans: Sequence[Tuple[str, float, float]],
             start_utc: str, stations: Sequence[str], integration_s: float = 1.0) -> None:
     """An empty (zero DATA) set laid out by casatools.simulator: one window per centre, one
-    scan per (field, start s, stop s) of ``scans``."""
+    scan per (field, start s, stop s) of ``scans``.
+
+    The simulator runs in a process of its own: casatools.simulator's observe crashed
+    (SIGSEGV) inside a pytest process that had already run other CASA tasks and
+    eht-imaging, taking the whole session with it; a fresh process lays the set out
+    the same way every time, and a failure is an ordinary error naming the step.
+    """
+    args = {"ms": str(ms), "centres_hz": list(centres_hz), "scans": [list(s) for s in scans],
+            "start_utc": start_utc, "stations": list(stations), "integration_s": integration_s}
+    proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), json.dumps(args)],
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"casatools.simulator could not lay out {ms} (exit "
+                           f"{proc.returncode}):\n{proc.stderr[-3000:]}")
+
+
+def _lay_out_here(ms: Path, centres_hz: Sequence[float],
+                  scans: Sequence[Tuple[str, float, float]], start_utc: str,
+                  stations: Sequence[str], integration_s: float = 1.0) -> None:
+    """:func:`lay_out`'s work, in this process."""
     from hitops.casa_env import ensure_casa_offline
 
     ensure_casa_offline()
@@ -144,3 +166,7 @@ def make_solution_pair(workdir: Path, stations: Sequence[str] = ("PV", "PB", "AP
     write_path_phases(ref_ms, times, path)
     write_path_phases(target_ms, times, path)
     return Pair(ref_ms, target_ms, times, path)
+
+
+if __name__ == "__main__":   # lay_out's own process
+    _lay_out_here(**json.loads(sys.argv[1]))

@@ -178,3 +178,26 @@ def test_the_fringe_jones_table_applied_by_casa_equals_the_column(pair, tmp_path
     with pt.table(str(target), ack=False) as t:
         flat = t.getcol("CORRECTED_DATA").astype(np.complex128)
     assert np.abs(np.angle(flat[~flag] * np.conj(column[~flag]))).max() > 0.1
+
+
+def test_uvfits_with_several_ifs_goes_in_and_comes_out_as_every_window(pair, tmp_path):
+    # both bands exported as UVFITS (the target's two windows as two IFs), calibrated from
+    # the files (CASA importuvfits makes one spectral window per IF), and the result
+    # exported again with both IFs
+    from hitops.io.uvfits import export_uvfits
+    from hitops.io.fits import read_headers
+
+    ref_fits, tgt_fits = tmp_path / "ref.uvfits", tmp_path / "tgt.uvfits"
+    export_uvfits(pair.ref_ms, ref_fits)
+    export_uvfits(pair.target_ms, tgt_fits)
+    primary = read_headers(tgt_fits)[0][0]
+    assert primary["NAXIS4"] == 16 and primary["NAXIS5"] == 2      # channels, IFs
+    out = tmp_path / "pwc.uvfits"
+    report = calibrate(str(ref_fits), str(tgt_fits), method="pwc", tracker="antenna",
+                       offset_model="point", workdir=str(tmp_path / "w"),
+                       export_uvfits=str(out), no_verdict=True)
+    assert [g["channels"]["n_chan_target"] for g in report["groups"]] == [16, 16]
+    per_chan, vector = channel_coherence(report["target_ms"], "PWC_DATA")
+    assert len(per_chan) == 12 and min(c.min() for c in per_chan.values()) >= 0.999
+    assert min(vector.values()) >= 0.99
+    assert read_headers(out)[0][0]["NAXIS5"] == 2

@@ -6,7 +6,8 @@
   table): the converted sets get one scan per gap, and calibrate sees them;
 * a conversion is reused while its source is unchanged, never touches the source
   and leaves nothing half-written when it fails;
-* bad input (no antenna table, several IFs or frequency setups, truncated files,
+* bad input (no antenna table, IFs the FQ table does not describe, several frequency
+  setups, truncated files,
   stations unknown to the other band, an existing --export-uvfits file) gives
   one line naming the file and the remedy, and changes no input.
 """
@@ -278,7 +279,7 @@ def _bad_files(base: Path, tmp_path: Path):
 
 BAD = {
     "no-antenna-table": r"no-antenna-table\.uvfits' has no antenna table \(AIPS AN\)",
-    "two-ifs": r"two-ifs\.uvfits' holds 2 IFs",
+    "two-ifs": r"two-ifs\.uvfits' holds 2 IFs on its IF axis but its AIPS FQ table describes 1",
     "two-frequency-setups": r"two-frequency-setups\.uvfits' holds 2 frequency setups",
     "truncated": r"truncated\.uvfits' is truncated",
 }

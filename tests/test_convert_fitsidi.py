@@ -129,13 +129,28 @@ def test_a_fitsidi_pair_comes_back_as_the_truth(tmp_path):
     assert np.max(np.abs(err)) < 1e-4
 
 
-def test_fitsidi_with_several_ifs_is_refused(tmp_path):
-    truth = make_pair(tmp_path, n_ant=3, n_time=20)
+def test_fitsidi_with_several_ifs_goes_in_as_several_windows(tmp_path):
+    # four bands 2 GHz apart (the writer repeats the visibilities in each): four spectral
+    # windows after importfitsidi, each calibrated by the reference band's one window;
+    # band 0 is the truth's own frequency, so its PWC is the truth's
+    from casacore import tables as pt
+
+    truth = make_pair(tmp_path, n_ant=3, n_time=20, time_order=True)
     ref = write_fitsidi(tmp_path / "ref.idi", truth.ref_ms)
-    bad = write_fitsidi(tmp_path / "four-ifs.idi", truth.target_ms, n_band=4)
-    before = bad.read_bytes()
-    with pytest.raises(InputError, match=r"four-ifs\.idi' holds 4 IFs \(NO_BAND\)") as err:
-        calibrate(ref, bad, workdir=str(tmp_path / "w"))
-    assert "\n" not in str(err.value)
-    assert bad.read_bytes() == before
-    assert not (tmp_path / "w" / "four-ifs.idi.ms").exists()
+    tgt = write_fitsidi(tmp_path / "four-ifs.idi", truth.target_ms, n_band=4)
+    before = tgt.read_bytes()
+    rep = calibrate(ref, tgt, workdir=str(tmp_path / "w"), method="pwc", no_verdict=True)
+    assert tgt.read_bytes() == before
+    assert len(rep["groups"]) == 4
+    with pt.table(rep["target_ms"], ack=False) as t:
+        ddid = t.getcol("DATA_DESC_ID")
+        pwc = t.getcol("PWC_DATA")[ddid == 0, 0, :]
+        key_out = (np.round(t.getcol("TIME"), 3) * 1e3 + t.getcol("ANTENNA1") * 10
+                   + t.getcol("ANTENNA2"))[ddid == 0]
+    with pt.table(f"{rep['target_ms']}::SPECTRAL_WINDOW", ack=False) as t:
+        assert t.nrows() == 4
+    key_in = np.round(truth.time, 3) * 1e3 + truth.ant1 * 10 + truth.ant2
+    order_out, order_in = np.argsort(key_out), np.argsort(key_in)
+    np.testing.assert_array_equal(key_out[order_out], key_in[order_in])
+    err = wrap(np.angle(pwc[order_out]) - expected_pwc_phase(truth)[order_in])
+    assert np.max(np.abs(err)) < 1e-4

@@ -19,7 +19,8 @@ any of them:
   matches the source, so a second run converts nothing;
 * before CASA sees a file it is checked (:mod:`hitops.io.detect`: one line
   naming the file and the remedy): not FITS, truncated, no antenna table,
-  several frequency setups (FQ rows) or IFs.  CASA can abort the whole
+  several frequency setups (FQ rows), IFs the FQ table does not describe.  Several
+  IFs go in as several spectral windows (CASA importuvfits/importfitsidi).  CASA can abort the whole
   process on some malformed files, so these checks come first;
 * the set is written under a temporary name beside its final place and
   renamed last, so a failed conversion leaves no half-written Measurement Set,
@@ -239,7 +240,6 @@ def convert(path, dest, fmt: Optional[str] = None, role: str = "input",
     log.info("converting %s (%s, %d rows) into %s", path, fmt, summary.rows, dest)
     try:
         tool = _import(path, partial, fmt, role, reader)
-        _single_setup(str(partial), path, role)
         scans = assign_scans(str(partial), gap_integrations)
         seconds = time.perf_counter() - started
         record = {**stamp, "format": fmt, "tool": tool, "ms": str(dest), "seconds": seconds,
@@ -321,17 +321,6 @@ def _move_into_place(path: str, partial: Path, dest: Path, record: Dict) -> None
             shutil.rmtree(partial, ignore_errors=True)
         else:
             raise
-
-
-def _single_setup(ms: str, path: str, role: str) -> None:
-    """After the import: one spectral window and one field, or a one-line error."""
-    from casacore import tables as pt
-
-    with pt.table(f"{ms}::SPECTRAL_WINDOW", ack=False) as t:
-        n_spw = t.nrows()
-    if n_spw > 1:
-        raise InputError(f"{role} '{path}' holds {n_spw} spectral windows (frequency setups or "
-                         "IFs); hitops calibrate takes one per band: split them first")
 
 
 # ---------------------------------------------------------------- Stimela cab (cabs/interop.yml)

@@ -6,7 +6,8 @@ directory is a Measurement Set; a FITS file with random groups is UVFITS; a
 FITS file with ``NAXIS = 0`` is FITS-IDI).  :func:`check_uvfits` and
 :func:`check_fitsidi` then read the headers only (one line naming the file and
 the remedy, :class:`hitops.errors.InputError`): not FITS, truncated, no antenna
-table, several frequency setups (FQ rows) or IFs.  CASA can abort the whole
+table, several frequency setups (FQ rows), IFs its FQ table does not describe (several
+IFs are imported as several windows).  CASA can abort the whole
 process on some malformed files, so these checks come before any conversion
 (:mod:`hitops.io.convert`).
 """
@@ -101,13 +102,15 @@ def check_uvfits(path, role: str = "UVFITS input") -> FileSummary:
             f"{role} '{path}' has no antenna table (AIPS AN); the stations are unknown and "
             "cannot be paired with the other band: write the file with its AN table (AIPS "
             "FITTP, CASA exportuvfits, eht-imaging save_uvfits)")
+    # several IFs go in as several spectral windows (CASA importuvfits), paired with the
+    # other band's windows by hitops calibrate; the FQ table must describe them all
     n_if = axes.get("IF", 1)
-    if n_if > 1:
-        raise InputError(
-            f"{role} '{path}' holds {n_if} IFs (spectral windows); hitops calibrate takes one "
-            "frequency setup per band: average or split the IFs first (e.g. eht-imaging "
-            "load_uvfits averages them; AIPS SPLAT/UVAVG; CASA importuvfits + split)")
     fq = tables.get("AIPS FQ")
+    if fq is not None and int(fq.get("NO_IF", n_if)) != n_if:
+        raise InputError(
+            f"{role} '{path}' holds {n_if} IFs on its IF axis but its AIPS FQ table describes "
+            f"{int(fq['NO_IF'])}; the file is inconsistent: write it again (AIPS FITTP, CASA "
+            "exportuvfits, eht-imaging save_uvfits)")
     if fq is not None and int(fq.get("NAXIS2", 1)) > 1:
         raise InputError(
             f"{role} '{path}' holds {int(fq['NAXIS2'])} frequency setups (rows of its AIPS FQ "
@@ -134,12 +137,6 @@ def check_fitsidi(path, role: str = "FITS-IDI input") -> FileSummary:
                              "give the complete correlator output")
     if "FREQUENCY" not in tables:
         raise InputError(f"{role} '{path}' has no FREQUENCY table; the frequency setup is unknown")
-    n_band = max(int(h.get("NO_BAND", 1)) for hs in tables.values() for h in hs)
-    if n_band > 1:
-        raise InputError(
-            f"{role} '{path}' holds {n_band} IFs (NO_BAND); hitops calibrate takes one "
-            "spectral window per band: import it with CASA importfitsidi, combine or split the "
-            "IFs (mstransform combinespws=True, or split spw=...) and give the Measurement Set")
     freq_rows = sum(int(h.get("NAXIS2", 0)) for h in tables["FREQUENCY"])
     if freq_rows > 1:
         raise InputError(f"{role} '{path}' holds {freq_rows} frequency setups (FREQUENCY "

@@ -42,59 +42,22 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
-from ..errors import ColumnError, InputError, MeasurementSetError, OutputExistsError
+from ..errors import InputError, MeasurementSetError, OutputExistsError
 from .fits import bintable, card, gst0_deg, header_bytes, iso_date, pad, tai_minus_utc
+from .uvfits_ms import AIPS_STOKES, MainRows, Setup, read_main, read_setup
 
 log = logging.getLogger("hitops.io")
 
 C_LIGHT = 299792458.0
-#: casacore Stokes code -> AIPS STOKES axis value
-AIPS_STOKES = {1: 1, 2: 2, 3: 3, 4: 4, 5: -1, 8: -2, 6: -3, 7: -4, 9: -5, 12: -6, 10: -7, 11: -8}
 MOUNT_CODES = {"alt-az": 0, "equatorial": 1, "x-y": 3, "orbiting": 2, "spherical": 4,
                "alt-az+nasmyth-r": 4, "alt-az+nasmyth-l": 5}
 
 
-# ---------------------------------------------------------------- the set, read
-
-@dataclass(frozen=True)
-class _MainRows:
-    """The main-table columns written out, in storage order."""
-
-    cols: Dict[str, np.ndarray]              # TIME, ANTENNA1, ANTENNA2, UVW, INTERVAL, ...
-    vis: np.ndarray                          # the exported column
-    weight_spectrum: Optional[np.ndarray]    # None when the set has none
-
-    @property
-    def n_row(self) -> int:
-        return int(self.cols["TIME"].size)
-
-
-@dataclass(frozen=True)
-class _Setup:
-    """The subtable entries of the set's one spectral window and field."""
-
-    chan_freq: np.ndarray
-    chan_width: np.ndarray
-    total_bw: float
-    sideband: int
-    corr_types: List[int]                    # casacore Stokes codes, in column order
-    direction: np.ndarray                    # (ra, dec) radians
-    source: str
-    positions: np.ndarray                    # (n_ant, 3) ITRF metres
-    diameters: np.ndarray
-    mounts: List[str]
-    codes: List[str]                         # station codes (hitops.io.stations)
-    telescope: str
-    observer: str
-
-    @property
-    def n_ant(self) -> int:
-        return len(self.codes)
-
+# ---------------------------------------------------------------- the set
 
 def _check_destination(ms: str, path: Path, overwrite: bool, role: str) -> None:
     if path.exists() and not overwrite:
@@ -105,78 +68,6 @@ def _check_destination(ms: str, path: Path, overwrite: bool, role: str) -> None:
                          "(e.g. target-pwc.uvfits)")
     if not (Path(ms) / "table.dat").is_file():
         raise MeasurementSetError(f"{role} '{ms}' does not exist or is not a table")
-
-
-def _read_main(ms: str, column: str, role: str) -> _MainRows:
-    from casacore import tables as pt
-
-    with pt.table(ms, ack=False) as t:
-        names = t.colnames()
-        if column not in names:
-            raise ColumnError(f"{role} '{ms}' has no column {column} to export (columns: "
-                              f"{', '.join(sorted(names))})")
-        if t.nrows() == 0:
-            raise MeasurementSetError(f"{role} '{ms}' has no rows to export")
-        cols = {c: t.getcol(c) for c in ("TIME", "ANTENNA1", "ANTENNA2", "UVW", "INTERVAL",
-                                         "FLAG", "FLAG_ROW", "WEIGHT", "SCAN_NUMBER",
-                                         "DATA_DESC_ID", "FIELD_ID")}
-        vis = t.getcol(column)
-        weight_spectrum = (t.getcol("WEIGHT_SPECTRUM")
-                           if "WEIGHT_SPECTRUM" in names and t.iscelldefined("WEIGHT_SPECTRUM", 0)
-                           else None)
-    return _MainRows(cols, vis, weight_spectrum)
-
-
-def _single(values: np.ndarray, what: str, ms: str) -> int:
-    unique = np.unique(values)
-    if unique.size > 1:
-        raise MeasurementSetError(f"'{ms}' holds {unique.size} {what} {unique.tolist()}; UVFITS "
-                                  f"export takes one: split the set first (CASA split)")
-    return int(unique[0]) if unique.size else 0
-
-
-def _read_setup(ms: str, main: _MainRows, role: str) -> _Setup:
-    """The one data description's window and correlations, the field, the stations."""
-    from casacore import tables as pt
-
-    from .stations import read_stations
-
-    dd = _single(main.cols["DATA_DESC_ID"], "data descriptions (spectral windows)", ms)
-    field_id = _single(main.cols["FIELD_ID"], "fields", ms)
-    sub = lambda name: pt.table(f"{ms}::{name}", ack=False)  # noqa: E731
-    with sub("DATA_DESCRIPTION") as t:
-        spw = int(t.getcol("SPECTRAL_WINDOW_ID")[dd])
-        pol = int(t.getcol("POLARIZATION_ID")[dd])
-    with sub("SPECTRAL_WINDOW") as t:
-        chan_freq = np.asarray(t.getcell("CHAN_FREQ", spw), np.float64)
-        chan_width = np.asarray(t.getcell("CHAN_WIDTH", spw), np.float64)
-        total_bw = float(t.getcell("TOTAL_BANDWIDTH", spw))
-        sideband = int(t.getcell("NET_SIDEBAND", spw)) if "NET_SIDEBAND" in t.colnames() else 1
-    with sub("POLARIZATION") as t:
-        corr_types = [int(c) for c in t.getcell("CORR_TYPE", pol)]
-    with sub("FIELD") as t:
-        direction = np.asarray(t.getcell("PHASE_DIR", field_id), np.float64).reshape(-1, 2)[0]
-        source = str(t.getcell("NAME", field_id)) or "SOURCE"
-    with sub("ANTENNA") as t:
-        n_ant = t.nrows()
-        positions = t.getcol("POSITION")
-        diameters = t.getcol("DISH_DIAMETER") if "DISH_DIAMETER" in t.colnames() else np.zeros(n_ant)
-        mounts = [str(m).lower() for m in t.getcol("MOUNT")] if "MOUNT" in t.colnames() else ["alt-az"] * n_ant
-    telescope, observer = "VLBA", "hitops"
-    with sub("OBSERVATION") as t:
-        if t.nrows():
-            telescope = str(t.getcell("TELESCOPE_NAME", 0)) or telescope
-            observer = str(t.getcell("OBSERVER", 0)) or observer
-    codes = read_stations(ms, role).codes
-    if n_ant > 255:
-        raise MeasurementSetError(f"{role} '{ms}' has {n_ant} antennas; the UVFITS BASELINE "
-                                  "parameter holds at most 255")
-    unknown = [c for c in corr_types if c not in AIPS_STOKES]
-    if unknown:
-        raise MeasurementSetError(f"{role} '{ms}': correlation types {unknown} have no UVFITS "
-                                  "Stokes code")
-    return _Setup(chan_freq, chan_width, total_bw, sideband, corr_types, direction, source,
-                  positions, diameters, mounts, list(codes), telescope, observer)
 
 
 # ---------------------------------------------------------------- the random groups
@@ -203,22 +94,34 @@ class _StokesAxis:
 class _Groups:
     """The random-group data in time-baseline order, and what the tables need of it."""
 
-    data: np.ndarray                         # (n_row, 7 + n_chan * n_stokes * 3) big-endian
-    flag: np.ndarray                         # (n_row, n_chan, n_corr) written as flagged
+    data: np.ndarray                         # (n_group, 7 + n_if * n_chan * n_stokes * 3) big-endian
+    flag: np.ndarray                         # (n_group, n_if, n_chan, n_corr) written as flagged
     jd0: float                               # Julian day at 0h of the first time
     time: np.ndarray                         # TIME (s) in file order
     interval: np.ndarray
     scan: np.ndarray                         # SCAN_NUMBER in file order
 
 
-def _random_groups(main: _MainRows, n_chan: int, stokes: _StokesAxis) -> _Groups:
-    """Parameters (u, v, w, baseline, date, inttim) then the (n_chan, n_stokes, 3) cube."""
-    cols, n_row, n_corr = main.cols, main.n_row, len(stokes.slot)
-    # rows in time-baseline order
-    order = np.lexsort((cols["ANTENNA2"], cols["ANTENNA1"], cols["TIME"]))
-    time_ = cols["TIME"][order]
-    a1 = cols["ANTENNA1"][order].astype(np.int64)
-    a2 = cols["ANTENNA2"][order].astype(np.int64)
+def _group_index(main: MainRows, setup: Setup):
+    """(row order, group of each ordered row, IF of each ordered row, first row of each group):
+    one random group per (time, baseline), each data description's row filling its IF
+    (the windows' rows of one integration carry the same TIME, as correlators write them)."""
+    cols = main.cols
+    if_of_dd = {dd: i for i, dd in enumerate(setup.ddids)}
+    row_if = np.array([if_of_dd[int(d)] for d in cols["DATA_DESC_ID"]], np.int64)
+    order = np.lexsort((row_if, cols["ANTENNA2"], cols["ANTENNA1"], cols["TIME"]))
+    keys = np.stack([cols["TIME"][order], cols["ANTENNA1"][order], cols["ANTENNA2"][order]])
+    new = np.ones(order.size, bool)
+    new[1:] = (keys[:, 1:] != keys[:, :-1]).any(axis=0)
+    return order, np.cumsum(new) - 1, row_if[order], order[new]
+
+
+def _random_groups(main: MainRows, setup: Setup, stokes: _StokesAxis) -> _Groups:
+    """Parameters (u, v, w, baseline, date, inttim) then the (n_if, n_chan, n_stokes, 3) cube."""
+    cols, n_corr = main.cols, len(stokes.slot)
+    n_if, n_chan = setup.n_if, setup.n_chan
+    order, group, row_if, first = _group_index(main, setup)
+    n_row, n_group = order.size, first.size
     vis = np.asarray(main.vis)[order].reshape(n_row, n_chan, n_corr)
     flag = (cols["FLAG"][order].reshape(n_row, n_chan, n_corr)
             | cols["FLAG_ROW"][order][:, None, None] | ~np.isfinite(vis))
@@ -232,44 +135,49 @@ def _random_groups(main: _MainRows, n_chan: int, stokes: _StokesAxis) -> _Groups
     weight = np.where(flag, -np.maximum(weight, 1e-30), weight).astype(np.float32)
     values = np.where(np.isfinite(vis), vis, 0)
 
+    time_ = cols["TIME"][first]
     jd = time_ / 86400.0 + 2400000.5
     jd0 = math.floor(float(jd.min()) - 0.5) + 0.5
     day = np.floor(jd - jd0)
-    uvw_s = cols["UVW"][order] / C_LIGHT
-    params = np.empty((n_row, 7), ">f4")
+    uvw_s = cols["UVW"][first] / C_LIGHT
+    params = np.empty((n_group, 7), ">f4")
     params[:, 0] = uvw_s[:, 0]
     params[:, 1] = uvw_s[:, 1]
     params[:, 2] = uvw_s[:, 2]
-    params[:, 3] = 256 * (a1 + 1) + (a2 + 1)
+    params[:, 3] = 256 * (cols["ANTENNA1"][first].astype(np.int64) + 1) + \
+        (cols["ANTENNA2"][first].astype(np.int64) + 1)
     params[:, 4] = jd0 + day
     params[:, 5] = jd - jd0 - day
-    params[:, 6] = cols["INTERVAL"][order]
-    cube = np.zeros((n_row, n_chan, len(stokes.codes), 3), ">f4")
+    params[:, 6] = cols["INTERVAL"][first]
+    # a (time, baseline) without a row in some window: zero with zero weight there
+    cube = np.zeros((n_group, n_if, n_chan, len(stokes.codes), 3), ">f4")
+    group_flag = np.ones((n_group, n_if, n_chan, n_corr), bool)
+    group_flag[group, row_if] = flag
     for k, s in enumerate(stokes.slot):
-        cube[:, :, s, 0] = values[:, :, k].real
-        cube[:, :, s, 1] = values[:, :, k].imag
-        cube[:, :, s, 2] = weight[:, :, k]
+        cube[group, row_if, :, s, 0] = values[:, :, k].real
+        cube[group, row_if, :, s, 1] = values[:, :, k].imag
+        cube[group, row_if, :, s, 2] = weight[:, :, k]
     # one big-endian block (np.concatenate would return native byte order)
-    groups = np.empty((n_row, params.shape[1] + cube[0].size), ">f4")
+    groups = np.empty((n_group, params.shape[1] + cube[0].size), ">f4")
     groups[:, :params.shape[1]] = params
-    groups[:, params.shape[1]:] = cube.reshape(n_row, -1)
-    return _Groups(groups, flag, jd0, time_, cols["INTERVAL"][order],
-                   cols["SCAN_NUMBER"][order])
+    groups[:, params.shape[1]:] = cube.reshape(n_group, -1)
+    return _Groups(groups, group_flag, jd0, time_, cols["INTERVAL"][first],
+                   cols["SCAN_NUMBER"][first])
 
 
 # ---------------------------------------------------------------- headers and tables
 
-def _primary_cards(setup: _Setup, stokes: _StokesAxis, groups: _Groups,
+def _primary_cards(setup: Setup, stokes: _StokesAxis, groups: _Groups,
                    history: Sequence[str]) -> List[str]:
     """The random-groups header: axes, the 7 parameters, the source, the history lines."""
-    n_row, n_chan = groups.data.shape[0], setup.chan_freq.size
+    n_row, n_chan = groups.data.shape[0], setup.n_chan
     ra_deg = math.degrees(float(setup.direction[0])) % 360.0
     dec_deg = math.degrees(float(setup.direction[1]))
     telescope = setup.telescope
     cards = [
         card("SIMPLE", True), card("BITPIX", -32), card("NAXIS", 7),
         card("NAXIS1", 0, "random groups, not an image"), card("NAXIS2", 3),
-        card("NAXIS3", len(stokes.codes)), card("NAXIS4", n_chan), card("NAXIS5", 1),
+        card("NAXIS3", len(stokes.codes)), card("NAXIS4", n_chan), card("NAXIS5", setup.n_if),
         card("NAXIS6", 1), card("NAXIS7", 1), card("EXTEND", True),
         card("BLOCKED", True), card("GROUPS", True, "random group UV data"),
         card("PCOUNT", 7), card("GCOUNT", n_row),
@@ -282,7 +190,7 @@ def _primary_cards(setup: _Setup, stokes: _StokesAxis, groups: _Groups,
         card("ALTRVAL", 0.0), card("SPECSYS", "TOPOCENT"),
     ]
     axes = [("COMPLEX", 1.0, 1.0), ("STOKES", float(stokes.codes[0]), float(stokes.step)),
-            ("FREQ", float(setup.chan_freq[0]), _channel_width(setup)), ("IF", 1.0, 1.0),
+            ("FREQ", float(setup.chan_freq[0, 0]), _channel_width(setup)), ("IF", 1.0, 1.0),
             ("RA", ra_deg, 1.0), ("DEC", dec_deg, 1.0)]
     for k, (ctype, crval, cdelt) in enumerate(axes, start=2):
         cards += [card(f"CTYPE{k}", ctype), card(f"CRVAL{k}", crval),
@@ -303,11 +211,11 @@ def _primary_cards(setup: _Setup, stokes: _StokesAxis, groups: _Groups,
     return cards
 
 
-def _channel_width(setup: _Setup) -> float:
-    return float(setup.chan_width[0]) if setup.chan_width.size else setup.total_bw
+def _channel_width(setup: Setup) -> float:
+    return float(setup.chan_width[0, 0]) if setup.chan_width.size else float(setup.total_bw[0])
 
 
-def _an_table(setup: _Setup, stokes: _StokesAxis, jd0: float) -> bytes:
+def _an_table(setup: Setup, stokes: _StokesAxis, jd0: float) -> bytes:
     """AIPS AN: the stations (ANNAME = hitops's station code) and the array's time system."""
     n_ant = setup.n_ant
     receptors = ("X", "Y") if min(stokes.codes) <= -5 else ("R", "L")
@@ -326,21 +234,23 @@ def _an_table(setup: _Setup, stokes: _StokesAxis, jd0: float) -> bytes:
         ("POLCALB", "1E", "", np.zeros(n_ant)),
         ("DIAMETER", "1E", "METERS", np.asarray(setup.diameters, np.float64)),
     ], [("ARRAYX", 0.0), ("ARRAYY", 0.0), ("ARRAYZ", 0.0), ("GSTIA0", gst0_deg(jd0)),
-        ("DEGPDY", 360.9856449733), ("FREQ", float(setup.chan_freq[0])),
+        ("DEGPDY", 360.9856449733), ("FREQ", float(setup.chan_freq[0, 0])),
         ("RDATE", iso_date(jd0)), ("POLARX", 0.0), ("POLARY", 0.0), ("UT1UTC", 0.0),
         ("IATUTC", tai_minus_utc(jd0 - 2400000.5)), ("TIMSYS", "UTC"),
         ("ARRNAM", setup.telescope), ("XYZHAND", "RIGHT"), ("FRAME", "ITRF"), ("NUMORB", 0),
-        ("NO_IF", 1), ("NOPCAL", 0), ("POLTYPE", "APPROX"), ("FREQID", 1)], n_ant)
+        ("NO_IF", setup.n_if), ("NOPCAL", 0), ("POLTYPE", "APPROX"), ("FREQID", 1)], n_ant)
 
 
-def _fq_table(setup: _Setup) -> bytes:
-    """AIPS FQ: the one frequency setup."""
+def _fq_table(setup: Setup) -> bytes:
+    """AIPS FQ: the one frequency setup, each IF's first channel as an offset from CRVAL."""
+    n_if = setup.n_if
     return bintable("AIPS FQ", [
-        ("FRQSEL", "1J", "", [1]), ("IF FREQ", "1D", "HZ", [0.0]),
-        ("CH WIDTH", "1E", "HZ", [_channel_width(setup)]),
-        ("TOTAL BANDWIDTH", "1E", "HZ", [setup.total_bw]),
-        ("SIDEBAND", "1J", "", [1 if setup.sideband >= 0 else -1]),
-    ], [("NO_IF", 1)], 1)
+        ("FRQSEL", "1J", "", [1]),
+        ("IF FREQ", f"{n_if}D", "HZ", [setup.chan_freq[:, 0] - setup.chan_freq[0, 0]]),
+        ("CH WIDTH", f"{n_if}E", "HZ", [setup.chan_width[:, 0]]),
+        ("TOTAL BANDWIDTH", f"{n_if}E", "HZ", [setup.total_bw]),
+        ("SIDEBAND", f"{n_if}J", "", [np.where(setup.sideband >= 0, 1, -1)]),
+    ], [("NO_IF", n_if)], 1)
 
 
 def _nx_table(groups: _Groups) -> Tuple[bytes, int]:
@@ -401,17 +311,17 @@ def export_uvfits(ms, path, column: str = "DATA", overwrite: bool = False,
     ms = str(ms).rstrip("/")
     path = Path(path)
     _check_destination(ms, path, overwrite, role)
-    main = _read_main(ms, column, role)
-    setup = _read_setup(ms, main, role)
+    main = read_main(ms, column, role)
+    setup = read_setup(ms, main, role)
     stokes = _StokesAxis.of(setup.corr_types)
-    groups = _random_groups(main, setup.chan_freq.size, stokes)
+    groups = _random_groups(main, setup, stokes)
     cards = _primary_cards(setup, stokes, groups,
                            [f"hitops: visibilities from column {column} of {Path(ms).name}",
                             *history])
     nx, n_scans = _nx_table(groups)
     _write_whole(path, header_bytes(cards), groups.data,
                  [_an_table(setup, stokes, groups.jd0), _fq_table(setup), nx])
-    n_row, flag = main.n_row, groups.flag
+    n_row, flag = groups.data.shape[0], groups.flag
     n_flagged = int(flag.sum())
     seconds = time.perf_counter() - started
     summary = {"path": str(path), "column": column, "rows": int(n_row),

@@ -1,0 +1,158 @@
+"""What the UVFITS export reads of a Measurement Set: the main-table rows and the setup.
+
+The set's data descriptions become the file's IFs (in frequency order), so they
+must share the channel count, channel width and correlations; one field.  Used by
+:mod:`hitops.io.uvfits`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from ..errors import ColumnError, MeasurementSetError
+
+#: casacore Stokes code -> AIPS STOKES axis value
+AIPS_STOKES = {1: 1, 2: 2, 3: 3, 4: 4, 5: -1, 8: -2, 6: -3, 7: -4, 9: -5, 12: -6, 10: -7, 11: -8}
+
+
+@dataclass(frozen=True)
+class MainRows:
+    """The main-table columns written out, in storage order."""
+
+    cols: Dict[str, np.ndarray]              # TIME, ANTENNA1, ANTENNA2, UVW, INTERVAL, ...
+    vis: np.ndarray                          # the exported column
+    weight_spectrum: Optional[np.ndarray]    # None when the set has none
+
+    @property
+    def n_row(self) -> int:
+        return int(self.cols["TIME"].size)
+
+
+@dataclass(frozen=True)
+class Setup:
+    """The subtable entries of the set's spectral windows (the IFs, in frequency order) and field."""
+
+    chan_freq: np.ndarray                    # (n_if, n_chan)
+    chan_width: np.ndarray                   # (n_if, n_chan)
+    total_bw: np.ndarray                     # (n_if,)
+    sideband: np.ndarray                     # (n_if,)
+    ddids: List[int]                         # DATA_DESC_ID of each IF
+    corr_types: List[int]                    # casacore Stokes codes, in column order
+    direction: np.ndarray                    # (ra, dec) radians
+    source: str
+    positions: np.ndarray                    # (n_ant, 3) ITRF metres
+    diameters: np.ndarray
+    mounts: List[str]
+    codes: List[str]                         # station codes (hitops.io.stations)
+    telescope: str
+    observer: str
+
+    @property
+    def n_ant(self) -> int:
+        return len(self.codes)
+
+    @property
+    def n_if(self) -> int:
+        return len(self.ddids)
+
+    @property
+    def n_chan(self) -> int:
+        return int(self.chan_freq.shape[1])
+
+
+def read_main(ms: str, column: str, role: str) -> MainRows:
+    from casacore import tables as pt
+
+    with pt.table(ms, ack=False) as t:
+        names = t.colnames()
+        if column not in names:
+            raise ColumnError(f"{role} '{ms}' has no column {column} to export (columns: "
+                              f"{', '.join(sorted(names))})")
+        if t.nrows() == 0:
+            raise MeasurementSetError(f"{role} '{ms}' has no rows to export")
+        cols = {c: t.getcol(c) for c in ("TIME", "ANTENNA1", "ANTENNA2", "UVW", "INTERVAL",
+                                         "FLAG", "FLAG_ROW", "WEIGHT", "SCAN_NUMBER",
+                                         "DATA_DESC_ID", "FIELD_ID")}
+        vis = t.getcol(column)
+        weight_spectrum = (t.getcol("WEIGHT_SPECTRUM")
+                           if "WEIGHT_SPECTRUM" in names and t.iscelldefined("WEIGHT_SPECTRUM", 0)
+                           else None)
+    return MainRows(cols, vis, weight_spectrum)
+
+
+def single_value(values: np.ndarray, what: str, ms: str) -> int:
+    unique = np.unique(values)
+    if unique.size > 1:
+        raise MeasurementSetError(f"'{ms}' holds {unique.size} {what} {unique.tolist()}; UVFITS "
+                                  f"export takes one: split the set first (CASA split)")
+    return int(unique[0]) if unique.size else 0
+
+
+def read_windows(ms: str, ddids: np.ndarray):
+    """(ddids in frequency order, chan_freq, chan_width, total_bw, sideband, pol) of the
+    set's data descriptions, which UVFITS writes as IFs: one channel count, width and
+    polarisation setup for all of them, or a one-line error."""
+    from casacore import tables as pt
+
+    with pt.table(f"{ms}::DATA_DESCRIPTION", ack=False) as t:
+        spws = t.getcol("SPECTRAL_WINDOW_ID")[ddids]
+        pols = t.getcol("POLARIZATION_ID")[ddids]
+    with pt.table(f"{ms}::POLARIZATION", ack=False) as t:
+        corrs = {tuple(int(c) for c in t.getcell("CORR_TYPE", int(p))) for p in pols}
+    with pt.table(f"{ms}::SPECTRAL_WINDOW", ack=False) as t:
+        freq = [np.asarray(t.getcell("CHAN_FREQ", int(w)), np.float64) for w in spws]
+        width = [np.asarray(t.getcell("CHAN_WIDTH", int(w)), np.float64) for w in spws]
+        total = [float(t.getcell("TOTAL_BANDWIDTH", int(w))) for w in spws]
+        side = [int(t.getcell("NET_SIDEBAND", int(w))) if "NET_SIDEBAND" in t.colnames() else 1
+                for w in spws]
+    shapes = {f.size for f in freq}
+    steps = {round(float(w[0]), 3) for w in width if w.size}
+    if len(shapes) > 1 or len(steps) > 1 or len(corrs) > 1:
+        raise MeasurementSetError(
+            f"'{ms}': its spectral windows {sorted(set(spws.tolist()))} differ in channel count, "
+            "channel width or correlations, and UVFITS IFs share them: split the set (CASA "
+            "split spw=...) and export each part")
+    order = np.argsort([f[0] for f in freq], kind="stable")
+    return ([int(ddids[i]) for i in order], np.stack([freq[i] for i in order]),
+            np.stack([width[i] for i in order]), np.array([total[i] for i in order]),
+            np.array([side[i] for i in order]), int(pols[0]))
+
+
+def read_setup(ms: str, main: MainRows, role: str) -> Setup:
+    """The data descriptions' windows (as IFs) and correlations, the field, the stations."""
+    from casacore import tables as pt
+
+    from .stations import read_stations
+
+    field_id = single_value(main.cols["FIELD_ID"], "fields", ms)
+    ddids, chan_freq, chan_width, total_bw, sideband, pol = read_windows(
+        ms, np.unique(main.cols["DATA_DESC_ID"]))
+    sub = lambda name: pt.table(f"{ms}::{name}", ack=False)  # noqa: E731
+    with sub("POLARIZATION") as t:
+        corr_types = [int(c) for c in t.getcell("CORR_TYPE", pol)]
+    with sub("FIELD") as t:
+        direction = np.asarray(t.getcell("PHASE_DIR", field_id), np.float64).reshape(-1, 2)[0]
+        source = str(t.getcell("NAME", field_id)) or "SOURCE"
+    with sub("ANTENNA") as t:
+        n_ant = t.nrows()
+        positions = t.getcol("POSITION")
+        diameters = t.getcol("DISH_DIAMETER") if "DISH_DIAMETER" in t.colnames() else np.zeros(n_ant)
+        mounts = [str(m).lower() for m in t.getcol("MOUNT")] if "MOUNT" in t.colnames() else ["alt-az"] * n_ant
+    telescope, observer = "VLBA", "hitops"
+    with sub("OBSERVATION") as t:
+        if t.nrows():
+            telescope = str(t.getcell("TELESCOPE_NAME", 0)) or telescope
+            observer = str(t.getcell("OBSERVER", 0)) or observer
+    codes = read_stations(ms, role).codes
+    if n_ant > 255:
+        raise MeasurementSetError(f"{role} '{ms}' has {n_ant} antennas; the UVFITS BASELINE "
+                                  "parameter holds at most 255")
+    unknown = [c for c in corr_types if c not in AIPS_STOKES]
+    if unknown:
+        raise MeasurementSetError(f"{role} '{ms}': correlation types {unknown} have no UVFITS "
+                                  "Stokes code")
+    return Setup(chan_freq, chan_width, total_bw, sideband, ddids, corr_types, direction,
+                  source, positions, diameters, mounts, list(codes), telescope, observer)
