@@ -109,7 +109,7 @@ def rows_from_budget(budget: int, ref_ms: str, target_ms: str, columns: Columns,
     """
     from casacore import tables as pt
 
-    from .memory import MIN_CHUNK_ROWS, rows_for_budget
+    from .memory import min_chunk_rows, rows_for_budget
     n_rows, n_corr, n_chan = 0, 1, 1
     for ms, column in ((ref_ms, columns.ref_data), (target_ms, columns.target_data)):
         with pt.table(ms, ack=False) as t:
@@ -118,7 +118,7 @@ def rows_from_budget(budget: int, ref_ms: str, target_ms: str, columns: Columns,
                 shape = t.getcell(column, 0).shape
                 n_chan, n_corr = max(n_chan, int(shape[0])), max(n_corr, int(shape[-1]))
     rows = rows_for_budget(budget, n_rows, n_corr, n_chan, n_methods, time_ordered, strict)
-    if rows == MIN_CHUNK_ROWS and not strict:
+    if rows == min_chunk_rows(n_chan) and not strict:
         log.warning("the default memory budget (%.0f MB) cannot hold %d rows%s and a chunk: "
                     "chunks of %d rows; give --memory-budget or --chunk-rows to choose",
                     budget / 1e6, n_rows, "" if time_ordered else
