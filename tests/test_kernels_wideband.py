@@ -56,6 +56,12 @@ def visibilities(chan_freq, path, inst_delay=None):
     return np.concatenate(rows)[:, :, None].astype(np.complex64)
 
 
+def reduce_reference(ref, ok_ref):
+    """The reference window reduced to 86.0 GHz by the delay fit."""
+    return wideband.reference_phasors(ref, ok_ref, REF_CHANS, REF_FREQ,
+                                      wideband.row_delays(ref, ok_ref, REF_CHANS))
+
+
 def track(reduced, good):
     """Unwrapped reference phase of every row: one wrap count per baseline series."""
     phase = np.angle(reduced[:, 0]).reshape(len(baselines()), N_TIME)
@@ -114,8 +120,7 @@ def test_rows_without_data_stay_unusable():
 def test_per_channel_ratios_keep_every_target_channel_coherent(scene):
     ref, tgt, _ = scene
     ok_ref, ok_tgt = np.ones(ref.shape, bool), np.ones(tgt.shape, bool)
-    reduced, good = wideband.reference_phasors(ref, ok_ref, REF_CHANS, REF_FREQ,
-                                               wideband.row_delays(ref, ok_ref, REF_CHANS))
+    reduced, good = reduce_reference(ref, ok_ref)
     unwrapped, valid = track(reduced, good)
     assert np.abs(np.diff(unwrapped[:, 0].reshape(-1, N_TIME), axis=1)).max() < np.pi
     assert (np.ptp(unwrapped[:, 0].reshape(-1, N_TIME), axis=1) > 6 * np.pi).all()  # many wraps
@@ -128,8 +133,7 @@ def test_per_channel_ratios_keep_every_target_channel_coherent(scene):
 def test_one_ratio_per_window_and_no_wrap_count_fail_the_same_check(scene):
     ref, tgt, _ = scene
     ok_ref, ok_tgt = np.ones(ref.shape, bool), np.ones(tgt.shape, bool)
-    reduced, good = wideband.reference_phasors(ref, ok_ref, REF_CHANS, REF_FREQ,
-                                               wideband.row_delays(ref, ok_ref, REF_CHANS))
+    reduced, good = reduce_reference(ref, ok_ref)
     unwrapped, valid = track(reduced, good)
     window_ratio = np.repeat([w.mean() / REF_FREQ for w in TGT_WINDOWS], 16)
     out, _ = wideband.apply_channel_ratios(tgt, ok_tgt, unwrapped, valid, window_ratio)
@@ -155,8 +159,7 @@ def test_plain_average_fails_where_the_delay_fit_holds(scene, lower_half_flagged
         if name == "plain":
             reduced, good = wideband.plain_average(ref, ok_ref)
         else:
-            reduced, good = wideband.reference_phasors(ref, ok_ref, REF_CHANS, REF_FREQ,
-                                                       wideband.row_delays(ref, ok_ref, REF_CHANS))
+            reduced, good = reduce_reference(ref, ok_ref)
         unwrapped, valid = track(reduced, good)
         out, _ = wideband.apply_channel_ratios(tgt, ok_tgt, unwrapped, valid, TGT_CHANS / REF_FREQ)
         results[name] = channel_coherence(out).min()
@@ -238,8 +241,7 @@ def test_phase_plus_delay_is_the_per_channel_ratio(scene):
     # every channel exp(-i*R_k*psi): the form a Fringe Jones table carries
     ref, tgt, _ = scene
     ok_ref = np.ones(ref.shape, bool)
-    reduced, good = wideband.reference_phasors(ref, ok_ref, REF_CHANS, REF_FREQ,
-                                               wideband.row_delays(ref, ok_ref, REF_CHANS))
+    reduced, good = reduce_reference(ref, ok_ref)
     psi, valid = track(reduced, good)
     window = TGT_WINDOWS[1]
     centre = window.mean()

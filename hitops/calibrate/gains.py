@@ -30,16 +30,22 @@ def antenna_gain_phases(antenna_phase: np.ndarray, antenna_segment: np.ndarray,
     ``scan_index``, ``segment``, ``k``), applied as -2 pi eps k on that segment.
     """
     phase = ratio * np.asarray(antenna_phase, dtype=np.float64)
-    for entry in offsets or ():
-        k = int(entry.get("k", 0))
-        if not k:
-            continue
-        a, c = int(entry["antenna_index"]), int(entry["correlation_index"])
-        where = (antenna_segment[a, c] == int(entry["segment"])) & \
-            (scan_of_time == int(entry["scan_index"]))
+    for a, c, where, k in _offset_cells(antenna_segment, scan_of_time, offsets):
         phase[a, c, where] -= 2.0 * math.pi * eps * k
     valid = np.isfinite(phase)
     return np.transpose(np.where(valid, phase, 0.0), (2, 0, 1)), np.transpose(valid, (2, 0, 1))
+
+
+def _offset_cells(antenna_segment, scan_of_time, offsets):
+    """(antenna, correlation, times, k) of every n0 entry with k != 0: the times of the
+    entry's segment in its scan."""
+    for entry in offsets or ():
+        k = int(entry.get("k", 0))
+        if k:
+            a, c = int(entry["antenna_index"]), int(entry["correlation_index"])
+            where = (antenna_segment[a, c] == int(entry["segment"])) & \
+                (scan_of_time == int(entry["scan_index"]))
+            yield a, c, where, k
 
 
 def antenna_turns(antenna_phase: np.ndarray, antenna_segment: np.ndarray,
@@ -48,13 +54,7 @@ def antenna_turns(antenna_phase: np.ndarray, antenna_segment: np.ndarray,
     phase with the n0 step's turns put back, psi = phi - 2 pi k on every segment the
     step gave an integer k (a per-channel transfer needs the turns, not their phase)."""
     psi = np.array(antenna_phase, dtype=np.float64)
-    for entry in offsets or ():
-        k = int(entry.get("k", 0))
-        if not k:
-            continue
-        a, c = int(entry["antenna_index"]), int(entry["correlation_index"])
-        where = (antenna_segment[a, c] == int(entry["segment"])) & \
-            (scan_of_time == int(entry["scan_index"]))
+    for a, c, where, k in _offset_cells(antenna_segment, scan_of_time, offsets):
         psi[a, c, where] -= 2.0 * math.pi * k
     valid = np.isfinite(psi)
     return np.transpose(np.where(valid, psi, 0.0), (2, 0, 1)), np.transpose(valid, (2, 0, 1))
