@@ -12,12 +12,17 @@ costs a small part of that, and simulating a scene far more.  So:
   calibrate run does).  Equal specs are built once in the whole suite.
 * ``shared_pair(spec)``: the session's build itself, for tests that only read
   it (a test that writes into it spoils it for every later test).
+* ``eht_imported``: the EHT's public M87 pair (tests/data/eht2017-m87) through
+  CASA importuvfits, once for the suite (tests/test_realdata.py and
+  tests/test_verdict.py both start from it); read it, or copy it to write.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 from typing import Dict, Optional
 
@@ -25,6 +30,11 @@ import numpy as np
 import pytest
 
 from hitops.testing import PairSpec, PairTruth, make_pair
+
+#: the EHT's public M87 data of 2017 April 5, both bands (see its README.md)
+EHT_DATA = Path(__file__).parent / "data" / "eht2017-m87"
+EHT_LO = EHT_DATA / "SR1_M87_2017_095_lo_hops_netcal_StokesI.uvfits"
+EHT_HI = EHT_DATA / "SR1_M87_2017_095_hi_hops_netcal_StokesI.uvfits"
 
 
 class PairStore:
@@ -71,3 +81,20 @@ def new_pair(pair_store, tmp_path):
 def shared_pair(pair_store):
     """``shared_pair(spec)``: the session's build of the pair, read-only."""
     return pair_store.built
+
+
+def importuvfits(fits: Path, ms: Path) -> Path:
+    """CASA importuvfits in its own process (CASA's logger and state stay out of this one)."""
+    code = ("from hitops.casa_env import ensure_casa_offline; ensure_casa_offline(); "
+            "from casatasks import importuvfits; import sys; "
+            "importuvfits(fitsfile=sys.argv[1], vis=sys.argv[2])")
+    subprocess.run([sys.executable, "-c", code, str(fits), str(ms)], check=True,
+                   capture_output=True, timeout=300)
+    return ms
+
+
+@pytest.fixture(scope="session")
+def eht_imported(tmp_path_factory):
+    """(lo.ms, hi.ms): the EHT pair as CASA importuvfits writes it, read-only."""
+    root = tmp_path_factory.mktemp("eht2017")
+    return importuvfits(EHT_LO, root / "lo.ms"), importuvfits(EHT_HI, root / "hi.ms")

@@ -30,7 +30,7 @@ from hitops.errors import InputError, OutputExistsError, StationError
 from hitops.io import convert
 from hitops.io.uvfits import _bintable, _card, export_uvfits, read_headers
 
-REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "eht2017-m87"
+REALDATA = Path(__file__).resolve().parent / "data" / "eht2017-m87"   # in every checkout
 EHT_LO = REALDATA / "SR1_M87_2017_095_lo_hops_netcal_StokesI.uvfits"
 EHT_HI = REALDATA / "SR1_M87_2017_095_hi_hops_netcal_StokesI.uvfits"
 
