@@ -531,7 +531,8 @@ def _two_channel_copy(src, dest, channel_gain=(1.0, 0.5), flag_second=None):
 
 def test_average_channels(tmp_path, shared_pair):
     # the pair is only read: its two-channel copies are calibrated
-    truth = shared_pair(PairSpec(n_time=100, seed=17, troposphere=Troposphere(phase_offset_rad=1.3)))
+    truth = shared_pair(PairSpec(n_time=100, seed=17,
+                                 troposphere=Troposphere(phase_offset_rad=1.3)))
     ref2, tgt2 = tmp_path / "ref2.ms", tmp_path / "tgt2.ms"
     _two_channel_copy(truth.ref_ms, ref2, flag_second=np.arange(0, 600, 7))
     data, flag = _two_channel_copy(truth.target_ms, tgt2, flag_second=np.arange(3, 600, 5))
