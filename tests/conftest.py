@@ -65,8 +65,12 @@ class PairStore:
 
 
 @pytest.fixture(scope="session")
-def pair_store(tmp_path_factory) -> PairStore:
-    return PairStore(tmp_path_factory.mktemp("pairs"))
+def pair_store(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pairs")
+    yield PairStore(root)
+    # the builds (about 1 GB over the suite: casacore allocates whole tiles) go with the
+    # session; the tests' own copies stay in their tmp_path as pytest keeps them
+    shutil.rmtree(root, ignore_errors=True)
 
 
 @pytest.fixture
