@@ -3,7 +3,7 @@
 For issue 13: with thermal noise the antenna-based solution (each station's reference
 phase solved from all its baselines) and the baseline-based one (each baseline's own
 reference phase) differ.  Both are compared with the truth on synthetic pairs with a
-point source at the reference band (hitops.calibrate.synthetic.make_pair,
+point source at the reference band (hitops.testing.make_pair,
 ref_offset_scale=0), per-sample reference SNR rho = 1.1 / sigma: the residual phase of
 the output around its per-(baseline, scan) mean, which is what transferred reference
 noise adds (the n0 constants are removed with the mean).  Prints a markdown table.
@@ -37,15 +37,17 @@ def main():
     from casacore import tables as pt
 
     from hitops.calibrate import calibrate
-    from hitops.calibrate.synthetic import make_pair
+    from hitops.testing import PairSpec, Signal, Troposphere, make_pair
 
     rows = []
     for n_ant in (4, 8):
         for rho in (10.0, 4.0, 2.0):
             with tempfile.TemporaryDirectory() as tmp:
-                truth = make_pair(Path(tmp), n_ant=n_ant, n_time=1200, n_scans=2, seed=5,
-                                  step_rad=0.05, drift_rad=0.02, sigma_ref=1.1 / rho,
-                                  ref_offset_scale=0.0)
+                spec = PairSpec(n_ant=n_ant, n_time=1200, n_scans=2, seed=5,
+                                troposphere=Troposphere(step_rad=0.05, drift_rad=0.02,
+                                                        ref_offset_scale=0.0),
+                                signal=Signal(sigma_ref=1.1 / rho))
+                truth = make_pair(Path(tmp), spec)
                 out = {}
                 for tracker in ("count", "smooth", "antenna"):
                     calibrate(truth.ref_ms, truth.target_ms, tracker=tracker, overwrite=True,

@@ -1,6 +1,6 @@
 """Benchmark of ``hitops calibrate --method pwc`` on a paper-size pair (issue 2).
 
-Scene (hitops.calibrate.synthetic.make_pair): the paper's 8 stations (28
+Scene (hitops.testing.make_pair): the paper's 8 stations (28
 baselines), 12 h of 1 s integrations (43 200 times, 1 209 600 rows per band),
 4 correlations, one channel, random-walk troposphere with thermal noise.
 Each figure is a whole process (start-up, imports, reading, FPT, writing)
@@ -40,14 +40,16 @@ CORRS = ("RR", "RL", "LR", "LL")
 
 def build(workdir: Path, time_order: bool = False):
     """The paper-size pair in ``workdir`` (baseline by baseline, or sorted by time)."""
-    from hitops.calibrate.synthetic import make_pair
+    from hitops.testing import PairSpec, Signal, Storage, Troposphere, make_pair
 
     if (workdir / "target.ms" / "table.dat").exists() and (workdir / "ref.ms" / "table.dat").exists():
         return workdir / "ref.ms", workdir / "target.ms"
     t0 = time.perf_counter()
-    truth = make_pair(workdir, n_ant=N_ANT, n_time=N_TIME, corr_types=CORRS, step_rad=0.05,
-                      drift_rad=0.01, sigma_ref=0.05, sigma_target=0.1, seed=2023,
-                      time_order=time_order)
+    spec = PairSpec(n_ant=N_ANT, n_time=N_TIME, corr_types=CORRS, seed=2023,
+                    troposphere=Troposphere(step_rad=0.05, drift_rad=0.01),
+                    signal=Signal(sigma_ref=0.05, sigma_target=0.1),
+                    storage=Storage(time_order=time_order))
+    truth = make_pair(workdir, spec)
     print(f"built the pair in {time.perf_counter() - t0:.1f} s", flush=True)
     return truth.ref_ms, truth.target_ms
 
@@ -65,12 +67,14 @@ def figure(path: Path) -> Path:
     from casacore import tables as pt
 
     from hitops.calibrate import calibrate
-    from hitops.calibrate.synthetic import make_pair, wrap
+    from hitops.testing import PairSpec, Signal, Troposphere, make_pair, wrap
     from hitops.tracking.count import count_wraps
 
     workdir = Path(tempfile.mkdtemp(prefix="fig-calibrate-"))
-    truth = make_pair(workdir, n_ant=3, n_time=1800, step_rad=0.04, drift_rad=0.03,
-                      sigma_ref=0.03, sigma_target=0.08, phase_offset_rad=1.0, seed=5)
+    truth = make_pair(workdir, PairSpec(
+        n_ant=3, n_time=1800, seed=5,
+        troposphere=Troposphere(step_rad=0.04, drift_rad=0.03, phase_offset_rad=1.0),
+        signal=Signal(sigma_ref=0.03, sigma_target=0.08)))
     calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt")
     with pt.table(str(truth.target_ms), ack=False) as t:
         cfpt = np.angle(t.getcol("CFPT_DATA")[:, 0, 0])
@@ -275,7 +279,7 @@ Machine: {machine_line()}; 1-minute load average {load_before:.1f} before and
 {load_after:.1f} after the runs (the machine is shared; wall times grow with load, CPU
 times much less).  Scene: {N_ANT} stations (28 baselines), {N_TIME} times of 1 s,
 {len(CORRS)} correlations, one channel: {28 * N_TIME} rows per band
-(hitops.calibrate.synthetic.make_pair, which stores the rows baseline by baseline), and
+(hitops.testing.make_pair, which stores the rows baseline by baseline), and
 the same pair stored with its rows sorted by time, as correlators and CASA write them.
 Whole processes (benchmarks/_report.run_process).  The floors and the warm calibrate
 runs are interleaved (floor, floor, calibrate, repeated) so that the machine's load

@@ -1,7 +1,7 @@
 """How often does the antenna lattice solve of the n0 offsets pick the true point?  (issue 16)
 
 End to end: ``hitops calibrate --tracker antenna --offset-model MODEL_DATA`` on synthetic
-pairs (hitops.calibrate.synthetic.make_pair) of N stations whose tracks are cut into
+pairs (hitops.testing.make_pair) of N stations whose tracks are cut into
 10-minute scans (1 s samples, RR and LL; every scan restarts the counts, so every scan
 and hand needs its own integers), thermal noise at both bands at per-sample SNR rho
 (amplitude / noise per component, as in docs/tracking.md), troposphere a random walk of

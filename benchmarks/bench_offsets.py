@@ -3,7 +3,7 @@
 Two measurements, written to docs/calibrate.md (section ``offsets-uniqueness``):
 
 1. **End to end** (``hitops calibrate --tracker antenna --offset-model MODEL_DATA``) on
-   synthetic pairs (hitops.calibrate.synthetic.make_pair) of 4 and 8 stations whose
+   synthetic pairs (hitops.testing.make_pair) of 4 and 8 stations whose
    tracks are cut into 10-minute scans (1 s samples; each scan is one tracking
    segment, and every scan restarts the counts, so every scan needs its own
    integers), with thermal noise at both bands at per-sample SNR rho (amplitude /
@@ -52,12 +52,14 @@ HALF = 360 / 43 / 2
 def antenna_scene(workdir: Path, n_ant: int, rho: float, n_scans: int, seed: int):
     """The synthetic RR/LL pair of these benchmarks: 10-minute scans at per-sample SNR
     ``rho``, a 1 rad phase offset, and the point-source model in MODEL_DATA."""
-    from hitops.calibrate.synthetic import add_column, make_pair
+    from hitops.testing import PairSpec, Signal, Troposphere, add_column, make_pair
 
-    truth = make_pair(workdir, n_ant=n_ant, n_time=600 * n_scans, n_scans=n_scans,
-                      corr_types=("RR", "LL"), step_rad=0.05, drift_rad=0.02,
-                      phase_offset_rad=1.0, ref_offset_scale=0.0, seed=seed,
-                      sigma_ref=1.1 / rho, sigma_target=1.0 / rho)
+    spec = PairSpec(n_ant=n_ant, n_time=600 * n_scans, n_scans=n_scans, corr_types=("RR", "LL"),
+                    seed=seed,
+                    troposphere=Troposphere(step_rad=0.05, drift_rad=0.02, phase_offset_rad=1.0,
+                                            ref_offset_scale=0.0),
+                    signal=Signal(sigma_ref=1.1 / rho, sigma_target=1.0 / rho))
+    truth = make_pair(workdir, spec)
     add_column(truth.target_ms, "MODEL_DATA", np.exp(1j * truth.source_phase)[:, None, :])
     return truth
 

@@ -5,7 +5,7 @@ peak RSS from the kernel's accounting); medians of ``--repeats`` runs up to
 10^6 rows, one run at 10^7 (a 10^7-row pair is ~1.6 GB per band and takes
 minutes to build on this 2-core machine).
 
-calibrate (``--method pwc``) on hitops.calibrate.synthetic.make_pair pairs,
+calibrate (``--method pwc``) on hitops.testing.make_pair pairs,
 4 correlations, one channel:
 
 * rows: 8 stations (28 baselines), 10^4 .. 10^7 rows per band, each with the
@@ -112,6 +112,15 @@ def write_scene(path: Path, n_station: int = 30) -> Path:
     return path
 
 
+def _scene(n_ant: int, n_time: int, ref_names):
+    """The calibrate points' synthetic pair: 4 correlations, weak noise, slow troposphere."""
+    from hitops.testing import PairSpec, Signal, Troposphere
+
+    return PairSpec(n_ant=n_ant, n_time=n_time, corr_types=CORRS, seed=7, ref_names=ref_names,
+                    troposphere=Troposphere(step_rad=0.05, drift_rad=0.01),
+                    signal=Signal(sigma_ref=0.05, sigma_target=0.1))
+
+
 def _nrows(ms) -> int:
     from casacore import tables as pt
 
@@ -121,15 +130,13 @@ def _nrows(ms) -> int:
 
 def calibrate_point(workdir: Path, hitops: str, n_ant: int, n_time: int, repeats: int,
                     floors: bool, chunked: bool, thread_counts=()):
-    from hitops.calibrate.synthetic import make_pair
+    from hitops.testing import make_pair
 
     pair_dir = workdir / f"pair-{n_ant}-{n_time}"
     shutil.rmtree(pair_dir, ignore_errors=True)
     t0 = time.perf_counter()
     names = [f"A{i:02d}" for i in range(n_ant)]   # make_pair names at most 8 by default
-    truth = make_pair(pair_dir, n_ant=n_ant, n_time=n_time, corr_types=CORRS, step_rad=0.05,
-                      drift_rad=0.01, sigma_ref=0.05, sigma_target=0.1, seed=7,
-                      ref_names=names)
+    truth = make_pair(pair_dir, _scene(n_ant, n_time, names))
     build_s = time.perf_counter() - t0
     del truth
     ref, tgt = pair_dir / "ref.ms", pair_dir / "target.ms"
@@ -153,13 +160,11 @@ def memory_point(workdir: Path, hitops: str, rows: int):
     """Peak RSS of calibrate with --chunk-rows CHUNK_ROWS and with the default chunk."""
     import json
 
-    from hitops.calibrate.synthetic import make_pair
+    from hitops.testing import make_pair
 
     pair_dir = workdir / f"mem-{rows}"
     shutil.rmtree(pair_dir, ignore_errors=True)
-    make_pair(pair_dir, n_ant=8, n_time=max(2, rows // 28), corr_types=CORRS, step_rad=0.05,
-              drift_rad=0.01, sigma_ref=0.05, sigma_target=0.1, seed=7,
-              ref_names=[f"A{i:02d}" for i in range(8)])
+    make_pair(pair_dir, _scene(8, max(2, rows // 28), [f"A{i:02d}" for i in range(8)]))
     ref, tgt = pair_dir / "ref.ms", pair_dir / "target.ms"
     out = []
     for chunk in (CHUNK_ROWS, None):
@@ -192,7 +197,7 @@ def render_memory(points, load) -> str:
 
 Machine: {machine_line()}; 1-minute load average {load[0]:.1f} at the start,
 {load[-1]:.1f} at the end.  One whole process per cell (peak RSS from the kernel's
-accounting), 8 stations, 4 correlations, hitops.calibrate.synthetic pairs (stored
+accounting), 8 stations, 4 correlations, hitops.testing pairs (stored
 baseline by baseline, i.e. not in time order); `python -m benchmarks.bench_scaling
 --memory-only`.
 

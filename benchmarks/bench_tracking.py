@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks._report import PLOT_DIR, machine_line, replace_section  # noqa: E402
 from hitops.tracking.count import count_wraps  # noqa: E402
-from hitops.tracking.slips import count_slips, slip_errors  # noqa: E402
+from hitops.testing.slips import count_slips, slip_errors  # noqa: E402
 from hitops.tracking.smooth_kernel import track_wraps_smooth  # noqa: E402
 from hitops.simulate.troposphere import fbm_circulant  # noqa: E402
 from hitops.tracking import stations, theory  # noqa: E402

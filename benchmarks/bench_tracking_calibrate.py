@@ -14,7 +14,7 @@ simulator's truth:
 * the true count is the lobe of phi nearest the true 86 GHz baseline phase
   (truth .npz), so e = n - n_true; persistent slips are the changes of e
   that are not outlier excursions of <= 3 samples
-  (:func:`hitops.tracking.slips.count_slips`), and the slip error is
+  (:func:`hitops.testing.slips.count_slips`), and the slip error is
   rms wrap(2 pi eps (e - e_mode)) per baseline and correlation (n0 removed);
 * the residual phase error is the rms of the PWC output phase about its
   per-baseline circular mean (thermal noise of both bands + slips).
@@ -92,7 +92,7 @@ def scene(workdir, label, flux86):
 
 def measure(out, lay, ref_vis, ref_ok, true_bl, tgt_vis_in):
     """(slips, slip error deg, residual deg) of one calibrate output grid."""
-    from hitops.tracking.slips import count_slips
+    from hitops.testing.slips import count_slips
 
     ratio = 230.0 / 86.0
     slips, err2, res2 = 0, [], []

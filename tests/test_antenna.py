@@ -9,7 +9,7 @@ import pytest
 
 from hitops.errors import InputError
 from hitops.tracking.antenna_kernel import closure_phases, solve_antenna_phases
-from hitops.tracking.slips import count_slips, slip_errors
+from hitops.testing.slips import count_slips, slip_errors
 from hitops.simulate.troposphere import fbm_circulant
 from hitops.tracking import theory
 from hitops.tracking.grid import grid_positions

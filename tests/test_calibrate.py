@@ -1,21 +1,23 @@
 """hitops calibrate on small synthetic Measurement Set pairs with a known troposphere.
 
-Each test builds its own pair (hitops.calibrate.synthetic.make_pair), runs the
-tool and checks the output against what the paper's algebra predicts.
+Each test takes its own copy of a pair (hitops.testing.make_pair, through the
+``new_pair`` fixture of tests/conftest.py), runs the tool and checks the output
+against what the paper's algebra predicts.
 """
 
 from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from casacore import tables as pt
 
 from hitops.calibrate import calibrate
-from hitops.calibrate.synthetic import (DEFAULT_NAMES, add_column, expected_pwc_phase,
-                                        make_pair, wrap)
+from hitops.testing import (DEFAULT_NAMES, PairSpec, Signal, Storage, Troposphere, add_column,
+                            expected_pwc_phase, wrap)
 from ms_columns import col  # tests/ is on sys.path (rootdir-relative)
 
 
@@ -36,8 +38,8 @@ def series(truth, values, bl_ant=(0, 1), corr=0):
 
 
 @pytest.mark.parametrize("ratio,jump_deg", [(230 / 86, -117.209), (2.5, 180.0), (340 / 255, 120.0)])
-def test_cfpt_jumps_by_2pi_eps_at_every_reference_wrap(tmp_path, ratio, jump_deg):
-    truth = make_pair(tmp_path, ratio=ratio, n_time=400, seed=3)
+def test_cfpt_jumps_by_2pi_eps_at_every_reference_wrap(new_pair, ratio, jump_deg):
+    truth = new_pair(PairSpec(ratio=ratio, n_time=400, seed=3))
     calibrate(truth.ref_ms, truth.target_ms, method="cfpt")
     residual = wrap(out_phase(truth.target_ms, "CFPT_DATA") - truth.source_phase)
     n = true_wraps(truth)
@@ -59,8 +61,8 @@ def test_cfpt_jumps_by_2pi_eps_at_every_reference_wrap(tmp_path, ratio, jump_deg
     assert checked >= 10, "the scene must wrap often enough to test anything"
 
 
-def test_pwc_is_truth_up_to_n0_and_the_offset_step_removes_it(tmp_path):
-    truth = make_pair(tmp_path, n_time=300, phase_offset_rad=2.5, seed=1)
+def test_pwc_is_truth_up_to_n0_and_the_offset_step_removes_it(tmp_path, new_pair):
+    truth = new_pair(PairSpec(n_time=300, seed=1, troposphere=Troposphere(phase_offset_rad=2.5)))
     n0_expected = expected_pwc_phase(truth)
     calibrate(truth.ref_ms, truth.target_ms, method="pwc")
     pwc = out_phase(truth.target_ms)
@@ -88,16 +90,17 @@ def test_pwc_is_truth_up_to_n0_and_the_offset_step_removes_it(tmp_path):
     assert any(e["k"] != 0 for e in series_)
 
 
-def test_offset_step_k_is_bounded(tmp_path):
-    truth = make_pair(tmp_path, n_time=200, phase_offset_rad=2.5, seed=1)
+def test_offset_step_k_is_bounded(new_pair):
+    truth = new_pair(PairSpec(n_time=200, seed=1, troposphere=Troposphere(phase_offset_rad=2.5)))
     add_column(truth.target_ms, "CORRECTED_DATA", np.exp(1j * truth.source_phase))
     report = calibrate(truth.ref_ms, truth.target_ms, offset_reference_column="CORRECTED_DATA",
                        max_offset_wraps=0)
     assert all(e["k"] == 0 for e in report["offset_step"]["series"])
 
 
-def test_cwu_equals_pwc(tmp_path):
-    truth = make_pair(tmp_path, n_time=300, phase_offset_rad=1.7, sigma_target=0.4, seed=5)
+def test_cwu_equals_pwc(new_pair):
+    truth = new_pair(PairSpec(n_time=300, seed=5, troposphere=Troposphere(phase_offset_rad=1.7),
+                              signal=Signal(sigma_target=0.4)))
     calibrate(truth.ref_ms, truth.target_ms, method="pwc,cwu")
     pwc = col(truth.target_ms, "PWC_DATA")
     cwu = col(truth.target_ms, "CWU_DATA")
@@ -105,19 +108,21 @@ def test_cwu_equals_pwc(tmp_path):
     assert np.allclose(np.abs(cwu), np.abs(col(truth.target_ms, "DATA")), rtol=1e-6)
 
 
-def test_integer_ratio_all_three_agree(tmp_path):
-    truth = make_pair(tmp_path, ratio=3.0, n_time=300, phase_offset_rad=2.5, seed=2)
+def test_integer_ratio_all_three_agree(new_pair):
+    truth = new_pair(PairSpec(ratio=3.0, n_time=300, seed=2,
+                              troposphere=Troposphere(phase_offset_rad=2.5)))
     report = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu")
     assert report["eps"] == 0.0 and report["r"] == 3
     for name in ("PWC_DATA", "CFPT_DATA", "CWU_DATA"):
         assert np.max(np.abs(wrap(out_phase(truth.target_ms, name) - truth.source_phase))) < 1e-4
 
 
-def test_thermal_noise_residual_variance(tmp_path):
+def test_thermal_noise_residual_variance(new_pair):
     sigma_r_cpt, sigma_t_cpt, ref_amp, tgt_amp = 0.03, 0.08, 1.1, 1.0
-    truth = make_pair(tmp_path, n_time=3000, step_rad=0.05, drift_rad=0.02, seed=11,
-                      sigma_ref=sigma_r_cpt, sigma_target=sigma_t_cpt, ref_amp=ref_amp,
-                      target_amp=tgt_amp)
+    truth = new_pair(PairSpec(n_time=3000, seed=11,
+                              troposphere=Troposphere(step_rad=0.05, drift_rad=0.02),
+                              signal=Signal(sigma_ref=sigma_r_cpt, sigma_target=sigma_t_cpt,
+                                            ref_amp=ref_amp, target_amp=tgt_amp)))
     calibrate(truth.ref_ms, truth.target_ms, method="pwc")
     residual = wrap(out_phase(truth.target_ms) - expected_pwc_phase(truth))
     # n0 may differ from the noise-free count where a series starts near +-pi: take out
@@ -136,11 +141,13 @@ def test_thermal_noise_residual_variance(tmp_path):
     assert abs(measured - sigma_t ** 2) > 0.2 * predicted
 
 
-def test_reordered_rows_and_swapped_antennas_give_the_same_answer(tmp_path):
-    kw = dict(n_time=200, phase_offset_rad=2.0, seed=4, corr_types=("RR", "RL", "LR", "LL"))
-    plain = make_pair(tmp_path / "plain", **kw)
-    mixed = make_pair(tmp_path / "mixed", shuffle_ref=True, shuffle_target=True,
-                      swap_ref_baselines=(0, 3, 5), **kw)
+def test_reordered_rows_and_swapped_antennas_give_the_same_answer(tmp_path, new_pair):
+    spec = PairSpec(n_time=200, seed=4, corr_types=("RR", "RL", "LR", "LL"),
+                    troposphere=Troposphere(phase_offset_rad=2.0))
+    plain = new_pair(spec, tmp_path / "plain")
+    mixed = new_pair(replace(spec, storage=Storage(shuffle_ref=True, shuffle_target=True,
+                                                   swap_ref_baselines=(0, 3, 5))),
+                     tmp_path / "mixed")
     calibrate(plain.ref_ms, plain.target_ms, method="pwc,cfpt")
     calibrate(mixed.ref_ms, mixed.target_ms, method="pwc,cfpt")
     for name in ("PWC_DATA", "CFPT_DATA"):
@@ -153,8 +160,8 @@ def test_reordered_rows_and_swapped_antennas_give_the_same_answer(tmp_path):
     assert np.max(np.abs(wrap(out_phase(mixed.target_ms) - expected_pwc_phase(mixed)))) < 1e-5
 
 
-def test_flags_nans_and_zero_amplitudes(tmp_path):
-    truth = make_pair(tmp_path, n_time=300, seed=6, step_rad=0.08)
+def test_flags_nans_and_zero_amplitudes(new_pair):
+    truth = new_pair(PairSpec(n_time=300, seed=6, troposphere=Troposphere(step_rad=0.08)))
     n_row = truth.time.size
     rng = np.random.default_rng(1)
     with pt.table(str(truth.ref_ms), readonly=False, ack=False) as t:
@@ -197,8 +204,8 @@ def test_flags_nans_and_zero_amplitudes(tmp_path):
     assert np.array_equal(col(truth.target_ms, "FLAG_HITOPS_BACKUP"), before["FLAG"])
 
 
-def test_unmatched_rows_are_flagged_and_other_columns_untouched(tmp_path):
-    truth = make_pair(tmp_path, n_time=200, seed=7)
+def test_unmatched_rows_are_flagged_and_other_columns_untouched(new_pair):
+    truth = new_pair(PairSpec(n_time=200, seed=7))
     # move the reference rows of one baseline for the second half of the track a day
     # later, so the target rows there have no counterpart
     with pt.table(str(truth.ref_ms), readonly=False, ack=False) as t:
@@ -219,9 +226,9 @@ def test_unmatched_rows_are_flagged_and_other_columns_untouched(tmp_path):
         assert np.array_equal(col(truth.target_ms, c), value), c
 
 
-def test_antenna_map_pairs_differently_named_stations(tmp_path):
-    truth = make_pair(tmp_path, n_time=150, seed=8, ref_names=("AP", "JC", "PV", "GL"),
-                      target_names=("AP", "SM", "PV", "GL"))
+def test_antenna_map_pairs_differently_named_stations(new_pair):
+    truth = new_pair(PairSpec(n_time=150, seed=8, ref_names=("AP", "JC", "PV", "GL"),
+                              target_names=("AP", "SM", "PV", "GL")))
     # without the map SM is a station of the target band only: its baselines are left out
     report = calibrate(truth.ref_ms, truth.target_ms)
     sm_rows = (truth.ant1 == 1) | (truth.ant2 == 1)
@@ -234,20 +241,24 @@ def test_antenna_map_pairs_differently_named_stations(tmp_path):
     assert np.max(np.abs(wrap(out_phase(truth.target_ms) - expected_pwc_phase(truth)))) < 1e-5
 
 
-def test_scans_restart_wrap_counting(tmp_path):
-    truth = make_pair(tmp_path, n_time=600, n_scans=3, seed=9, drift_rad=0.08)
+#: three scans with a fast drift (the two tests below write into their own copies)
+THREE_SCANS = PairSpec(n_time=600, n_scans=3, seed=9, troposphere=Troposphere(drift_rad=0.08))
+
+
+def test_scans_restart_wrap_counting(new_pair, shared_pair):
+    truth = new_pair(THREE_SCANS)
     report = calibrate(truth.ref_ms, truth.target_ms)
     pwc = out_phase(truth.target_ms)
     assert np.max(np.abs(wrap(pwc - expected_pwc_phase(truth)))) < 1e-5
     # the per-scan restart matters: counting through the scans would give another answer
-    single_scan = make_pair(tmp_path / "one", n_time=600, n_scans=1, seed=9, drift_rad=0.08)
+    single_scan = shared_pair(replace(THREE_SCANS, n_scans=1))      # only its truth is read
     assert np.max(np.abs(wrap(expected_pwc_phase(single_scan) - expected_pwc_phase(truth)))) > 0.5
     assert report["rows"]["matched"] == truth.time.size
 
 
-def test_reported_wrap_events_are_the_wraps_inside_scans(tmp_path):
+def test_reported_wrap_events_are_the_wraps_inside_scans(new_pair):
     # the count restarts in every scan; those resets are not wraps and must not be reported
-    truth = make_pair(tmp_path, n_time=600, n_scans=3, seed=9, drift_rad=0.08)
+    truth = new_pair(THREE_SCANS)
     ref_wrapped = wrap(truth.ref_phase_true)
     expected = {}
     pairs = sorted(set(zip(truth.ant1.tolist(), truth.ant2.tolist())))
@@ -269,8 +280,9 @@ def test_reported_wrap_events_are_the_wraps_inside_scans(tmp_path):
             assert counts == expected[key].tolist(), (chunk_rows, key)
 
 
-def test_time_chunks_carry_the_wrap_count(tmp_path):
-    truth = make_pair(tmp_path, n_time=500, n_scans=2, seed=10, phase_offset_rad=1.0)
+def test_time_chunks_carry_the_wrap_count(new_pair):
+    truth = new_pair(PairSpec(n_time=500, n_scans=2, seed=10,
+                              troposphere=Troposphere(phase_offset_rad=1.0)))
     add_column(truth.target_ms, "CORRECTED_DATA", np.exp(1j * truth.source_phase))
     calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu",
               offset_reference_column="CORRECTED_DATA")
@@ -284,15 +296,17 @@ def test_time_chunks_carry_the_wrap_count(tmp_path):
 
 
 @pytest.mark.parametrize("order", ["baseline", "shuffled", "time"])
-def test_chunked_run_reads_at_most_chunk_rows_at_once(tmp_path, order):
+def test_chunked_run_reads_at_most_chunk_rows_at_once(new_pair, order):
     """Memory is bounded by --chunk-rows: no read (metadata or data) of either band holds
     more rows than one chunk, on baseline-major, shuffled and time-ordered tables, and the
     output is the one-chunk output.  The reads are the real dask-ms reads, counted."""
     from hitops.io.read import record_reads
 
-    truth = make_pair(tmp_path, n_time=300, n_scans=2, seed=21, phase_offset_rad=1.0,
-                      shuffle_ref=order == "shuffled", shuffle_target=order == "shuffled",
-                      time_order=order == "time")
+    truth = new_pair(PairSpec(n_time=300, n_scans=2, seed=21,
+                              troposphere=Troposphere(phase_offset_rad=1.0),
+                              storage=Storage(shuffle_ref=order == "shuffled",
+                                              shuffle_target=order == "shuffled",
+                                              time_order=order == "time")))
     if order == "time":   # the layout the test means to exercise
         with pt.table(str(truth.target_ms), ack=False) as t:
             assert np.all(np.diff(t.getcol("TIME")) >= 0)
@@ -326,8 +340,8 @@ def test_chunked_run_reads_at_most_chunk_rows_at_once(tmp_path, order):
     assert pick[0] == pick[1]
 
 
-def test_ref_model_column_removes_source_structure(tmp_path):
-    truth = make_pair(tmp_path, n_time=200, seed=12)
+def test_ref_model_column_removes_source_structure(new_pair):
+    truth = new_pair(PairSpec(n_time=200, seed=12))
     # give the reference band a known source phase and a model column holding it
     structure = np.random.default_rng(3).uniform(-2, 2, truth.ref_phase_true.shape)
     with pt.table(str(truth.ref_ms), readonly=False, ack=False) as t:
@@ -337,8 +351,8 @@ def test_ref_model_column_removes_source_structure(tmp_path):
     assert np.max(np.abs(wrap(out_phase(truth.target_ms) - expected_pwc_phase(truth)))) < 1e-4
 
 
-def test_report_and_log(tmp_path, caplog):
-    truth = make_pair(tmp_path, n_time=100, seed=13)
+def test_report_and_log(tmp_path, new_pair, caplog):
+    truth = new_pair(PairSpec(n_time=100, seed=13))
     with caplog.at_level("INFO", logger="hitops"):
         report = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt")
     text = caplog.text
@@ -352,10 +366,10 @@ def test_report_and_log(tmp_path, caplog):
 
 
 @pytest.mark.slow
-def test_distributed_local_cluster_gives_identical_output(tmp_path):
+def test_distributed_local_cluster_gives_identical_output(new_pair):
     from distributed import LocalCluster
 
-    truth = make_pair(tmp_path, n_time=300, seed=14, n_scans=2)
+    truth = new_pair(PairSpec(n_time=300, seed=14, n_scans=2))
     calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu")
     calibrate(truth.ref_ms, truth.target_ms, tracker="antenna", output_column="PWC_ANT")
     threads = {c: col(truth.target_ms, c)
@@ -378,7 +392,7 @@ def test_distributed_local_cluster_gives_identical_output(tmp_path):
 
 
 @pytest.mark.slow
-def test_command_line_with_a_cluster_creates_new_columns_first(tmp_path):
+def test_command_line_with_a_cluster_creates_new_columns_first(tmp_path, new_pair):
     """The command line in its own process, a cluster in this one, a target set without
     the output column: the scheduler and workers hold the table open from the reads,
     so the column must exist before they do (once, this run hung)."""
@@ -388,7 +402,7 @@ def test_command_line_with_a_cluster_creates_new_columns_first(tmp_path):
 
     from distributed import LocalCluster
 
-    truth = make_pair(tmp_path, n_time=200, seed=31, n_scans=2)
+    truth = new_pair(PairSpec(n_time=200, seed=31, n_scans=2))
     with pt.table(str(truth.target_ms), readonly=False, ack=False) as t:
         flag = t.getcol("FLAG")
         flag[::9, 0, 0] = True
@@ -429,11 +443,11 @@ def test_command_line_with_a_cluster_creates_new_columns_first(tmp_path):
     assert np.array_equal(got["FLAG"], flag)
 
 
-def test_cluster_run_that_fails_drops_the_columns_it_created(tmp_path, monkeypatch):
+def test_cluster_run_that_fails_drops_the_columns_it_created(new_pair, monkeypatch):
     import hitops.io.read as msio
     from distributed import LocalCluster
 
-    truth = make_pair(tmp_path, n_time=100, seed=32)
+    truth = new_pair(PairSpec(n_time=100, seed=32))
     before = {c: col(truth.target_ms, c) for c in ("DATA", "FLAG")}
 
     def failing(*args, **kwargs):
@@ -450,8 +464,8 @@ def test_cluster_run_that_fails_drops_the_columns_it_created(tmp_path, monkeypat
         assert np.array_equal(col(truth.target_ms, c), value), c
 
 
-def test_all_reference_flagged_flags_everything_without_failing(tmp_path):
-    truth = make_pair(tmp_path, n_time=50, seed=15)
+def test_all_reference_flagged_flags_everything_without_failing(new_pair):
+    truth = new_pair(PairSpec(n_time=50, seed=15))
     with pt.table(str(truth.ref_ms), readonly=False, ack=False) as t:
         t.putcol("FLAG", np.ones_like(t.getcol("FLAG")))
     add_column(truth.target_ms, "CORRECTED_DATA", np.exp(1j * truth.source_phase))
@@ -463,8 +477,8 @@ def test_all_reference_flagged_flags_everything_without_failing(tmp_path):
     assert all(e["samples"] == 0 and e["k"] == 0 for e in report["offset_step"]["series"])
 
 
-def test_one_sample_baseline_and_ratio_below_one(tmp_path):
-    truth = make_pair(tmp_path, n_time=60, seed=16, ratio=0.6)
+def test_one_sample_baseline_and_ratio_below_one(new_pair):
+    truth = new_pair(PairSpec(n_time=60, seed=16, ratio=0.6))
     # baseline AP-SM keeps one sample in the reference band; its other rows move away
     with pt.table(str(truth.ref_ms), readonly=False, ack=False) as t:
         a1, a2, tm = t.getcol("ANTENNA1"), t.getcol("ANTENNA2"), t.getcol("TIME")
@@ -515,8 +529,10 @@ def _two_channel_copy(src, dest, channel_gain=(1.0, 0.5), flag_second=None):
     return data, flag
 
 
-def test_average_channels(tmp_path):
-    truth = make_pair(tmp_path, n_time=100, seed=17, phase_offset_rad=1.3)
+def test_average_channels(tmp_path, shared_pair):
+    # the pair is only read: its two-channel copies are calibrated
+    truth = shared_pair(PairSpec(n_time=100, seed=17,
+                                 troposphere=Troposphere(phase_offset_rad=1.3)))
     ref2, tgt2 = tmp_path / "ref2.ms", tmp_path / "tgt2.ms"
     _two_channel_copy(truth.ref_ms, ref2, flag_second=np.arange(0, 600, 7))
     data, flag = _two_channel_copy(truth.target_ms, tgt2, flag_second=np.arange(3, 600, 5))
@@ -535,13 +551,13 @@ def test_average_channels(tmp_path):
 
 
 @pytest.mark.slow
-def test_command_line_run(tmp_path):
+def test_command_line_run(tmp_path, new_pair):
     import subprocess
     import sys
     from pathlib import Path
 
-    truth = make_pair(tmp_path, n_time=80, seed=18, ref_names=("AP", "JC", "PV", "GL"),
-                      target_names=("AP", "SM", "PV", "GL"))
+    truth = new_pair(PairSpec(n_time=80, seed=18, ref_names=("AP", "JC", "PV", "GL"),
+                              target_names=("AP", "SM", "PV", "GL")))
     hitops = Path(sys.executable).with_name("hitops")
     proc = subprocess.run([str(hitops), "calibrate", str(truth.ref_ms), str(truth.target_ms),
                            "--method", "pwc", "--antenna-map", "JC=SM", "--output-column",
@@ -556,10 +572,10 @@ def test_command_line_run(tmp_path):
     assert json.loads((tmp_path / "r.json").read_text())["columns"] == {"pwc": "FPT_PWC"}
 
 
-def test_failure_while_writing_rolls_back(tmp_path, monkeypatch):
+def test_failure_while_writing_rolls_back(new_pair, monkeypatch):
     import hitops.io.read as msio
 
-    truth = make_pair(tmp_path, n_time=120, seed=19)
+    truth = new_pair(PairSpec(n_time=120, seed=19))
     with pt.table(str(truth.target_ms), readonly=False, ack=False) as t:
         flag = t.getcol("FLAG")
         flag[::7, 0, 1] = True
@@ -588,11 +604,11 @@ def test_failure_while_writing_rolls_back(tmp_path, monkeypatch):
         assert np.array_equal(col(truth.target_ms, c), value), c
 
 
-def test_a_time_gap_inside_one_scan_restarts_the_count(tmp_path, caplog):
+def test_a_time_gap_inside_one_scan_restarts_the_count(new_pair, caplog):
     """SCAN_NUMBER says one scan (as after some UVFITS round trips), but no sample exists
     for two minutes: the count must restart after the gap, as it does at a new scan."""
-    truth = make_pair(tmp_path, n_time=400, n_scans=2, seed=12, drift_rad=0.08,
-                      phase_offset_rad=1.0)
+    truth = new_pair(PairSpec(n_time=400, n_scans=2, seed=12,
+                              troposphere=Troposphere(drift_rad=0.08, phase_offset_rad=1.0)))
     second = truth.scan == 2
     for ms in (truth.ref_ms, truth.target_ms):
         with pt.table(str(ms), readonly=False, ack=False) as t:
@@ -608,13 +624,13 @@ def test_a_time_gap_inside_one_scan_restarts_the_count(tmp_path, caplog):
     assert np.max(np.abs(wrap(out_phase(truth.target_ms) - expected_pwc_phase(truth)))) < 1e-5
 
 
-def test_cluster_rerun_with_overwrite_of_its_own_output(tmp_path):
+def test_cluster_rerun_with_overwrite_of_its_own_output(new_pair):
     """A column a cluster run created (through a staging column, renamed at the commit)
     keeps its data manager's name; a second cluster run with --overwrite stages the
     column again and must pick a data manager name that is free (it once collided)."""
     from distributed import LocalCluster
 
-    truth = make_pair(tmp_path, n_time=100, seed=33)
+    truth = new_pair(PairSpec(n_time=100, seed=33))
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
                       dashboard_address=None) as cluster:
         calibrate(truth.ref_ms, truth.target_ms, method="pwc", no_verdict=True,
@@ -627,7 +643,7 @@ def test_cluster_rerun_with_overwrite_of_its_own_output(tmp_path):
         assert not [c for c in t.colnames() if c.startswith("HITOPS_PARTIAL_")]
 
 
-def test_staging_columns_take_the_target_columns_storage(tmp_path):
+def test_staging_columns_take_the_target_columns_storage(new_pair):
     """The outputs are stored like the column they copy: tiled like DATA with its tiles
     when the chunks are written in time order, short tiles and a bounded cache when
     they are scattered over a table not in time order; StandardStMan otherwise."""
@@ -643,7 +659,7 @@ def test_staging_columns_take_the_target_columns_storage(tmp_path):
     assert spread["SPEC"]["MAXIMUMCACHESIZE"] == SCATTERED_CACHE_BYTES
     assert like_dminfo({"TYPE": "StandardStMan"}, "X")["TYPE"] == "StandardStMan"
     # a baseline-major pair cut into chunks: the output is tiled with short tiles
-    truth = make_pair(tmp_path, n_time=400, seed=5)
+    truth = new_pair(PairSpec(n_time=400, seed=5))
     report = calibrate(truth.ref_ms, truth.target_ms, method="pwc", chunk_rows=500)
     assert report["chunks"] > 2
     with pt.table(str(truth.target_ms), ack=False) as t:

@@ -14,7 +14,7 @@ import pytest
 from casacore import tables as pt
 
 from hitops.calibrate import calibrate
-from hitops.calibrate.synthetic import add_column, make_pair
+from hitops.testing import PairSpec, Storage, add_column
 from hitops.errors import (ColumnError, InputError, MeasurementSetError, OutputExistsError,
                            StationError)
 
@@ -32,8 +32,9 @@ def snapshot(*paths):
 
 
 @pytest.fixture(scope="module")
-def pair(tmp_path_factory):
-    return make_pair(tmp_path_factory.mktemp("errors"), n_time=50, seed=21)
+def pair(pair_store):
+    """The session's build, shared: every check below asserts that it is left unchanged."""
+    return pair_store.built(PairSpec(n_time=50, seed=21))
 
 
 def check(pair, error, match, **kwargs):
@@ -77,8 +78,8 @@ def test_bad_ratio_and_options(pair):
     check(pair, InputError, r"--tracker: unknown value 'nope'", tracker="nope")
 
 
-def test_existing_output_column_needs_overwrite(tmp_path):
-    truth = make_pair(tmp_path, n_time=40, seed=22)
+def test_existing_output_column_needs_overwrite(new_pair):
+    truth = new_pair(PairSpec(n_time=40, seed=22))
     add_column(truth.target_ms, "PWC_DATA", np.ones((truth.time.size, 2)))
     check(truth, OutputExistsError, r"column PWC_DATA already exists in .*target\.ms; pass --overwrite")
     calibrate(truth.ref_ms, truth.target_ms, overwrite=True)
@@ -86,16 +87,16 @@ def test_existing_output_column_needs_overwrite(tmp_path):
         assert not np.allclose(t.getcol("PWC_DATA"), 1)
 
 
-def test_no_station_in_common(tmp_path):
-    truth = make_pair(tmp_path, n_time=40, seed=23, ref_names=("AP", "JC", "PV", "GL"),
-                      target_names=("AA", "SM", "LM", "AZ"))
+def test_no_station_in_common(new_pair):
+    truth = new_pair(PairSpec(n_time=40, seed=23, ref_names=("AP", "JC", "PV", "GL"),
+                              target_names=("AA", "SM", "LM", "AZ")))
     check(truth, StationError,
           r"no baseline of .*target\.ms has both stations in .*ref\.ms .*--antenna-map REF=TARGET")
 
 
-def test_stations_with_one_code_far_apart(tmp_path):
+def test_stations_with_one_code_far_apart(new_pair):
     """Two stations that share a code but whose positions disagree are not paired."""
-    truth = make_pair(tmp_path, n_time=40, seed=23)
+    truth = new_pair(PairSpec(n_time=40, seed=23))
     with pt.table(f"{truth.ref_ms}::ANTENNA", readonly=False, ack=False) as t:
         pos = t.getcol("POSITION")
         pos[1] += [3000.0, 4000.0, 0.0]    # 5 km away
@@ -104,23 +105,23 @@ def test_stations_with_one_code_far_apart(tmp_path):
           r"a code but are 5\.0 km apart .*--antenna-map")
 
 
-def test_placeholder_names_without_station_codes(tmp_path):
-    truth = make_pair(tmp_path, n_time=40, seed=23)
+def test_placeholder_names_without_station_codes(new_pair):
+    truth = new_pair(PairSpec(n_time=40, seed=23))
     with pt.table(f"{truth.target_ms}::ANTENNA", readonly=False, ack=False) as t:
         t.putcol("NAME", ["1", "2", "3", "4"])
         t.putcol("STATION", ["AP", "", "PV", "GL"])
     check(truth, StationError, r"target-band .*antenna\(s\) 1 have no usable station name")
 
 
-def test_no_overlapping_times(tmp_path):
-    truth = make_pair(tmp_path, n_time=40, seed=24, ref_time_shift=3600.0)
+def test_no_overlapping_times(new_pair):
+    truth = new_pair(PairSpec(n_time=40, seed=24, storage=Storage(ref_time_shift=3600.0)))
     check(truth, MeasurementSetError, r"no row of .*target\.ms has a counterpart in .*ref\.ms at "
           r"the same time \(tolerance 0.5 s\)")
 
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf])
-def test_non_finite_time(tmp_path, bad):
-    truth = make_pair(tmp_path, n_time=40, seed=25)
+def test_non_finite_time(new_pair, bad):
+    truth = new_pair(PairSpec(n_time=40, seed=25))
     with pt.table(str(truth.ref_ms), readonly=False, ack=False) as t:
         time = t.getcol("TIME")
         time[17] = bad
@@ -139,10 +140,10 @@ def _add_subtable_row(ms, subtable):
                 pass
 
 
-def test_fields_that_cannot_be_told_apart(tmp_path):
+def test_fields_that_cannot_be_told_apart(new_pair):
     """Several groups are calibrated one by one (tests/test_calibrate_groups.py); two fields of
     one name are refused, since fields are paired between the bands by name."""
-    truth = make_pair(tmp_path, n_time=40, seed=25)
+    truth = new_pair(PairSpec(n_time=40, seed=25))
     _add_subtable_row(truth.ref_ms, "FIELD")
     with pt.table(str(truth.ref_ms), readonly=False, ack=False) as t:
         field = t.getcol("FIELD_ID")
@@ -157,10 +158,10 @@ def test_fields_that_cannot_be_told_apart(tmp_path):
           r"data;.*rename them")
 
 
-def test_channel_counts_that_disagree_are_refused(tmp_path):
+def test_channel_counts_that_disagree_are_refused(new_pair):
     # several channels are calibrated one ratio each (issue 26), but the window's tables must
     # agree: NUM_CHAN against CHAN_FREQ, then the DATA column against NUM_CHAN
-    truth = make_pair(tmp_path, n_time=40, seed=26)
+    truth = new_pair(PairSpec(n_time=40, seed=26))
     with pt.table(f"{truth.ref_ms}::SPECTRAL_WINDOW", readonly=False, ack=False) as t:
         t.putcol("NUM_CHAN", np.array([4], np.int32))
     check(truth, MeasurementSetError, r"reference-band .* spectral window 0 has NUM_CHAN 4 "
@@ -184,11 +185,11 @@ def test_cli_exit_status_and_message(pair, tmp_path):
 
 
 @pytest.mark.parametrize("chunk_rows", [0, 300])
-def test_two_rows_in_one_cell_are_refused_whole_or_chunked(tmp_path, chunk_rows):
+def test_two_rows_in_one_cell_are_refused_whole_or_chunked(new_pair, chunk_rows):
     """Two target rows of one baseline at one time are refused before anything is
     written, whether the run reads the set whole or checks it chunk by chunk from
     the index pass's pair keys (hitops/calibrate/band_index.py)."""
-    truth = make_pair(tmp_path, n_time=400, seed=2)
+    truth = new_pair(PairSpec(n_time=400, seed=2))
     late = 250   # a row of the first baseline (stored baseline by baseline), late in the track
     with pt.table(str(truth.target_ms), readonly=False, ack=False) as t:
         t.putcell("TIME", late, t.getcell("TIME", late - 1))

@@ -20,7 +20,7 @@ import pytest
 from casacore import tables as pt
 
 from hitops.calibrate import calibrate
-from hitops.calibrate.synthetic import make_pair
+from hitops.testing import PairSpec, Troposphere
 from hitops.errors import MeasurementSetError
 
 from ms_columns import col  # tests/ is on sys.path (rootdir-relative)
@@ -81,10 +81,12 @@ def _merge(parts, out: str, order) -> None:
 
 
 @pytest.fixture(scope="module")
-def merged(tmp_path_factory):
+def merged(tmp_path_factory, pair_store):
     root = tmp_path_factory.mktemp("groups")
-    truths = [make_pair(root / f"part{k}", n_ant=4, n_time=120, ratio=ratio, ref_freq_hz=freq,
-                        n_scans=2, seed=40 + k, phase_offset_rad=1.3)
+    # the parts are only read (merged into new sets): the session's builds themselves
+    truths = [pair_store.built(PairSpec(n_ant=4, n_time=120, ratio=ratio, ref_freq_hz=freq,
+                                        n_scans=2, seed=40 + k,
+                                        troposphere=Troposphere(phase_offset_rad=1.3)))
               for k, (_, freq, ratio) in enumerate(GROUPS)]
     ref, tgt = str(root / "ref.ms"), str(root / "target.ms")
     _merge([str(t.ref_ms) for t in truths], ref, [0, 1, 2, 3])
@@ -156,12 +158,12 @@ def test_window_counts_that_cannot_pair_are_refused(merged, tmp_path):
     assert json.dumps(sorted(pt.table(tgt, ack=False).colnames())) == before
 
 
-def test_one_group_of_a_set_with_two_field_rows_in_several_chunks(tmp_path):
+def test_one_group_of_a_set_with_two_field_rows_in_several_chunks(tmp_path, new_pair):
     """A set whose FIELD table has two rows but whose rows all use the second (a split
     that kept the FIELD table) is one group; cut into chunks and sorted by TIME it is
     reopened under the same group key (the reopen once dropped the grouping and asked
     for field 0) and gives what the plain set gives."""
-    truth = make_pair(tmp_path / "plain", n_ant=4, n_time=600, seed=3)
+    truth = new_pair(PairSpec(n_ant=4, n_time=600, seed=3), tmp_path / "plain")
     ref, tgt = str(tmp_path / "ref.ms"), str(tmp_path / "tgt.ms")
     shutil.copytree(truth.ref_ms, ref)
     shutil.copytree(truth.target_ms, tgt)

@@ -9,7 +9,7 @@ import pytest
 
 from hitops.calibrate import calibrate
 from hitops.calibrate.memory import bytes_per_row, parse_budget, rows_for_budget
-from hitops.calibrate.synthetic import make_pair
+from hitops.testing import PairSpec, Troposphere
 from hitops.errors import InputError
 
 from ms_columns import col  # tests/ is on sys.path (rootdir-relative)
@@ -29,8 +29,9 @@ def test_budget_sizes_and_refusals():
     assert rows_for_budget(10 ** 9, 10 ** 7, 4, 1, 1) < rows_for_budget(10 ** 9, 10 ** 6, 4, 1, 1)
 
 
-def test_a_small_budget_chunks_the_run_and_changes_nothing(tmp_path):
-    truth = make_pair(tmp_path, n_ant=6, n_time=4000, n_scans=2, seed=8, phase_offset_rad=1.0)
+def test_a_small_budget_chunks_the_run_and_changes_nothing(tmp_path, new_pair):
+    truth = new_pair(PairSpec(n_ant=6, n_time=4000, n_scans=2, seed=8,
+                              troposphere=Troposphere(phase_offset_rad=1.0)))
     other = tmp_path / "copy.ms"
     shutil.copytree(truth.target_ms, other)
     whole = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt")

@@ -1,7 +1,7 @@
 """hitops calibrate with the robust trackers (issue 6 part B): --tracker smooth|antenna.
 
-Each test builds a small Measurement Set pair with a known troposphere
-(hitops.calibrate.synthetic.make_pair), corrupts the reference band (noise,
+Each test takes a copy of a small Measurement Set pair with a known troposphere
+(hitops.testing.make_pair; the ``new_pair`` fixture), corrupts the reference band (noise,
 gaps, a late station, an instrumental jump) and checks that calibrate's
 wrap counts, confidence numbers and flags come back as the truth says.
 
@@ -13,7 +13,7 @@ e is recovered modulo 43 (eps = 29/43), which is plenty for steps of +-1.
 The antenna tracker transfers each baseline's antenna model R (A_p - A_q)
 instead of the baseline's own reference phase, so its output keeps the target's
 closure phases and carries R times the reference band's non-closing part
-(``truth.extra["ref_offset"]``) and the antenna model's noise; its count
+(``truth.ref_offset``) and the antenna model's noise; its count
 errors are read off the output with that part removed (:func:`antenna_residual`)
 and its slips as persistent steps of the smoothed residual
 (:func:`antenna_slips`).
@@ -23,16 +23,17 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from casacore import tables as pt
 
 from hitops.calibrate import calibrate
-from hitops.calibrate.synthetic import make_pair, wrap
+from hitops.testing import PairSpec, Signal, Troposphere, add_column, wrap
 from hitops.errors import InputError, StationError
 from hitops.tracking.antenna_kernel import closure_phases
-from hitops.tracking.slips import count_slips
+from hitops.testing.slips import count_slips
 from ms_columns import col, put  # tests/ is on sys.path (rootdir-relative)
 
 EPS = 230.0 / 86.0 - 2
@@ -65,7 +66,7 @@ def count_error(truth, out):
 
 def antenna_residual(truth, out):
     """arg(out) - (source + R ref_offset): 2 pi eps (k_p - k_q) plus the model's noise."""
-    ideal = truth.source_phase + truth.ratio * truth.extra["ref_offset"]
+    ideal = truth.source_phase + truth.ratio * truth.ref_offset
     return wrap(np.angle(out[:, 0, :]) - ideal)
 
 
@@ -112,11 +113,10 @@ def slips(truth, out, valid=None):
     return total
 
 
-def noisy_pair(path, **kw):
-    # rho = 1.1 / 0.55 = 2 per sample: naive tracking fails ~1 step in 300
-    args = dict(n_ant=4, n_time=1500, sigma_ref=0.55, step_rad=0.1, drift_rad=0.03, seed=3)
-    args.update(kw)
-    return make_pair(path, **args)
+#: rho = 1.1 / 0.55 = 2 per sample: naive tracking fails ~1 step in 300
+NOISY = PairSpec(n_ant=4, n_time=1500, seed=3,
+                 troposphere=Troposphere(step_rad=0.1, drift_rad=0.03),
+                 signal=Signal(sigma_ref=0.55))
 
 
 def run(truth, column="OUT", **kw):
@@ -124,8 +124,8 @@ def run(truth, column="OUT", **kw):
     return col(truth.target_ms, column), rep
 
 
-def test_smooth_removes_the_slips_of_naive_counting_at_snr_2(tmp_path):
-    truth = noisy_pair(tmp_path)
+def test_smooth_removes_the_slips_of_naive_counting_at_snr_2(new_pair):
+    truth = new_pair(NOISY)
     naive, _ = run(truth, tracker="count")
     smooth, rep = run(truth, tracker="smooth")
     antenna, rep_ant = run(truth, tracker="antenna")
@@ -141,8 +141,8 @@ def test_smooth_removes_the_slips_of_naive_counting_at_snr_2(tmp_path):
     assert {a["antenna"] for a in rep_ant["tracking"]["antennas"]} == {"AP", "SM", "PV", "GL"}
 
 
-def test_per_sample_windows_from_sigma(tmp_path):
-    truth = noisy_pair(tmp_path, n_time=800)
+def test_per_sample_windows_from_sigma(new_pair):
+    truth = new_pair(replace(NOISY, n_time=800))
     sigma = np.full(col(truth.ref_ms, "SIGMA").shape, 0.55, np.float32)
     put(truth.ref_ms, "SIGMA", sigma)
     out, rep = run(truth, tracker="smooth")
@@ -158,8 +158,8 @@ def test_per_sample_windows_from_sigma(tmp_path):
 
 
 @pytest.mark.parametrize("tracker", ["smooth", "antenna"])
-def test_chunked_and_unchunked_outputs_agree(tmp_path, tracker):
-    truth = noisy_pair(tmp_path, n_time=900, n_scans=2)
+def test_chunked_and_unchunked_outputs_agree(new_pair, tracker):
+    truth = new_pair(replace(NOISY, n_time=900, n_scans=2))
     # a bridged gap, then a long gap that starts a new segment
     flag_first_baseline(truth, (100, 110), (200, 300))
     whole, rep_whole = run(truth, tracker=tracker)
@@ -175,11 +175,11 @@ def test_chunked_and_unchunked_outputs_agree(tmp_path, tracker):
     assert a == b
 
 
-def test_gaps_are_bridged_or_start_reported_segments(tmp_path, caplog):
+def test_gaps_are_bridged_or_start_reported_segments(new_pair, caplog):
     # a reference band without non-closing phases: with 3 stations the antenna solve fits
     # them differently while one baseline is missing, which is not what is tested here
-    truth = make_pair(tmp_path, n_ant=3, n_time=600, step_rad=0.1, corr_types=("RR",), seed=5,
-                      ref_offset_scale=0.0)
+    truth = new_pair(PairSpec(n_ant=3, n_time=600, corr_types=("RR",), seed=5,
+                              troposphere=Troposphere(step_rad=0.1, ref_offset_scale=0.0)))
     # 8 samples (< max_gap), then 100 samples (> max_gap)
     t_idx, first_bl = flag_first_baseline(truth, (100, 108), (300, 400))
     with caplog.at_level("INFO", logger="hitops"):
@@ -201,9 +201,10 @@ def test_gaps_are_bridged_or_start_reported_segments(tmp_path, caplog):
         assert np.unique(e_ant[sel, 0]).size == 1
 
 
-def _late_station_pair(path):
-    truth = make_pair(path, n_ant=4, n_time=700, step_rad=0.12, drift_rad=0.06, seed=11,
-                      corr_types=("RR", "LL"), phase_offset_rad=1.0)
+def _late_station_pair(new_pair):
+    truth = new_pair(PairSpec(n_ant=4, n_time=700, seed=11, corr_types=("RR", "LL"),
+                              troposphere=Troposphere(step_rad=0.12, drift_rad=0.06,
+                                                      phase_offset_rad=1.0)))
     flag = col(truth.ref_ms, "FLAG")
     t_idx = np.rint(truth.time - truth.time.min()).astype(int)
     late = ((truth.ant1 == 3) | (truth.ant2 == 3)) & (t_idx < 250)
@@ -230,9 +231,9 @@ def _closures(truth, out, flag):
     return closure_phases(phase, valid, a1, a2, triangles)
 
 
-def test_antenna_mode_closes_where_baseline_mode_carries_2pi_eps_k(tmp_path):
+def test_antenna_mode_closes_where_baseline_mode_carries_2pi_eps_k(new_pair):
     """A station joining late: baseline PWC starts its baselines at n0 = 0, antenna PWC does not."""
-    truth = _late_station_pair(tmp_path)
+    truth = _late_station_pair(new_pair)
     base, _ = run(truth, column="PWC_BL", tracker="count")
     flag = col(truth.target_ms, "FLAG")
     ant, rep = run(truth, column="PWC_ANT", tracker="antenna", refant="PV")
@@ -253,12 +254,12 @@ def test_antenna_mode_closes_where_baseline_mode_carries_2pi_eps_k(tmp_path):
     assert rep["tracking"]["setup"]["refants"] == [2]
 
 
-def test_antenna_mode_through_the_command_line(tmp_path):
+def test_antenna_mode_through_the_command_line(new_pair):
     import subprocess
     import sys
     from pathlib import Path
 
-    truth = _late_station_pair(tmp_path)
+    truth = _late_station_pair(new_pair)
     hitops = Path(sys.executable).with_name("hitops")
     proc = subprocess.run([str(hitops), "calibrate", str(truth.ref_ms), str(truth.target_ms),
                            "--tracker", "antenna", "--refant", "PV,PB", "--coherence-time", "25",
@@ -280,11 +281,12 @@ def test_antenna_mode_through_the_command_line(tmp_path):
     assert np.max(np.abs(wrap(closure[ok] - closure_target[ok]))) < 1e-6
 
 
-def _jump_pair(path):
+def _jump_pair(new_pair):
     # slow drifts: the jump statistic compares window means jump_window samples apart,
     # so it measures the jump plus the phase trend over that distance
-    truth = make_pair(path, n_ant=3, n_time=600, step_rad=0.05, drift_rad=0.005,
-                      corr_types=("RR",), seed=7, sigma_ref=0.1)
+    truth = new_pair(PairSpec(n_ant=3, n_time=600, corr_types=("RR",), seed=7,
+                              troposphere=Troposphere(step_rad=0.05, drift_rad=0.005),
+                              signal=Signal(sigma_ref=0.1)))
     data = col(truth.ref_ms, "DATA")
     t_idx = np.rint(truth.time - truth.time.min()).astype(int)
     # an instrumental 2.5 rad jump of station PV (index 2) at the reference band only
@@ -295,8 +297,8 @@ def _jump_pair(path):
 
 
 @pytest.mark.parametrize("tracker", ["smooth", "antenna"])
-def test_jumps_are_reported_with_times_and_flagged_on_request(tmp_path, tracker):
-    truth, t_idx, with_pv = _jump_pair(tmp_path)
+def test_jumps_are_reported_with_times_and_flagged_on_request(new_pair, tracker):
+    truth, t_idx, with_pv = _jump_pair(new_pair)
     flag_before = col(truth.target_ms, "FLAG").copy()
     _, rep = run(truth, tracker=tracker, jump_threshold=90.0, jump_window=5, coherence_time=60.0)
     rows = rep["tracking"]["antennas"] if tracker == "antenna" else rep["tracking"]["baselines"]
@@ -330,8 +332,8 @@ def test_jumps_are_reported_with_times_and_flagged_on_request(tmp_path, tracker)
     assert rep_chunked["samples"]["jump_flagged"] == rep["samples"]["jump_flagged"]
 
 
-def test_count_tracker_is_the_default_and_warns_about_robust_options(tmp_path, caplog):
-    truth = make_pair(tmp_path, n_time=60, corr_types=("RR",))
+def test_count_tracker_is_the_default_and_warns_about_robust_options(new_pair, caplog):
+    truth = new_pair(PairSpec(n_time=60, corr_types=("RR",)))
     with caplog.at_level("WARNING", logger="hitops"):
         _, rep = run(truth, half_window=4)
     assert rep["tracker"] == "count" and "--tracker count ignores --half-window" in caplog.text
@@ -351,8 +353,8 @@ def test_count_tracker_is_the_default_and_warns_about_robust_options(tmp_path, c
     ({"tracker": "antenna", "solve_half_window": -3}, "--solve-half-window"),
     ({"tracker": "antenna", "refant": "XX"}, "--refant"),
 ])
-def test_bad_tracking_options_leave_the_ms_unchanged(tmp_path, kwargs, match):
-    truth = make_pair(tmp_path, n_time=40, corr_types=("RR",))
+def test_bad_tracking_options_leave_the_ms_unchanged(new_pair, kwargs, match):
+    truth = new_pair(PairSpec(n_time=40, corr_types=("RR",)))
     with pt.table(str(truth.target_ms), ack=False) as t:
         before = (sorted(t.colnames()), t.getcol("FLAG").copy())
     error = StationError if "refant" in kwargs else InputError
@@ -364,8 +366,8 @@ def test_bad_tracking_options_leave_the_ms_unchanged(tmp_path, kwargs, match):
     assert not (truth.target_ms.parent / (truth.target_ms.name + ".hitops-calibrate.json")).exists()
 
 
-def test_extreme_cases_one_sample_fully_flagged_and_cross_hands(tmp_path):
-    truth = make_pair(tmp_path, n_ant=3, n_time=50, corr_types=("RR", "RL", "LR", "LL"), seed=2)
+def test_extreme_cases_one_sample_fully_flagged_and_cross_hands(new_pair):
+    truth = new_pair(PairSpec(n_ant=3, n_time=50, corr_types=("RR", "RL", "LR", "LL"), seed=2))
     flag = col(truth.ref_ms, "FLAG")
     t_idx = np.rint(truth.time - truth.time.min()).astype(int)
     flag[(truth.ant1 == 0) & (truth.ant2 == 1)] = True                          # fully flagged
@@ -385,7 +387,7 @@ def test_extreme_cases_one_sample_fully_flagged_and_cross_hands(tmp_path):
         assert np.unique(e[sel, 0]).size == 1 and np.unique(e[sel, 3]).size == 1
 
 
-def test_station_elevations_from_the_ms_geometry(tmp_path):
+def test_station_elevations_from_the_ms_geometry(tmp_path, shared_pair):
     """sin(el) from ANTENNA positions and FIELD direction matches the simulator's truth."""
     from hitops.geometry import station_sin_elevation
     from hitops.simulate.api import simulate
@@ -396,12 +398,13 @@ def test_station_elevations_from_the_ms_geometry(tmp_path):
     sin_el = station_sin_elevation(str(out["230"]), truth["time"])
     # precession (~0.3 deg since J2000) is ignored: agreement to ~0.01 in sin(el)
     assert np.max(np.abs(sin_el - np.sin(truth["elevation"]))) < 0.01
-    fake = make_pair(tmp_path, n_time=10, corr_types=("RR",))       # positions off the Earth
+    fake = shared_pair(PairSpec(n_time=10, corr_types=("RR",)))     # positions off the Earth
     assert station_sin_elevation(str(fake.target_ms), np.array([5.1e9])) is None
 
 
-def test_fixed_window_max_gap_and_elevation_scaling_options(tmp_path):
-    truth = make_pair(tmp_path, n_ant=3, n_time=300, step_rad=0.1, corr_types=("RR",), seed=5)
+def test_fixed_window_max_gap_and_elevation_scaling_options(tmp_path, new_pair):
+    truth = new_pair(PairSpec(n_ant=3, n_time=300, corr_types=("RR",), seed=5,
+                              troposphere=Troposphere(step_rad=0.1)))
     flag_first_baseline(truth, (100, 108))
     _, rep = run(truth, tracker="smooth", half_window=3, max_gap=5)
     setup = rep["tracking"]["setup"]
@@ -421,12 +424,11 @@ def test_fixed_window_max_gap_and_elevation_scaling_options(tmp_path):
     assert rep["tracking"]["setup"]["snr_source"] == "sigma"     # the simulator writes SIGMA
 
 
-def test_offset_step_per_segment_resolves_a_long_gap(tmp_path, caplog):
+def test_offset_step_per_segment_resolves_a_long_gap(new_pair, caplog):
     """A 300-sample gap: the smooth tracker's best guess across it is wrong (seed 21,
     by one wrap); with a reference column the n0 step runs per segment and fixes it."""
-    from hitops.calibrate.synthetic import add_column
-
-    truth = make_pair(tmp_path, n_ant=3, n_time=900, step_rad=0.15, corr_types=("RR",), seed=21)
+    truth = new_pair(PairSpec(n_ant=3, n_time=900, corr_types=("RR",), seed=21,
+                              troposphere=Troposphere(step_rad=0.15)))
     _, first_bl = flag_first_baseline(truth, (300, 600))
     out, rep = run(truth, tracker="smooth")
     valid = col(truth.target_ms, "FLAG")[:, 0, 0] == 0

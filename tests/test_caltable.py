@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hitops.calibrate.synthetic import make_pair
+from hitops.testing import PairSpec
 from hitops.errors import InputError, OutputExistsError
 from hitops.io.caltable import write_gain_table
 
@@ -35,10 +35,10 @@ def _applycal(ms, table, interp="linear"):
 
 
 @pytest.fixture()
-def pair(tmp_path):
+def pair(new_pair):
     # two scans, all four correlations, baselines stored in both antenna orders
-    return make_pair(tmp_path, n_ant=4, n_time=40, dt=2.0, n_scans=2,
-                     corr_types=("RR", "RL", "LR", "LL"))
+    return new_pair(PairSpec(n_ant=4, n_time=40, dt=2.0, n_scans=2,
+                             corr_types=("RR", "RL", "LR", "LL")))
 
 
 def test_layout_is_casa_gaincal_layout(pair, tmp_path):
@@ -112,10 +112,10 @@ def test_applycal_removes_the_antenna_phases_and_flags_what_it_should(pair, tmp_
     np.testing.assert_allclose(np.abs(corrected[ok]), np.abs(expected[ok]), rtol=1e-6)
 
 
-def test_single_hand_and_nearest_interpolation(tmp_path):
+def test_single_hand_and_nearest_interpolation(tmp_path, new_pair):
     from casacore import tables as pt
 
-    truth = make_pair(tmp_path, n_ant=3, n_time=12, corr_types=("RR",))
+    truth = new_pair(PairSpec(n_ant=3, n_time=12, corr_types=("RR",)))
     times = _times(truth.target_ms)
     phase = np.random.default_rng(5).uniform(-np.pi, np.pi, (times.size, 3, 1))
     table = write_gain_table(tmp_path / "rr.G", truth.target_ms, times, phase, None, ["RR"])

@@ -18,7 +18,7 @@ import pytest
 from casacore import tables as pt
 
 from hitops.calibrate import calibrate
-from hitops.calibrate.synthetic import make_pair
+from hitops.testing import PairSpec, Troposphere
 from hitops.errors import InputError
 from ms_columns import col  # tests/ is on sys.path (rootdir-relative)
 
@@ -37,11 +37,12 @@ def applycal(ms, table):
 
 
 @pytest.mark.parametrize("offset_model", [None, "point"])
-def test_applycal_of_the_table_equals_the_pwc_column(tmp_path, offset_model):
+def test_applycal_of_the_table_equals_the_pwc_column(tmp_path, new_pair, offset_model):
     # a point source at the reference band (closing phases) whose stations start at
     # different wrap counts, so the offset step has integers to find
-    truth = make_pair(tmp_path, n_ant=4, n_time=300, n_scans=2, seed=7, phase_offset_rad=1.0,
-                      corr_types=("RR", "RL", "LR", "LL"), ref_offset_scale=0.0)
+    truth = new_pair(PairSpec(n_ant=4, n_time=300, n_scans=2, seed=7,
+                              corr_types=("RR", "RL", "LR", "LL"),
+                              troposphere=Troposphere(phase_offset_rad=1.0, ref_offset_scale=0.0)))
     table = tmp_path / "fpt.G"
     report = calibrate(truth.ref_ms, truth.target_ms, tracker="antenna", caltable=str(table),
                        offset_model=offset_model, no_verdict=True)
@@ -62,8 +63,8 @@ def test_applycal_of_the_table_equals_the_pwc_column(tmp_path, offset_model):
         assert any(ks)                     # the integers were not all zero: they were applied
 
 
-def test_a_table_needs_the_antenna_tracker(tmp_path):
-    truth = make_pair(tmp_path, n_time=40, seed=3)
+def test_a_table_needs_the_antenna_tracker(tmp_path, new_pair):
+    truth = new_pair(PairSpec(n_time=40, seed=3))
     with pytest.raises(InputError, match="--caltable .* needs --tracker antenna"):
         calibrate(truth.ref_ms, truth.target_ms, tracker="count", caltable=str(tmp_path / "t.G"))
     with pt.table(str(truth.target_ms), ack=False) as t:
@@ -71,14 +72,14 @@ def test_a_table_needs_the_antenna_tracker(tmp_path):
     assert not (tmp_path / "t.G").exists()
 
 
-def test_calibrate_leaves_no_table_open_for_casa_to_invalidate(tmp_path):
+def test_calibrate_leaves_no_table_open_for_casa_to_invalidate(tmp_path, new_pair):
     """After calibrate returns, CASA (its own casacore) may add a column to the set and
     this process must still read it: calibrate closes the table handles dask-ms held
     (automatic garbage collection is switched off here, so only that close can help)."""
     import gc
 
-    truth = make_pair(tmp_path, n_time=100, seed=7, corr_types=("RR", "RL", "LR", "LL"),
-                      ref_offset_scale=0.0)
+    truth = new_pair(PairSpec(n_time=100, seed=7, corr_types=("RR", "RL", "LR", "LL"),
+                              troposphere=Troposphere(ref_offset_scale=0.0)))
     table = tmp_path / "fpt.G"
     gc.disable()
     try:

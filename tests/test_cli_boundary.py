@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from casacore import tables as pt
 
-from hitops.calibrate.synthetic import make_pair
+from hitops.testing import PairSpec
 
 HITOPS = Path(sys.executable).with_name("hitops")
 pytestmark = pytest.mark.slow
@@ -60,8 +60,9 @@ def refused(args, culprit, inputs=(), code=None, cwd=None):
 
 
 @pytest.fixture(scope="module")
-def pair(tmp_path_factory):
-    return make_pair(tmp_path_factory.mktemp("walk"), n_time=60, seed=5)
+def pair(pair_store):
+    """The session's build, shared: every refusal below checks it is left unchanged."""
+    return pair_store.built(PairSpec(n_time=60, seed=5))
 
 
 @pytest.fixture
@@ -231,11 +232,11 @@ def _size(path: Path) -> int:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
 
 
-def test_full_disk_is_refused_before_writing(tmp_path):
+def test_full_disk_is_refused_before_writing(tmp_path, shared_pair):
     """On a file system with room for the pair but not for three new columns: refused
     before anything is written (a write that runs out of space can abort casacore)."""
-    truth = make_pair(tmp_path / "src", n_time=1500, n_ant=4,
-                      corr_types=("RR", "RL", "LR", "LL"), seed=9)
+    # only read: copied onto the small file system below
+    truth = shared_pair(PairSpec(n_time=1500, n_ant=4, corr_types=("RR", "RL", "LR", "LL"), seed=9))
     pair_bytes = _size(truth.ref_ms) + _size(truth.target_ms)
     new_bytes = truth.time.size * 4 * (8 * 3 + 2)
     mnt = tmp_path / "small"

@@ -18,6 +18,7 @@ from casacore import tables as pt
 
 from hitops import cluster
 from hitops.errors import InputError
+from hitops.testing import PairSpec
 
 
 @pytest.mark.parametrize("text, expected", [
@@ -122,13 +123,12 @@ def test_slurm_without_sbatch_is_one_clear_error(monkeypatch):
 
 
 @pytest.mark.slow
-def test_calibrate_with_scheduler_slurm_matches_threads(tmp_path, monkeypatch):
+def test_calibrate_with_scheduler_slurm_matches_threads(tmp_path, new_pair, monkeypatch):
     """hitops calibrate --scheduler slurm:2 through the stand-in: the api.py hook runs
     the transfer on the cluster's workers and writes the threaded run's output."""
     from hitops.calibrate import calibrate
-    from hitops.calibrate.synthetic import make_pair
 
-    truth = make_pair(tmp_path, n_time=120, seed=41, n_scans=2)
+    truth = new_pair(PairSpec(n_time=120, seed=41, n_scans=2))
     copy = tmp_path / "copy"
     copy.mkdir()
     shutil.copytree(truth.ref_ms, copy / "ref.ms")
@@ -143,16 +143,15 @@ def test_calibrate_with_scheduler_slurm_matches_threads(tmp_path, monkeypatch):
             assert np.array_equal(a.getcol(c), b.getcol(c)), c
 
 
-def test_a_default_client_of_the_caller_gets_no_work_without_scheduler(tmp_path):
+def test_a_default_client_of_the_caller_gets_no_work_without_scheduler(tmp_path, new_pair):
     """A Python caller with a dask.distributed Client as the default scheduler: a run
     without --scheduler keeps every read (dask-ms's own included) on its own threads,
     and its output is that of a run without the client."""
     from distributed import Client, LocalCluster
 
     from hitops.calibrate import calibrate
-    from hitops.calibrate.synthetic import make_pair
 
-    truth = make_pair(tmp_path, n_time=120, seed=43, n_scans=2)
+    truth = new_pair(PairSpec(n_time=120, seed=43, n_scans=2))
     copy = tmp_path / "copy"
     copy.mkdir()
     shutil.copytree(truth.ref_ms, copy / "ref.ms")

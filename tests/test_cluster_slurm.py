@@ -20,6 +20,8 @@ import numpy as np
 import pytest
 from casacore import tables as pt
 
+from hitops.testing import PairSpec
+
 ROOT = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).parent
 SLURM_LOCAL = ROOT / "scripts" / "slurm-local.sh"
@@ -55,12 +57,11 @@ def test_stimela_step_runs_through_a_real_srun(tmp_path):
     assert (out / "sim-86.ms").is_dir() and (out / "sim-230.ms").is_dir()
 
 
-def test_calibrate_scheduler_slurm_matches_threads(tmp_path):
+def test_calibrate_scheduler_slurm_matches_threads(tmp_path, new_pair):
     pytest.importorskip("dask_jobqueue", reason="dask-jobqueue missing: pip install 'hitops[hpc]'")
     from hitops.calibrate import calibrate
-    from hitops.calibrate.synthetic import make_pair
 
-    truth = make_pair(tmp_path, n_time=200, seed=43, n_scans=2)
+    truth = new_pair(PairSpec(n_time=200, seed=43, n_scans=2))
     work = tmp_path / "slurm"
     work.mkdir()
     for ms in (truth.ref_ms, truth.target_ms):

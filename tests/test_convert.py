@@ -26,13 +26,13 @@ import numpy as np
 import pytest
 
 from hitops.calibrate import calibrate, rules
-from hitops.calibrate.synthetic import make_pair
+from hitops.testing import PairSpec, Signal
 from hitops.errors import InputError, OutputExistsError, StationError
 from hitops.io import convert
 from hitops.io.fits import bintable as _bintable, card as _card, read_headers
 from hitops.io.uvfits import export_uvfits
 
-REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "eht2017-m87"
+REALDATA = Path(__file__).resolve().parent / "data" / "eht2017-m87"   # in every checkout
 EHT_LO = REALDATA / "SR1_M87_2017_095_lo_hops_netcal_StokesI.uvfits"
 EHT_HI = REALDATA / "SR1_M87_2017_095_hi_hops_netcal_StokesI.uvfits"
 
@@ -125,11 +125,12 @@ def test_detect_format(demo, tmp_path):
         convert.detect_format(text, "REF")
 
 
-def _hitops_written(tmp_path):
+def _hitops_written(tmp_path, new_pair):
     from casacore import tables as pt
 
-    truth = make_pair(tmp_path, n_ant=4, n_time=40, dt=2.0, n_scans=2,
-                      corr_types=("RR", "RL", "LR", "LL"), sigma_target=0.2)
+    truth = new_pair(PairSpec(n_ant=4, n_time=40, dt=2.0, n_scans=2,
+                              corr_types=("RR", "RL", "LR", "LL"),
+                              signal=Signal(sigma_target=0.2)))
     with pt.table(str(truth.target_ms), readonly=False, ack=False) as t:
         flag = t.getcol("FLAG")
         flag[::7, 0, 1] = True
@@ -141,11 +142,11 @@ def _hitops_written(tmp_path):
 
 
 @pytest.mark.parametrize("writer", ["casa-exportuvfits", "hitops", "eht-public"])
-def test_direct_reader_equals_casa_importuvfits(writer, demo, tmp_path):
+def test_direct_reader_equals_casa_importuvfits(writer, demo, tmp_path, new_pair):
     if writer == "casa-exportuvfits":
         source = demo[2]["230"]
     elif writer == "hitops":
-        source = _hitops_written(tmp_path)
+        source = _hitops_written(tmp_path, new_pair)
     else:
         if not EHT_LO.exists():
             pytest.skip(f"{EHT_LO} not present")
@@ -300,9 +301,9 @@ def test_bad_uvfits_one_line_and_inputs_unchanged(case, demo, tmp_path):
     assert not list(tmp_path.glob("w/*partial*"))
 
 
-def test_stations_unknown_to_the_other_band(tmp_path, caplog):
+def test_stations_unknown_to_the_other_band(tmp_path, new_pair, caplog):
     # no station in common: nothing can be calibrated, one line naming both converted sets
-    truth = make_pair(tmp_path, n_ant=3, n_time=30, target_names=["XA", "XB", "XC"])
+    truth = new_pair(PairSpec(n_ant=3, n_time=30, target_names=["XA", "XB", "XC"]))
     ref, tgt = tmp_path / "ref.uvfits", tmp_path / "tgt.uvfits"
     export_uvfits(truth.ref_ms, ref, "DATA")
     export_uvfits(truth.target_ms, tgt, "DATA")
@@ -313,7 +314,8 @@ def test_stations_unknown_to_the_other_band(tmp_path, caplog):
     assert "\n" not in str(err.value)
     assert digest(ref, tgt) == before
     # one station unknown: calibrate's policy is a warning naming it, its baselines flagged
-    part = make_pair(tmp_path / "p", n_ant=4, n_time=30, target_names=["AP", "SM", "PV", "XX"])
+    part = new_pair(PairSpec(n_ant=4, n_time=30, target_names=["AP", "SM", "PV", "XX"]),
+                    tmp_path / "p")
     export_uvfits(part.ref_ms, tmp_path / "p" / "ref.uvfits", "DATA")
     export_uvfits(part.target_ms, tmp_path / "p" / "tgt.uvfits", "DATA")
     rep = calibrate(tmp_path / "p" / "ref.uvfits", tmp_path / "p" / "tgt.uvfits", no_verdict=True)

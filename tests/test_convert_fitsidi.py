@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from hitops.calibrate import calibrate
-from hitops.calibrate.synthetic import expected_pwc_phase, make_pair, wrap
+from hitops.testing import PairSpec, Storage, expected_pwc_phase, wrap
 from hitops.errors import InputError
 from hitops.io import convert
 from hitops.io.fits import bintable as _bintable, card as _card, gst0_deg as _gst0_deg
@@ -109,10 +109,10 @@ def write_fitsidi(path, ms, n_band=1):
     return path
 
 
-def test_a_fitsidi_pair_comes_back_as_the_truth(tmp_path):
+def test_a_fitsidi_pair_comes_back_as_the_truth(tmp_path, shared_pair):
     from casacore import tables as pt
 
-    truth = make_pair(tmp_path, n_ant=4, n_time=200, seed=5, time_order=True)
+    truth = shared_pair(PairSpec(n_ant=4, n_time=200, seed=5, storage=Storage(time_order=True)))
     ref = write_fitsidi(tmp_path / "ref.idi", truth.ref_ms)
     tgt = write_fitsidi(tmp_path / "tgt.idi", truth.target_ms)
     assert convert.detect_format(ref) == "fitsidi"
@@ -129,13 +129,13 @@ def test_a_fitsidi_pair_comes_back_as_the_truth(tmp_path):
     assert np.max(np.abs(err)) < 1e-4
 
 
-def test_fitsidi_with_several_ifs_goes_in_as_several_windows(tmp_path):
+def test_fitsidi_with_several_ifs_goes_in_as_several_windows(tmp_path, shared_pair):
     # four bands 2 GHz apart (the writer repeats the visibilities in each): four spectral
     # windows after importfitsidi, each calibrated by the reference band's one window;
     # band 0 is the truth's own frequency, so its PWC is the truth's
     from casacore import tables as pt
 
-    truth = make_pair(tmp_path, n_ant=3, n_time=20, time_order=True)
+    truth = shared_pair(PairSpec(n_ant=3, n_time=20, storage=Storage(time_order=True)))  # only read
     ref = write_fitsidi(tmp_path / "ref.idi", truth.ref_ms)
     tgt = write_fitsidi(tmp_path / "four-ifs.idi", truth.target_ms, n_band=4)
     before = tgt.read_bytes()

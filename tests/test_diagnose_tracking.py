@@ -16,15 +16,16 @@ import pytest
 from casacore import tables as pt
 
 from hitops.calibrate import calibrate
-from hitops.calibrate.synthetic import add_column, make_pair
+from hitops.testing import PairSpec, Storage, Troposphere, add_column
 from hitops.diagnose import diagnose
 from hitops.errors import InputError
 
 
 @pytest.fixture(scope="module")
-def pair(tmp_path_factory):
+def pair(tmp_path_factory, pair_store):
     path = tmp_path_factory.mktemp("diagtrack")
-    truth = make_pair(path, n_ant=4, n_time=400, step_rad=0.1, corr_types=("RR", "LL"), seed=9)
+    truth = pair_store.copy(PairSpec(n_ant=4, n_time=400, corr_types=("RR", "LL"), seed=9,
+                                     troposphere=Troposphere(step_rad=0.1)), path)
     with pt.table(str(truth.ref_ms), readonly=False, ack=False) as t:
         flag = t.getcol("FLAG")
         t_idx = np.rint(truth.time - truth.time.min()).astype(int)
@@ -72,9 +73,9 @@ def test_antenna_mode_numbers_and_explicit_report(pair, tmp_path):
     assert ants["AP"]["segments"] == "2"                 # RR and LL, one segment each
 
 
-def test_no_report_and_bad_reports(pair, tmp_path):
-    other = make_pair(tmp_path, n_time=60, corr_types=("RR",), target_name="t2.ms",
-                      ref_name="r2.ms")
+def test_no_report_and_bad_reports(pair, tmp_path, new_pair):
+    other = new_pair(PairSpec(n_time=60, corr_types=("RR",),
+                              storage=Storage(target_name="t2.ms", ref_name="r2.ms")))
     with pt.table(str(other.target_ms), ack=False) as t:
         data = t.getcol("DATA")
     add_column(other.target_ms, "CORRECTED_DATA", data * np.exp(0.1j))

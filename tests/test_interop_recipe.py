@@ -62,15 +62,16 @@ def test_recipe_loads_and_validates(tmp_path):
 
 
 @pytest.mark.slow
-def test_recipe_runs_on_a_uvfits_pair_and_reruns_as_skips(tmp_path):
+def test_recipe_runs_on_a_uvfits_pair_and_reruns_as_skips(tmp_path, shared_pair):
     from casacore import tables as pt
 
-    from hitops.calibrate.synthetic import make_pair
     from hitops.io.fits import read_headers
     from hitops.io.uvfits import export_uvfits
+    from hitops.testing import PairSpec, Troposphere
 
-    truth = make_pair(tmp_path / "src", n_ant=4, n_time=300, dt=2.0, ref_offset_scale=0.0,
-                      seed=3)
+    # only read: the recipe runs on its UVFITS export
+    truth = shared_pair(PairSpec(n_ant=4, n_time=300, dt=2.0, seed=3,
+                                 troposphere=Troposphere(ref_offset_scale=0.0)))
     export_uvfits(truth.ref_ms, tmp_path / "ref.uvfits", "DATA")
     export_uvfits(truth.target_ms, tmp_path / "tgt.uvfits", "DATA")
     before = {p: (tmp_path / p).read_bytes() for p in ("ref.uvfits", "tgt.uvfits")}

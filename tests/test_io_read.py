@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hitops.calibrate.synthetic import make_pair
+from hitops.testing import PairSpec, Signal, Storage
 from hitops.errors import MeasurementSetError
 from hitops.io import read as msio
 
@@ -22,9 +22,11 @@ COLUMNS = ["TIME", "ANTENNA1", "ANTENNA2", "UVW", "DATA", "FLAG", "FLAG_ROW"]
 
 
 @pytest.fixture(scope="module")
-def pair(tmp_path_factory):
-    return make_pair(tmp_path_factory.mktemp("ioread"), n_ant=4, n_time=50, sigma_ref=0.1,
-                     sigma_target=0.1, shuffle_target=True, seed=3)
+def pair(pair_store):
+    """The session's build, shared: the tests below read it, or write into copies of it."""
+    return pair_store.built(PairSpec(n_ant=4, n_time=50, seed=3,
+                                     signal=Signal(sigma_ref=0.1, sigma_target=0.1),
+                                     storage=Storage(shuffle_target=True)))
 
 
 def test_open_main_matches_xds_from_ms(pair):

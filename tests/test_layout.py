@@ -155,9 +155,6 @@ def test_every_module_of_the_calibrate_wing_is_small():
     function over 100, and no exception list."""
     paths = sorted(p for name in WING_PACKAGES for p in (ROOT / name).rglob("*.py"))
     assert len(paths) > 40
-    # TRANSITIONAL (branch i25core only): calibrate/synthetic.py is test support that
-    # branch i25tests moves out of the package; the lead deletes this line at the merge
-    paths = [p for p in paths if p.name != "synthetic.py"]
     assert _too_long(paths, WING_MODULE_LINES, WING_FUNCTION_LINES) == []
 
 

@@ -3,7 +3,7 @@
 With ``--tracker antenna`` the integers are solved per antenna and segment on the
 2 pi eps k lattice with every baseline at once (hitops.calibrate.n0.lattice); with the
 baseline trackers the step falls back to the per-baseline choice against the model.
-Scenes from hitops.calibrate.synthetic.make_pair with ``ref_offset_scale=0`` (a
+Scenes from hitops.testing.make_pair with ``ref_offset_scale=0`` (a
 purely antenna-based reference band, as a point source gives), so a noiseless
 output with the right integers equals the source phase exactly.
 """
@@ -19,7 +19,7 @@ import pytest
 from casacore import tables as pt
 
 from hitops.calibrate import calibrate
-from hitops.calibrate.synthetic import add_column, make_pair, wrap
+from hitops.testing import PairSpec, Signal, Troposphere, add_column, wrap
 from hitops.errors import InputError
 from ms_columns import col, put  # tests/ is on sys.path (rootdir-relative)
 
@@ -31,13 +31,12 @@ def run(truth, column="OUT", **kw):
     return col(truth.target_ms, column), rep
 
 
-def late_station_pair(path, **kw):
+def late_station_pair(new_pair):
     """4 stations, GL (index 3) joins the reference band after 250 s (tests/test_antenna.py's
     scene, with a purely antenna-based reference band)."""
-    args = dict(n_ant=4, n_time=700, step_rad=0.12, drift_rad=0.06, seed=11,
-                corr_types=("RR", "LL"), phase_offset_rad=1.0, ref_offset_scale=0.0)
-    args.update(kw)
-    truth = make_pair(path, **args)
+    truth = new_pair(PairSpec(n_ant=4, n_time=700, seed=11, corr_types=("RR", "LL"),
+                              troposphere=Troposphere(step_rad=0.12, drift_rad=0.06,
+                                                      phase_offset_rad=1.0, ref_offset_scale=0.0)))
     flag = col(truth.ref_ms, "FLAG")
     t_idx = np.rint(truth.time - truth.time.min()).astype(int)
     flag[((truth.ant1 == 3) | (truth.ant2 == 3)) & (t_idx < 250)] = True
@@ -66,8 +65,8 @@ def closures(truth, phase):
     return np.array(out)
 
 
-def test_late_station_true_integers_and_closures_kept(tmp_path):
-    truth = late_station_pair(tmp_path)
+def test_late_station_true_integers_and_closures_kept(new_pair):
+    truth = late_station_pair(new_pair)
     before, rep0 = run(truth, column="NOSTEP", tracker="antenna", refant="PV")
     flag = col(truth.target_ms, "FLAG")[:, 0, :]
     valid = ~flag
@@ -118,12 +117,13 @@ def test_late_station_true_integers_and_closures_kept(tmp_path):
     assert np.max(np.abs(wrap(cl1[fin] - cl0[fin]))) < 2e-6
 
 
-def test_point_model_and_chunked_runs_agree(tmp_path):
+def test_point_model_and_chunked_runs_agree(new_pair):
     """--offset-model point on a point source at the phase centre; several scans; the
     one-chunk run (first pass kept, shifted) equals the chunked run (two passes)."""
-    truth = make_pair(tmp_path, n_ant=5, n_time=900, n_scans=3, step_rad=0.1, drift_rad=0.05,
-                      seed=4, corr_types=("RR", "LL"), phase_offset_rad=1.3,
-                      ref_offset_scale=0.0, sigma_ref=0.05, sigma_target=0.05)
+    truth = new_pair(PairSpec(n_ant=5, n_time=900, n_scans=3, seed=4, corr_types=("RR", "LL"),
+                              troposphere=Troposphere(step_rad=0.1, drift_rad=0.05,
+                                                      phase_offset_rad=1.3, ref_offset_scale=0.0),
+                              signal=Signal(sigma_ref=0.05, sigma_target=0.05)))
     data = col(truth.target_ms, "DATA")
     put(truth.target_ms, "DATA", (data * np.exp(-1j * truth.source_phase)[:, None, :])
         .astype(np.complex64))                         # the source: a point at the centre
@@ -153,8 +153,9 @@ def test_point_model_and_chunked_runs_agree(tmp_path):
     assert step["warning"] is None
 
 
-def test_baseline_trackers_fall_back_to_the_per_baseline_choice(tmp_path):
-    truth = make_pair(tmp_path, n_time=300, phase_offset_rad=2.5, seed=1, ref_offset_scale=0.0)
+def test_baseline_trackers_fall_back_to_the_per_baseline_choice(new_pair):
+    truth = new_pair(PairSpec(n_time=300, seed=1,
+                              troposphere=Troposphere(phase_offset_rad=2.5, ref_offset_scale=0.0)))
     add_column(truth.target_ms, "MODEL_DATA", np.exp(1j * truth.source_phase)[:, None, :])
     for tracker in ("count", "smooth"):
         out, rep = run(truth, tracker=tracker, offset_model="MODEL_DATA")
@@ -165,8 +166,8 @@ def test_baseline_trackers_fall_back_to_the_per_baseline_choice(tmp_path):
         assert any(e["k"] != 0 for e in step["series"])
 
 
-def test_no_step_warning_is_among_the_last_lines(tmp_path, caplog):
-    truth = make_pair(tmp_path, n_time=100, seed=2, corr_types=("RR",))
+def test_no_step_warning_is_among_the_last_lines(new_pair, caplog):
+    truth = new_pair(PairSpec(n_time=100, seed=2, corr_types=("RR",)))
     with caplog.at_level("INFO", logger="hitops"):
         calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt")
     last = [r for r in caplog.records if r.name.startswith("hitops")][-2:]
@@ -190,16 +191,16 @@ def test_no_step_warning_is_among_the_last_lines(tmp_path, caplog):
     (dict(offset_model="point", offset_reference_column="DATA"), "give one"),
     (dict(offset_model="MODEL_DATA"), "MODEL_DATA"),
 ])
-def test_bad_model_options_leave_the_set_unchanged(tmp_path, kwargs, match):
-    truth = make_pair(tmp_path, n_time=50, seed=3, corr_types=("RR",))
+def test_bad_model_options_leave_the_set_unchanged(new_pair, kwargs, match):
+    truth = new_pair(PairSpec(n_time=50, seed=3, corr_types=("RR",)))
     before = set(pt.table(str(truth.target_ms), ack=False).colnames())
     with pytest.raises(Exception, match=match):
         calibrate(truth.ref_ms, truth.target_ms, **kwargs)
     assert set(pt.table(str(truth.target_ms), ack=False).colnames()) == before
 
 
-def test_model_column_is_not_an_output(tmp_path):
-    truth = make_pair(tmp_path, n_time=50, seed=3, corr_types=("RR",))
+def test_model_column_is_not_an_output(new_pair):
+    truth = new_pair(PairSpec(n_time=50, seed=3, corr_types=("RR",)))
     add_column(truth.target_ms, "MODEL_DATA", np.exp(1j * truth.source_phase)[:, None, :])
     with pytest.raises(InputError, match="input or flag column"):
         calibrate(truth.ref_ms, truth.target_ms, offset_model="MODEL_DATA",
@@ -208,10 +209,10 @@ def test_model_column_is_not_an_output(tmp_path):
 
 # ----------------------------------------------------------------------------- both hands
 
-def test_reference_column_with_antenna_tracker_solves_on_the_lattice(tmp_path):
+def test_reference_column_with_antenna_tracker_solves_on_the_lattice(new_pair):
     """--offset-reference-column with --tracker antenna: per antenna on the lattice against
     the reference column (as --offset-model does against a model), both hands tied."""
-    truth = late_station_pair(tmp_path)
+    truth = late_station_pair(new_pair)
     add_column(truth.target_ms, "CORRECTED_DATA", np.exp(1j * truth.source_phase)[:, None, :])
     before, _ = run(truth, column="NOSTEP", tracker="antenna", refant="PV")
     valid = ~col(truth.target_ms, "FLAG")[:, 0, :]

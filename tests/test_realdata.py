@@ -32,36 +32,17 @@ from hitops.calibrate import calibrate
 from hitops.diagnose.closures import row_closures
 from hitops.errors import MeasurementSetError
 
-DATA = Path(__file__).parent / "data" / "eht2017-m87"
-LO = DATA / "SR1_M87_2017_095_lo_hops_netcal_StokesI.uvfits"
-HI = DATA / "SR1_M87_2017_095_hi_hops_netcal_StokesI.uvfits"
 HITOPS = Path(sys.executable).with_name("hitops")
 
 pytestmark = pytest.mark.slow
 
 
-def importuvfits(fits: Path, ms: Path) -> Path:
-    """CASA importuvfits in its own process (CASA's logger and state stay out of this one)."""
-    code = ("from hitops.casa_env import ensure_casa_offline; ensure_casa_offline(); "
-            "from casatasks import importuvfits; import sys; "
-            "importuvfits(fitsfile=sys.argv[1], vis=sys.argv[2])")
-    subprocess.run([sys.executable, "-c", code, str(fits), str(ms)], check=True,
-                   capture_output=True, timeout=300)
-    return ms
-
-
-@pytest.fixture(scope="module")
-def imported(tmp_path_factory):
-    root = tmp_path_factory.mktemp("eht2017")
-    return importuvfits(LO, root / "lo.ms"), importuvfits(HI, root / "hi.ms")
-
-
 @pytest.fixture
-def pair(imported, tmp_path):
-    """A fresh copy of the imported pair for one test."""
+def pair(eht_imported, tmp_path):
+    """A fresh copy of the imported pair (tests/conftest.py, imported once) for one test."""
     lo, hi = tmp_path / "lo.ms", tmp_path / "hi.ms"
-    shutil.copytree(imported[0], lo)
-    shutil.copytree(imported[1], hi)
+    shutil.copytree(eht_imported[0], lo)
+    shutil.copytree(eht_imported[1], hi)
     return lo, hi
 
 

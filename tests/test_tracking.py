@@ -9,7 +9,7 @@ import pytest
 
 from hitops.errors import InputError
 from hitops.tracking.count import count_wraps
-from hitops.tracking.slips import count_slips, slip_errors
+from hitops.testing.slips import count_slips, slip_errors
 from hitops.tracking.smooth_kernel import track_wraps_smooth
 from hitops.simulate.troposphere import fbm_circulant
 from hitops.tracking import theory

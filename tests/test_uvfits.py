@@ -12,17 +12,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hitops.calibrate.synthetic import add_column, make_pair
+from hitops.testing import PairSpec, Signal, add_column
 from hitops.errors import ColumnError, OutputExistsError
 from hitops.io.fits import read_headers
 from hitops.io.uvfits import export_uvfits
 
 
-def _flagged_pair(tmp_path, corr=("RR", "RL", "LR", "LL")):
+def _flagged_pair(new_pair, corr=("RR", "RL", "LR", "LL")):
     from casacore import tables as pt
 
-    truth = make_pair(tmp_path, n_ant=4, n_time=30, dt=2.0, n_scans=3, corr_types=corr,
-                      sigma_target=0.1, time_order=False)
+    truth = new_pair(PairSpec(n_ant=4, n_time=30, dt=2.0, n_scans=3, corr_types=corr,
+                              signal=Signal(sigma_target=0.1)))
     ms = str(truth.target_ms)
     rng = np.random.default_rng(2)
     with pt.table(ms, readonly=False, ack=False) as t:
@@ -39,11 +39,11 @@ def _flagged_pair(tmp_path, corr=("RR", "RL", "LR", "LL")):
     return truth, ms
 
 
-def test_export_matches_casa_exportuvfits(tmp_path):
+def test_export_matches_casa_exportuvfits(tmp_path, new_pair):
     fits = pytest.importorskip("astropy.io.fits")
     from hitops.casa.runner import run_task
 
-    _, ms = _flagged_pair(tmp_path)
+    _, ms = _flagged_pair(new_pair)
     ours = tmp_path / "ours.uvfits"
     summary = export_uvfits(ms, ours, "DATA")
     run_task("exportuvfits", vis=ms, fitsfile=str(tmp_path / "casa.uvfits"), datacolumn="data")
@@ -73,12 +73,12 @@ def test_export_matches_casa_exportuvfits(tmp_path):
     assert [h.get("EXTNAME") for h, _, _ in headers] == [None, "AIPS AN", "AIPS FQ", "AIPS NX"]
 
 
-def test_casa_importuvfits_reads_the_column_flags_and_weights_back(tmp_path):
+def test_casa_importuvfits_reads_the_column_flags_and_weights_back(tmp_path, new_pair):
     from casacore import tables as pt
 
     from hitops.casa.runner import run_task
 
-    truth, ms = _flagged_pair(tmp_path)
+    truth, ms = _flagged_pair(new_pair)
     with pt.table(ms, ack=False) as t:
         data = t.getcol("DATA")
     pwc = data * np.exp(1j * 0.7)
@@ -103,8 +103,8 @@ def test_casa_importuvfits_reads_the_column_flags_and_weights_back(tmp_path):
         np.testing.assert_array_equal(t.getcol("DATA"), data)
 
 
-def test_export_refuses_existing_files_and_missing_columns(tmp_path):
-    _, ms = _flagged_pair(tmp_path, corr=("RR", "LL"))
+def test_export_refuses_existing_files_and_missing_columns(tmp_path, new_pair):
+    _, ms = _flagged_pair(new_pair, corr=("RR", "LL"))
     out = tmp_path / "x.uvfits"
     export_uvfits(ms, out, "DATA")
     before = out.read_bytes()
@@ -118,8 +118,8 @@ def test_export_refuses_existing_files_and_missing_columns(tmp_path):
     assert not [p for p in tmp_path.iterdir() if "partial" in p.name]
 
 
-def test_header_reader_finds_truncation(tmp_path):
-    _, ms = _flagged_pair(tmp_path, corr=("RR", "LL"))
+def test_header_reader_finds_truncation(tmp_path, new_pair):
+    _, ms = _flagged_pair(new_pair, corr=("RR", "LL"))
     out = tmp_path / "x.uvfits"
     export_uvfits(ms, out, "DATA")
     raw = out.read_bytes()

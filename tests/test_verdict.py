@@ -22,15 +22,7 @@ from hitops.calibrate import calibrate
 from hitops.calibrate import verdict as V
 from hitops.simulate import simulate
 
-from test_realdata import HI, LO, importuvfits  # tests/ is on sys.path (rootdir-relative)
-
 pytestmark = pytest.mark.slow
-
-
-@pytest.fixture(scope="module")
-def eht(tmp_path_factory):
-    root = tmp_path_factory.mktemp("eht-verdict")
-    return importuvfits(LO, root / "lo.ms"), importuvfits(HI, root / "hi.ms")
 
 
 def predicted_and_measured(ref, tgt, **kw):
@@ -54,10 +46,10 @@ def test_simulated_troposphere_fpt_helps_and_the_verdict_says_so(tmp_path):
     assert report["verdict"]["reference_closure"]["consistent_with_zero"]
 
 
-def test_eht_data_fpt_hurts_and_the_verdict_says_so(eht, tmp_path, caplog):
+def test_eht_data_fpt_hurts_and_the_verdict_says_so(eht_imported, tmp_path, caplog):
     ref, tgt = tmp_path / "lo.ms", tmp_path / "hi.ms"
-    shutil.copytree(eht[0], ref)
-    shutil.copytree(eht[1], tgt)
+    shutil.copytree(eht_imported[0], ref)
+    shutil.copytree(eht_imported[1], tgt)
     with caplog.at_level("INFO", logger="hitops"):
         report, verdict = predicted_and_measured(ref, tgt)
     summary = V.summary(verdict)

@@ -9,6 +9,6 @@ per antenna), each with its numba kernels beside it (:mod:`.smooth_kernel`,
 setup), :mod:`.grid` (regular time grid), :mod:`.windows` (per-sample SNR and
 windows), :mod:`.state` / :mod:`.antenna_state` (what carries across chunks,
 confidence numbers), :mod:`.factory` (a tracker by name).  Offline and
-theory: :mod:`.modes` (whole tracks at once), :mod:`.slips`, :mod:`.theory`,
+theory: :mod:`.modes` (whole tracks at once), :mod:`.theory`,
 :mod:`.stations`.  See docs/tracking.md.
 """

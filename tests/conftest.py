@@ -1,0 +1,104 @@
+"""Shared set-up of the tests: Measurement Sets built once per session, copied where written.
+
+In the manner of dask-ms's conftest (daskms/conftest.py, its ``big_ms``): a
+session-scoped fixture writes each set under ``tmp_path_factory`` the first
+time a test asks for it.  Building a synthetic pair draws its phases and
+writes two Measurement Sets with every subtable; copying the two directories
+costs a small part of that, and simulating a scene far more.  So:
+
+* ``new_pair(spec)``: a private copy of the session's build of ``spec`` (a
+  :class:`hitops.testing.PairSpec`) in the test's ``tmp_path`` (or a directory
+  given), with its own truth arrays; for tests that write into the sets (every
+  calibrate run does).  Equal specs are built once in the whole suite.
+* ``shared_pair(spec)``: the session's build itself, for tests that only read
+  it (a test that writes into it spoils it for every later test).
+* ``eht_imported``: the EHT's public M87 pair (tests/data/eht2017-m87) through
+  CASA importuvfits, once for the suite (tests/test_realdata.py and
+  tests/test_verdict.py both start from it); read it, or copy it to write.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Dict, Optional
+
+import numpy as np
+import pytest
+
+from hitops.testing import PairSpec, PairTruth, make_pair
+
+#: the EHT's public M87 data of 2017 April 5, both bands (see its README.md)
+EHT_DATA = Path(__file__).parent / "data" / "eht2017-m87"
+EHT_LO = EHT_DATA / "SR1_M87_2017_095_lo_hops_netcal_StokesI.uvfits"
+EHT_HI = EHT_DATA / "SR1_M87_2017_095_hi_hops_netcal_StokesI.uvfits"
+
+
+class PairStore:
+    """Synthetic pairs of one test session, each spec built once under ``root``."""
+
+    def __init__(self, root: Path):
+        self.root = root
+        self._built: Dict[PairSpec, PairTruth] = {}
+
+    def built(self, spec: PairSpec) -> PairTruth:
+        """The session's build of ``spec`` (to read, never to write)."""
+        if spec not in self._built:
+            self._built[spec] = make_pair(self.root / f"pair{len(self._built)}", spec)
+        return self._built[spec]
+
+    def copy(self, spec: PairSpec, directory: Path) -> PairTruth:
+        """A copy of the build of ``spec`` in ``directory``, with truth arrays of its own."""
+        source = self.built(spec)
+        directory.mkdir(parents=True, exist_ok=True)
+        paths = {}
+        for name in ("ref_ms", "target_ms"):
+            built_ms = getattr(source, name)
+            paths[name] = directory / built_ms.name
+            shutil.copytree(built_ms, paths[name])
+        arrays = {f.name: getattr(source, f.name).copy() for f in dataclasses.fields(source)
+                  if isinstance(getattr(source, f.name), np.ndarray)}
+        return dataclasses.replace(source, **paths, **arrays)
+
+
+@pytest.fixture(scope="session")
+def pair_store(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pairs")
+    yield PairStore(root)
+    # the builds (about 1 GB over the suite: casacore allocates whole tiles) go with the
+    # session; the tests' own copies stay in their tmp_path as pytest keeps them
+    shutil.rmtree(root, ignore_errors=True)
+
+
+@pytest.fixture
+def new_pair(pair_store, tmp_path):
+    """``new_pair(spec, directory=None)``: a private copy of the pair (default: in tmp_path)."""
+    def copy(spec: PairSpec, directory: Optional[Path] = None) -> PairTruth:
+        return pair_store.copy(spec, tmp_path if directory is None else Path(directory))
+    return copy
+
+
+@pytest.fixture
+def shared_pair(pair_store):
+    """``shared_pair(spec)``: the session's build of the pair, read-only."""
+    return pair_store.built
+
+
+def importuvfits(fits: Path, ms: Path) -> Path:
+    """CASA importuvfits in its own process (CASA's logger and state stay out of this one)."""
+    code = ("from hitops.casa_env import ensure_casa_offline; ensure_casa_offline(); "
+            "from casatasks import importuvfits; import sys; "
+            "importuvfits(fitsfile=sys.argv[1], vis=sys.argv[2])")
+    subprocess.run([sys.executable, "-c", code, str(fits), str(ms)], check=True,
+                   capture_output=True, timeout=300)
+    return ms
+
+
+@pytest.fixture(scope="session")
+def eht_imported(tmp_path_factory):
+    """(lo.ms, hi.ms): the EHT pair as CASA importuvfits writes it, read-only."""
+    root = tmp_path_factory.mktemp("eht2017")
+    return importuvfits(EHT_LO, root / "lo.ms"), importuvfits(EHT_HI, root / "hi.ms")
