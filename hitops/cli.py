@@ -16,7 +16,8 @@ Stimela cabs, which run this command:
   ``--debug`` (or ``HITOPS_DEBUG=1``);
 * SIGINT and SIGTERM: the tool's own clean-up runs (calibrate drops the
   columns it created and restores FLAG), then one line and exit status 130
-  or 143.
+  or 143; the line says what the run left (a note the tool added to the
+  interrupt, e.g. calibrate's committed columns), or that nothing changed.
 
 A missing required option is reported by click before any tool code runs.
 """
@@ -72,6 +73,15 @@ def _save_traceback(tool: str) -> str:
     return path
 
 
+def _what_is_left(stop: KeyboardInterrupt) -> str:
+    """What an interrupted run leaves: the tool's own note when it had already changed a
+    file (``add_note`` where it stopped), else that nothing changed."""
+    notes = getattr(stop, "__notes__", None)
+    if notes:
+        return " ".join(_one_line(n) for n in notes)
+    return "the input files are as they were before this run; rerun the same command to start again"
+
+
 def run_tool(tool: str, func, params: dict, debug: bool = False) -> int:
     """Run one tool's function behind the error boundary; the process exit status."""
     previous = signal.signal(signal.SIGTERM, _raise_terminated)
@@ -83,13 +93,11 @@ def run_tool(tool: str, func, params: dict, debug: bool = False) -> int:
         if debug:
             traceback.print_exc()
         return err.exit_code
-    except Terminated:
-        log.error("hitops %s: terminated (SIGTERM); the input files are as they were before "
-                  "this run; rerun the same command to start again", tool)
+    except Terminated as stop:
+        log.error("hitops %s: terminated (SIGTERM); %s", tool, _what_is_left(stop))
         return 143
-    except KeyboardInterrupt:
-        log.error("hitops %s: interrupted; the input files are as they were before this run; "
-                  "rerun the same command to start again", tool)
+    except KeyboardInterrupt as stop:
+        log.error("hitops %s: interrupted; %s", tool, _what_is_left(stop))
         return 130
     except Exception as err:
         saved = _save_traceback(tool)

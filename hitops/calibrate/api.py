@@ -31,9 +31,10 @@ from ..errors import InputError
 from ..io import access
 from ..io import read as msio
 from ..options import make_options
+from ..signals import interrupts_held
 from .band_index import INDEX_COLUMNS
 from .inputs import check_inputs, parse_methods
-from .output import OutputTransaction, drop_stale_columns, release_cluster_tables
+from .output import FLAG_BACKUP, OutputTransaction, drop_stale_columns, release_cluster_tables
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -152,12 +153,37 @@ def _run(run, client, started: float) -> Dict:
         results = [run_group(run, group, tx, client) for group in run.groups]
         if client is not None:
             release_cluster_tables(client)
-        tx.commit()
     except BaseException:
         tx.rollback()
         raise
-    reports = [group_report(run, group, result, tx, started)
-               for group, result in zip(run.groups, results)]
-    if len(reports) == 1:
-        return write_report(run, reports[0], results[0], started)
-    return write_report(run, combined_report(run, reports), None, started)
+    try:
+        # an interrupt during the commit would leave FLAG half rewritten: it waits
+        with interrupts_held():
+            tx.commit()
+    except KeyboardInterrupt as stop:   # delivered after a whole commit
+        stop.add_note(_committed(run, tx))
+        raise
+    except BaseException:
+        tx.rollback()
+        raise
+    try:
+        reports = [group_report(run, group, result, tx, started)
+                   for group, result in zip(run.groups, results)]
+        if len(reports) == 1:
+            return write_report(run, reports[0], results[0], started)
+        return write_report(run, combined_report(run, reports), None, started)
+    except KeyboardInterrupt as stop:
+        # the columns are committed: the set is no longer as it was (hitops/cli.py says this)
+        stop.add_note(_committed(run, tx))
+        raise
+
+
+def _committed(run, tx) -> str:
+    """What the target set holds after the commit, for a run stopped before its end."""
+    columns = ", ".join(run.outputs.values())
+    flags = (f" and the updated FLAG (the flags before hitops in {FLAG_BACKUP})"
+             if tx.flag_written else "")
+    unfinished = "the report was" if run.opts.no_verdict else "the verdict and the report were"
+    return (f"the run had finished writing: {run.target_ms} holds the new {columns}{flags}; "
+            f"{unfinished} not finished; rerun the same command with --overwrite to make "
+            "them (the columns come out the same)")
