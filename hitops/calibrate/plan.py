@@ -22,7 +22,7 @@ from ..errors import InputError, MeasurementSetError
 from ..io import read as msio
 from ..io.match import parse_antenna_map
 from ..io.stations import read_stations
-from .band_index import INDEX_COLUMNS, ROW_COLUMNS, BandIndex, index_bands
+from .band_index import INDEX_COLUMNS, ROW_COLUMNS, BandSource, index_bands
 from .chunks import ChunkMatch
 from .groups import GroupPair, describe_groups, pair_groups
 from .inputs import Columns
@@ -180,9 +180,9 @@ def build_plan(opts, methods: List[str], outputs: Dict[str, str], ref_ms: str,
 
 
 def _band(ms: str, datasets: Dict, key, n_ant: int, time_ordered: bool,
-          in_time_order: bool) -> BandIndex:
+          in_time_order: bool) -> BandSource:
     ds = datasets[key]
-    return BandIndex(ms=ms, ds=ds, n_ant=n_ant, n_row=int(ds.sizes["row"]), key=key,
+    return BandSource(ms=ms, ds=ds, n_ant=n_ant, n_row=int(ds.sizes["row"]), key=key,
                      time_ordered=time_ordered,
                      ds_in_time_order=in_time_order)
 
@@ -208,23 +208,25 @@ def _ratio(opts, pair: GroupPair, label: str):
     return ratio, r, eps, source
 
 
-def plan_group(run: RunPlan, pair: GroupPair, ref_band: BandIndex, tgt_band: BandIndex,
+def plan_group(run: RunPlan, pair: GroupPair, ref_source: BandSource, tgt_source: BandSource,
                ref_stations, tgt_stations, antenna_map, label: str) -> GroupPlan:
     """Index, match and check one group pair before anything is written."""
     opts, columns, timings = run.opts, run.columns, run.timings
-    if ref_band.n_row == 0 or tgt_band.n_row == 0:
-        empty = run.ref_ms if ref_band.n_row == 0 else run.target_ms
+    if ref_source.n_row == 0 or tgt_source.n_row == 0:
+        empty = run.ref_ms if ref_source.n_row == 0 else run.target_ms
         raise MeasurementSetError(f"{empty} has no rows ({pair.label}); nothing to calibrate")
     stage = time.perf_counter()
     # per-row metadata in blocks of at most chunk_rows rows; only summaries stay (and TIME
     # for tables not in time order), see hitops/calibrate/chunks.py
-    index_bands([ref_band, tgt_band], [INDEX_COLUMNS, INDEX_COLUMNS], run.chunk_rows)
+    ref_band, tgt_band = index_bands([ref_source, tgt_source], [INDEX_COLUMNS, INDEX_COLUMNS],
+                                     run.chunk_rows)
     timings["metadata"] = time.perf_counter() - stage
     ratio, r, eps, source = _ratio(opts, pair, label)
 
     stage = time.perf_counter()
     match = ChunkMatch(ref_band, tgt_band, ref_stations, tgt_stations, list(pair.ref.corr),
-                       list(pair.tgt.corr), antenna_map, opts.time_tolerance)
+                       list(pair.tgt.corr), antenna_map, opts.time_tolerance,
+                       datasets={"ref": ref_source.ds, "tgt": tgt_source.ds})
     log.info("stations paired by code (%s: ANTENNA::%s, %s: ANTENNA::%s): %s", run.ref_ms,
              ref_stations.column, run.target_ms, tgt_stations.column,
              ", ".join(f"{e['reference'] or '-'}->{e['target'] or '-'}" for e in match.pairing))

@@ -189,7 +189,8 @@ def read_sampled(ms: str, column: str, time: np.ndarray, blocks: TimeBlocks) -> 
         ant1, ant2 = read("ANTENNA1"), read("ANTENNA2")
         flag_row = read("FLAG_ROW") if "FLAG_ROW" in table.colnames() else None
         scan, data, flag = read("SCAN_NUMBER"), read(column), read("FLAG")
-        sigma = read("SIGMA")[:, corr_idx] if "SIGMA" in table.colnames() else None
+        sigma = _optional(read, table, "SIGMA")
+        sigma = sigma[:, corr_idx] if sigma is not None else None
     cross = ant1 != ant2
     flag = flag[cross][..., corr_idx]
     if flag_row is not None:
@@ -214,6 +215,17 @@ def read_sampled(ms: str, column: str, time: np.ndarray, blocks: TimeBlocks) -> 
                        corr_names=corr_names,
                        sigma=_median_per_baseline(sigma[cross] if sigma is not None else None,
                                                   layout.bl_of_row, layout.n_bl, len(corr_idx)))
+
+
+def _optional(read, table, column: str):
+    """A column's values, or None where it is absent or holds no values (undefined
+    cells, as some conversions leave SIGMA): the verdict then has no SIGMA ratio."""
+    if column not in table.colnames():
+        return None
+    try:
+        return read(column)
+    except RuntimeError:
+        return None
 
 
 def _median_per_baseline(values, bl_of_row: np.ndarray, n_bl: int, n_corr: int) -> np.ndarray:

@@ -4,7 +4,9 @@ Only dask-ms's public API (``xds_from_ms``, ``xds_to_table``, ``Dataset``):
 calibrate opens one dataset per (field, spectral window) group in time order
 (:func:`open_groups`), diagnose one dataset of the whole table in storage
 order (:func:`open_main`); callers lay rows out by (baseline, time)
-themselves.  Writes go back through ``ROWID`` so any row subset can be
+themselves.  Row ranges of a table read in storage order, where no dask graph
+is needed (calibrate's index pass), come from python-casacore directly
+(:class:`MainTable`).  Writes go back through ``ROWID`` so any row subset can be
 written.  Small subtables (SPECTRAL_WINDOW, POLARIZATION,
 ANTENNA) are read with python-casacore directly: they are a few rows and
 dask-ms adds only overhead there.
@@ -12,8 +14,7 @@ dask-ms adds only overhead there.
 
 from __future__ import annotations
 
-import contextlib
-import weakref
+import warnings
 from pathlib import Path
 from typing import Dict, Iterable, List, Optional, Sequence
 
@@ -75,9 +76,6 @@ def selection_columns(ms: str) -> List[str]:
     return ["DATA_DESC_ID", "FIELD_ID"] if (n_dd > 1 or n_field > 1) else []
 
 
-#: the Measurement Set each dataset opened here came from (for record_reads)
-_SOURCES: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
-
 #: the main-table columns that tell one (field, spectral window) group from another
 GROUP_COLUMNS = ("FIELD_ID", "DATA_DESC_ID")
 
@@ -88,7 +86,6 @@ def open_main(ms: str, columns: Sequence[str], chunk_rows: int = 1 << 21):
 
     (ds,) = xds_from_ms(ms, columns=list(columns), index_cols=[], group_cols=[],
                         chunks={"row": int(chunk_rows)})
-    _SOURCES[ds] = ms
     return ds
 
 
@@ -98,6 +95,38 @@ def row_count(ms: str) -> int:
 
     with pt.table(ms, ack=False) as t:
         return int(t.nrows())
+
+
+class MainTable:
+    """One main table held open to read row ranges of columns in storage order.
+
+    python-casacore's ``getcol(column, startrow, nrow)``: exactly the columns asked
+    for, no dask graph, no query (the cheapest public path; calibrate's index pass of
+    a table read in storage order).  A context manager: the table closes on exit.
+    """
+
+    def __init__(self, ms: str):
+        from casacore import tables as pt
+
+        self.ms = ms
+        self._table = pt.table(ms, ack=False)
+
+    @property
+    def n_rows(self) -> int:
+        return int(self._table.nrows())
+
+    def read(self, columns: Sequence[str], start: int, stop: int) -> Dict[str, np.ndarray]:
+        """Rows [start, stop) of ``columns``."""
+        return {c: self._table.getcol(c, int(start), int(stop - start)) for c in columns}
+
+    def close(self) -> None:
+        self._table.close()
+
+    def __enter__(self) -> "MainTable":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def is_time_ordered(ms: str, block_rows: int = 1 << 20) -> bool:
@@ -154,7 +183,6 @@ def open_groups(ms: str, columns: Sequence[str], chunks,
     out = {}
     for ds in datasets:
         key = (int(ds.attrs.get("FIELD_ID", 0)), int(ds.attrs.get("DATA_DESC_ID", 0)))
-        _SOURCES[ds] = ms
         out[key] = ds
     return out
 
@@ -181,35 +209,6 @@ def _take_rows(array, rows: Optional[np.ndarray]):
     return parts[0] if len(parts) == 1 else da.concatenate(parts, axis=0)
 
 
-#: active recorders of main-table reads (see record_reads)
-_RECORDERS: List[list] = []
-
-
-@contextlib.contextmanager
-def record_reads():
-    """Record every main-table read made through :func:`compute_columns`.
-
-    Yields a list that receives one ``(ms, columns, n_rows)`` tuple per dataset
-    read, so tests can check how many rows a run holds at once (the reads are
-    real; nothing is replaced).
-    """
-    log = []
-    _RECORDERS.append(log)
-    try:
-        yield log
-    finally:
-        _RECORDERS.remove(log)
-
-
-def _record(ds, columns, rows) -> None:
-    n_all = int(ds.sizes["row"])
-    n_rows = (len(range(*rows.indices(n_all))) if isinstance(rows, slice)
-              else len(rows) if rows is not None else n_all)
-    entry = (_SOURCES.get(ds), tuple(columns), n_rows)
-    for log in _RECORDERS:
-        log.append(entry)
-
-
 def compute_columns(requests, scheduler=None) -> List[Dict[str, np.ndarray]]:
     """Compute several datasets' columns in one dask call (tables are read concurrently).
 
@@ -223,8 +222,6 @@ def compute_columns(requests, scheduler=None) -> List[Dict[str, np.ndarray]]:
 
     graphs = []
     for ds, columns, rows in requests:
-        if _RECORDERS:
-            _record(ds, [c for c in columns if c != "ROWID"] or columns, rows)
         if isinstance(rows, slice):
             graphs.append({c: ds[c].data[rows] for c in columns})
         else:
@@ -283,4 +280,8 @@ def write_main_columns(ms: str, rows: np.ndarray, arrays: Dict[str, np.ndarray],
     # compute the write arrays, not the datasets: a dask-ms Dataset does not survive
     # pickling to distributed workers
     arrays_to_run = [var.data for w in writes for var in w.data_vars.values()]
-    dask.compute(arrays_to_run, scheduler=scheduler or dask.threaded.get)
+    with warnings.catch_warnings():
+        # on a cluster the columns travel in the graph by design (they are the work):
+        # distributed's advice to load them with dask instead is not for the user
+        warnings.filterwarnings("ignore", "Sending large graph", UserWarning)
+        dask.compute(arrays_to_run, scheduler=scheduler or dask.threaded.get)
