@@ -249,9 +249,11 @@ def window_variances(phi_t, phi_r, valid, segment, n_window: int, ratio: float):
     sizes = np.array([f.size for f in firsts])
     first = np.concatenate(firsts)
     second = first + np.repeat(lags[used], sizes)
-    step_t = np.exp(1j * (phi_t[second] - phi_t[first]))
-    step_r = np.exp(1j * (ref_unwrapped[second] - ref_unwrapped[first]))
-    # exp(i (d_t - d_r)) as a product: one exponential fewer per pair
+    # phasors once per sample, increments as products: exp(i (a - b)) = exp(i a) exp(-i b)
+    phasor_t = np.exp(1j * np.where(valid, phi_t, 0.0))
+    phasor_r = np.exp(1j * np.where(valid, ref_unwrapped, 0.0))
+    step_t = phasor_t[second] * np.conj(phasor_t[first])
+    step_r = phasor_r[second] * np.conj(phasor_r[first])
     d = _structures(np.stack([step_t, step_r, step_t * np.conj(step_r)]),
                     np.concatenate([[0], np.cumsum(sizes)[:-1]]), sizes)
     taus = np.arange(1, n_window)
