@@ -301,16 +301,18 @@ def main(argv=None) -> None:
     builders = {"paper": (build_paper, "`hitops simulate paper` (RR, LL; rows in time order)"),
                 "casa": (build_casa, "casatools.simulator layout, four correlations "
                                      "(RR, RL, LR, LL; rows in time order)")}
-    sections = []
     load_before = os.getloadavg()
     for tag in args.scenes.split(","):
         build_scene, title = builders[tag]
         ref_ms, target_ms = build_scene(workdir)
         result = measure_scene(workdir, tag, ref_ms, target_ms, args.repeats)
-        sections.append(scene_markdown(title, result))
-        print(sections[-1], flush=True)
+        section = scene_markdown(title, result)
+        # kept in the work directory: a later run of the other scene writes both
+        (workdir / f"section-{tag}.md").write_text(section)
+        print(section, flush=True)
     load_after = os.getloadavg()
-    body = "\n\n".join(sections)
+    body = "\n\n".join((workdir / f"section-{tag}.md").read_text() for tag in builders
+                         if (workdir / f"section-{tag}.md").exists())
     markdown = f"""## hitops calibrate: what a user runs (issue 28)
 
 Machine: {machine_line()}; load average (1, 5, 15 min) {", ".join(f"{x:.1f}" for x in load_before)}

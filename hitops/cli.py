@@ -32,6 +32,7 @@ import sys
 import tempfile
 import time
 import traceback
+import warnings
 
 import click
 
@@ -117,6 +118,9 @@ def run_tool(tool: str, func, params: dict, debug: bool = False) -> int:
 def _make_command(tool: str) -> click.Command:
     def invoke(debug=False, **params):
         setup_logging()
+        # on a cluster (--scheduler) the inputs of each task travel in the graph by
+        # design: distributed's advice to load them with dask instead is not the user's
+        warnings.filterwarnings("ignore", "Sending large graph", UserWarning)
         module = importlib.import_module(f"hitops.{tool}.app")
         debug = debug or os.environ.get("HITOPS_DEBUG", "") not in ("", "0")
         sys.exit(run_tool(tool, module.run, params, debug))

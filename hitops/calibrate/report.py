@@ -144,6 +144,8 @@ def write_report(run, report: Dict, result, started: float) -> Dict:
         log.info("no verdict: the sets are larger than --chunk-rows (%d chunks) and the verdict "
                  "is made in one-chunk runs only; raise --chunk-rows to get one", result.n_chunks)
         report["verdict"] = {"skipped": f"{result.n_chunks} chunks"}
+    if "verdict" in run.timings and "timings_s" in report:   # made after the summary
+        report["timings_s"]["verdict"] = round(run.timings["verdict"], 4)
     report_path.write_text(json.dumps(report, indent=1))
     if opts.caltable:
         report["caltable"] = _write_caltable(run, run.groups[0], result)

@@ -14,7 +14,6 @@ dask-ms adds only overhead there.
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 from typing import Dict, Iterable, List, Optional, Sequence
 
@@ -280,8 +279,4 @@ def write_main_columns(ms: str, rows: np.ndarray, arrays: Dict[str, np.ndarray],
     # compute the write arrays, not the datasets: a dask-ms Dataset does not survive
     # pickling to distributed workers
     arrays_to_run = [var.data for w in writes for var in w.data_vars.values()]
-    with warnings.catch_warnings():
-        # on a cluster the columns travel in the graph by design (they are the work):
-        # distributed's advice to load them with dask instead is not for the user
-        warnings.filterwarnings("ignore", "Sending large graph", UserWarning)
-        dask.compute(arrays_to_run, scheduler=scheduler or dask.threaded.get)
+    dask.compute(arrays_to_run, scheduler=scheduler or dask.threaded.get)
