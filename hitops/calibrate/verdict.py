@@ -275,9 +275,9 @@ def predict(ref_ms: str, target_ms: str, ratio: float, ref_column: str = "DATA",
         raise MeasurementSetError(f"{target_ms if tgt_times.size == 0 else ref_ms}: the main "
                                   "table has no rows")
     dt = {"tgt": sampling_interval(tgt_times), "ref": sampling_interval(ref_times)}
-    if not dt["tgt"] > 0:
-        raise MeasurementSetError(f"{target_ms}: cannot find a positive sampling interval "
-                                  "(one time step only)")
+    if not dt["tgt"] > 0:   # one time step: no increment to take, nothing to predict
+        return Verdict(interval=float(interval), ratio=float(ratio),
+                       sampled={"times_read": 0, "times": int(tgt_times.size), "blocks": 0})
     n_window = int(round(interval / dt["tgt"]))
     blocks = choose_blocks(tgt_times, n_window, MAX_PAIRS)
     tgt = read_sampled(target_ms, target_column, tgt_time, blocks)

@@ -159,6 +159,9 @@ def _parallel_hands(ms: str, table, first_row: int):
     with pt.table(f"{ms}::POLARIZATION", ack=False) as pol:
         corr = [int(c) for c in pol.getcell("CORR_TYPE", pol_id)]
     index = [i for i, c in enumerate(corr) if c in PARALLEL_CODES]
+    if not index:   # no parallel hand: every correlation (as diagnose does)
+        from ..io.ms_create import CORR_NAMES
+        return list(range(len(corr))), [CORR_NAMES.get(c, str(c)) for c in corr]
     return index, [PARALLEL_CODES[corr[i]] for i in index]
 
 
