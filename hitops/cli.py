@@ -74,13 +74,15 @@ def _save_traceback(tool: str) -> str:
     return path
 
 
-def _what_is_left(stop: KeyboardInterrupt) -> str:
-    """What an interrupted run leaves: the tool's own note when it had already changed a
-    file (``add_note`` where it stopped), else that nothing changed."""
+def _what_is_left(stop: BaseException,
+                  unchanged: str = "the input files are as they were before this run; rerun "
+                                   "the same command to start again") -> str:
+    """What a stopped run leaves: the tool's own note when it had already changed a file
+    (``add_note`` where it stopped, e.g. calibrate after its commit), else ``unchanged``."""
     notes = getattr(stop, "__notes__", None)
     if notes:
         return " ".join(_one_line(n) for n in notes)
-    return "the input files are as they were before this run; rerun the same command to start again"
+    return unchanged
 
 
 def run_tool(tool: str, func, params: dict, debug: bool = False) -> int:
@@ -90,7 +92,8 @@ def run_tool(tool: str, func, params: dict, debug: bool = False) -> int:
         func(**params)
         return 0
     except HitopsError as err:
-        log.error("%s", _one_line(err))
+        log.error("%s", " ".join([_one_line(err)] + [_one_line(n) for n in
+                                                     getattr(err, "__notes__", [])]))
         if debug:
             traceback.print_exc()
         return err.exit_code
@@ -106,8 +109,8 @@ def run_tool(tool: str, func, params: dict, debug: bool = False) -> int:
         detail = _one_line(err) or "no message"
         if debug:
             traceback.print_exc()
-        log.error("hitops %s failed unexpectedly: %s: %s. The input files are as they were "
-                  "before this run. %s", tool, kind, detail,
+        left = _what_is_left(err, "The input files are as they were before this run.")
+        log.error("hitops %s failed unexpectedly: %s: %s. %s %s", tool, kind, detail, left,
                   (f"Details in {saved}; rerun with --debug to print them."
                    if saved else "Rerun with --debug for the details."))
         return 1

@@ -35,7 +35,8 @@ def record_reads(monkeypatch):
             n_all = int(ds.sizes["row"])
             n_rows = (len(range(*rows.indices(n_all))) if isinstance(rows, slice)
                       else len(rows) if rows is not None else n_all)
-            log.append((source.get(id(ds)), tuple(c for c in columns if c != "ROWID") or
+            log.append((source.get(id(ds), getattr(ds, "ms", None)),
+                        tuple(c for c in columns if c != "ROWID") or
                         tuple(columns), n_rows))
         return compute_columns(requests, *args, **kwargs)
 

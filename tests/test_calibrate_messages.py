@@ -87,7 +87,7 @@ def test_interrupt_after_the_commit_names_the_new_column(pair):
     last = text.strip().splitlines()[-1]
     assert "as they were before this run" not in text
     assert f"{tgt} holds the new PWC_DATA" in last, last
-    assert "verdict and the report were not finished" in last
+    assert "what follows the commit (the verdict and the report) did not finish" in last
     assert "--overwrite" in last
     after, data_after, flag_after = columns_and_data(tgt)
     assert after == names | {"PWC_DATA"}       # the committed column, nothing staged
@@ -120,3 +120,19 @@ def test_no_library_warning_reaches_the_terminal(tmp_path):
         strays = [line for line in done.stderr.splitlines() if not LOG_LINE.match(line)]
         assert strays == [], strays
         assert "verdict" in done.stderr
+
+
+def test_a_failure_after_the_commit_names_the_new_column(pair, tmp_path):
+    """Not only an interrupt: an unexpected error after the commit (here the report's
+    path is under a file) says what the set holds, not that it is as it was."""
+    ref, tgt = pair
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    done = subprocess.run([str(HITOPS), "calibrate", str(ref), str(tgt), "--method", "pwc",
+                           "--report", str(blocker / "report.json")],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 1
+    last = done.stderr.strip().splitlines()[-1]
+    assert "as they were before this run" not in last
+    assert f"{tgt} holds the new PWC_DATA" in last, last
+    assert "PWC_DATA" in columns_and_data(tgt)[0]

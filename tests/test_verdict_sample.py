@@ -8,7 +8,8 @@ import pytest
 from casacore import tables as pt
 
 from hitops.calibrate.synthetic import make_pair
-from hitops.calibrate.verdict_sample import MAX_RUNS, choose_blocks, read_sampled, read_times
+from hitops.calibrate.verdict_sample import choose_blocks, read_sampled, read_times
+from hitops.io.read import MAX_RUNS
 
 N_TIME = 4000
 

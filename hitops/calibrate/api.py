@@ -172,8 +172,9 @@ def _run(run, client, started: float) -> Dict:
         if len(reports) == 1:
             return write_report(run, reports[0], results[0], started)
         return write_report(run, combined_report(run, reports), None, started)
-    except KeyboardInterrupt as stop:
-        # the columns are committed: the set is no longer as it was (hitops/cli.py says this)
+    except BaseException as stop:
+        # an interrupt or a failure after the commit: the set is no longer as it was, and
+        # hitops/cli.py says what it holds
         stop.add_note(_committed(run, tx))
         raise
 
@@ -183,7 +184,7 @@ def _committed(run, tx) -> str:
     columns = ", ".join(run.outputs.values())
     flags = (f" and the updated FLAG (the flags before hitops in {FLAG_BACKUP})"
              if tx.flag_written else "")
-    unfinished = "the report was" if run.opts.no_verdict else "the verdict and the report were"
+    after = "the report" if run.opts.no_verdict else "the verdict and the report"
     return (f"the run had finished writing: {run.target_ms} holds the new {columns}{flags}; "
-            f"{unfinished} not finished; rerun the same command with --overwrite to make "
-            "them (the columns come out the same)")
+            f"what follows the commit ({after}) did not finish; rerun the same command with "
+            "--overwrite to redo it (the columns come out the same)")

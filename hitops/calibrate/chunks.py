@@ -149,7 +149,7 @@ class ChunkMatch:
                 n, parts = span.stop - span.start, max(1, int(split.get(which, 1)))
                 sizes.extend(p for p in np.diff(np.linspace(0, n, parts + 1).astype(np.int64))
                              if p > 0)
-            if len(sizes) > 1:
+            if len(sizes) > 1 and not isinstance(self.datasets[which], msio.StorageRows):
                 datasets = msio.open_groups(band.ms, [c for c in dict.fromkeys(cols) if c != "ROWID"],
                                             tuple(sizes), band.time_ordered)
                 # the band's only dataset from now on: the first one (and the row order

@@ -147,10 +147,12 @@ def build_plan(opts, methods: List[str], outputs: Dict[str, str], ref_ms: str,
     n_rows = {ms: msio.row_count(ms) for ms in (ref_ms, target_ms)}
     one_chunk = sum(n_rows.values()) <= 2 * chunk_rows and max(n_rows.values()) <= chunk_rows
     in_time_order = {ms: not (one_chunk and not ordered[ms]) for ms in ordered}
-    ref_groups = msio.open_groups(ref_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.ref + columns.snr)),
-                                  io_rows, time_ordered=ordered[ref_ms] or one_chunk)
-    tgt_groups = msio.open_groups(target_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.tgt)),
-                                  io_rows, time_ordered=ordered[target_ms] or one_chunk)
+    # one chunk on this process: a set of one group is read by python-casacore directly
+    direct = one_chunk and not opts.scheduler
+    ref_groups = msio.open_for_reading(ref_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.ref + columns.snr)),
+                                       io_rows, ordered[ref_ms] or one_chunk, direct)
+    tgt_groups = msio.open_for_reading(target_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.tgt)),
+                                       io_rows, ordered[target_ms] or one_chunk, direct)
     timings["open"] = time.perf_counter() - stage
     ref_stations = read_stations(ref_ms, "reference-band Measurement Set")
     tgt_stations = read_stations(target_ms, "target-band Measurement Set")

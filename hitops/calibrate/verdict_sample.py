@@ -28,12 +28,11 @@ import numpy as np
 
 from ..errors import ColumnError, MeasurementSetError
 from ..io.layout import baseline_time_layout
+from ..io.read import rows_reader
 from ..io.stations import read_stations
 
 #: casacore Stokes codes of the parallel hands, the only correlations the verdict uses
 PARALLEL_CODES = {5: "RR", 8: "LL", 9: "XX", 12: "YY", 1: "I"}
-#: a sampled read is made of row runs when there are at most this many (else one selection)
-MAX_RUNS = 512
 
 
 @dataclass(frozen=True)
@@ -132,23 +131,6 @@ def _rows_in_blocks(time: np.ndarray, blocks: TimeBlocks) -> np.ndarray:
     return np.flatnonzero(inside)
 
 
-def _reader(table, rows: np.ndarray):
-    """A function column -> values at ``rows``: getcol over runs of consecutive rows when
-    they are few (a table in time order), else through one row selection."""
-    if rows.size == table.nrows():
-        return table.getcol
-    breaks = np.flatnonzero(np.diff(rows) != 1) + 1
-    if breaks.size < MAX_RUNS:
-        starts = np.concatenate([[0], breaks])
-        stops = np.concatenate([breaks, [rows.size]])
-
-        def read_runs(column):
-            parts = [table.getcol(column, int(rows[a]), int(b - a)) for a, b in zip(starts, stops)]
-            return np.concatenate(parts) if len(parts) > 1 else parts[0]
-        return read_runs
-    return table.selectrows(rows).getcol
-
-
 def _parallel_hands(ms: str, table, first_row: int):
     """(indices, names) of the parallel-hand correlations of the row's data description."""
     from casacore import tables as pt
@@ -188,7 +170,7 @@ def read_sampled(ms: str, column: str, time: np.ndarray, blocks: TimeBlocks) -> 
         if column not in table.colnames():
             raise ColumnError(f"{ms} has no column {column}")
         corr_idx, corr_names = _parallel_hands(ms, table, int(rows[0]))
-        read = _reader(table, rows)
+        read = rows_reader(table, rows)
         ant1, ant2 = read("ANTENNA1"), read("ANTENNA2")
         flag_row = read("FLAG_ROW") if "FLAG_ROW" in table.colnames() else None
         scan, data, flag = read("SCAN_NUMBER"), read(column), read("FLAG")

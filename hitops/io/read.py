@@ -14,6 +14,7 @@ dask-ms adds only overhead there.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, Iterable, List, Optional, Sequence
 
@@ -118,6 +119,21 @@ class MainTable:
         """Rows [start, stop) of ``columns``."""
         return {c: self._table.getcol(c, int(start), int(stop - start)) for c in columns}
 
+    def read_rows(self, columns: Sequence[str], rows) -> Dict[str, np.ndarray]:
+        """``columns`` at ``rows`` (a slice, ascending row numbers, or None for all);
+        ``ROWID`` gives the row numbers themselves."""
+        if rows is None or isinstance(rows, slice):
+            start, stop, _ = (rows or slice(None)).indices(self.n_rows)
+            out = self.read([c for c in columns if c != "ROWID"], start, stop)
+            row_ids = np.arange(start, stop, dtype=np.int64)
+        else:
+            row_ids = np.asarray(rows, dtype=np.int64)
+            read = rows_reader(self._table, row_ids)
+            out = {c: read(c) for c in columns if c != "ROWID"}
+        if "ROWID" in columns:
+            out["ROWID"] = row_ids
+        return out
+
     def close(self) -> None:
         self._table.close()
 
@@ -126,6 +142,58 @@ class MainTable:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+#: rows_reader reads runs of consecutive rows one getcol each when there are at most this
+#: many runs, else through one row selection
+MAX_RUNS = 512
+
+
+def rows_reader(table, rows: np.ndarray):
+    """A function column -> values at ascending ``rows`` of an open casacore ``table``:
+    one getcol per run of consecutive rows when the runs are few (a table in time order),
+    else one getcol through a row selection (``selectrows``)."""
+    if rows.size == table.nrows():
+        return table.getcol
+    breaks = np.flatnonzero(np.diff(rows) != 1) + 1
+    if breaks.size < MAX_RUNS:
+        starts = np.concatenate([[0], breaks])
+        stops = np.concatenate([breaks, [rows.size]])
+
+        def read_runs(column):
+            parts = [table.getcol(column, int(rows[a]), int(b - a)) for a, b in zip(starts, stops)]
+            return np.concatenate(parts) if len(parts) > 1 else parts[0]
+        return read_runs
+    return table.selectrows(rows).getcol
+
+
+@dataclass(frozen=True)
+class StorageRows:
+    """A whole main table read in storage order with python-casacore, in place of a
+    dask-ms dataset (:func:`open_for_reading`); :func:`compute_columns` reads it."""
+
+    ms: str
+    n_rows: int
+
+    @property
+    def sizes(self) -> Dict[str, int]:
+        return {"row": self.n_rows}
+
+
+def open_for_reading(ms: str, columns: Sequence[str], chunks, time_ordered: bool,
+                     direct: bool) -> Dict[tuple, object]:
+    """What calibrate reads a set through, keyed by (FIELD_ID, DATA_DESC_ID).
+
+    ``direct``: the set is read in one chunk on this process's threads (no cluster,
+    no reads overlapping writes): a set of one field and one spectral window
+    (:func:`selection_columns`) read in storage order (``time_ordered``) is then
+    a :class:`StorageRows` under (0, 0), read by python-casacore's getcol (dask-ms's
+    query and graph cost more than the read itself); any other set opens through
+    :func:`open_groups`.
+    """
+    if direct and time_ordered and not selection_columns(ms):
+        return {(0, 0): StorageRows(ms, row_count(ms))}
+    return open_groups(ms, columns, chunks, time_ordered=time_ordered)
 
 
 def is_time_ordered(ms: str, block_rows: int = 1 << 20) -> bool:
@@ -219,14 +287,19 @@ def compute_columns(requests, scheduler=None) -> List[Dict[str, np.ndarray]]:
     import dask
     import dask.threaded
 
-    graphs = []
-    for ds, columns, rows in requests:
-        if isinstance(rows, slice):
+    graphs, direct = [], {}
+    for i, (ds, columns, rows) in enumerate(requests):
+        if isinstance(ds, StorageRows):   # python-casacore, one table at a time
+            with MainTable(ds.ms) as table:
+                direct[i] = table.read_rows(list(columns), rows)
+        elif isinstance(rows, slice):
             graphs.append({c: ds[c].data[rows] for c in columns})
         else:
             graphs.append({c: _take_rows(ds[c].data, rows) for c in columns})
     # a callable scheduler avoids dask probing for a distributed client on every call
-    return list(dask.compute(*graphs, scheduler=scheduler or dask.threaded.get))
+    computed = iter(dask.compute(*graphs, scheduler=scheduler or dask.threaded.get)
+                    if graphs else [])
+    return [direct[i] if i in direct else next(computed) for i in range(len(requests))]
 
 
 def read_main_columns(ms: str, columns: Sequence[str], rows: Optional[np.ndarray] = None,
