@@ -58,7 +58,7 @@ CALIBRATE_COLUMNS = ["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER", "INTERVAL", 
 LABELS = {
     "issue": "I/O floor (issue 2: python-casacore reads 2 x DATA, writes 1 column)",
     "same_columns": "I/O floor, same columns as calibrate (8 columns x 2 bands read, 1 written)",
-    "same_stack": "same-stack floor: import the stack, start numba's CPU target, then the "
+    "same_stack": "Same-stack floor: import the stack, start numba's CPU target, then the "
                   "same-columns read and write",
     "imports_plain": "start-up only, plain: import the stack (numpy, numba, dask, dask-ms, casacore), "
                      "start numba's CPU target, normal exit",

@@ -321,16 +321,19 @@ agents, so wall times carry their load (see the load column, recorded before eac
 triple of runs); CPU times much less.  Pairs of 8 stations, 12 h of 1 s
 (1 209 600 rows per band).  Whole processes, warm numba cache, {args.repeats} interleaved
 triples (same-stack floor, `hitops calibrate REF TGT --overwrite`, the same with
-`--no-verdict`); ratios are the median of the run-by-run ratios.  Same-stack floor:
+`--no-verdict`); ratios are the median of the run-by-run ratios.
 {FLOOR_LABELS["same_stack"]} (benchmarks/_floors.py).  Targets (issue 28): default
 options <= 1.5x the floor, the verdict <= 10% of the default run, peak <= 1 GB.
 
 {body}
 
 Stages (from each run's report, `timings_s`): `checks` validates the inputs and opens
-the subtables; `open` builds the lazy dask-ms datasets; `metadata` is the index pass
-(TIME, ANTENNA1/2, SCAN_NUMBER, INTERVAL, FLAG_ROW of both bands; python-casacore
-getcol for a table read in storage order); `match` matches the bands and checks every
+the subtables; `open` opens the sets for reading (python-casacore directly for a set
+of one group read in one chunk on this process, dask-ms datasets where a set needs a
+sort, several groups, chunks or a cluster); `metadata` is the index pass (TIME,
+ANTENNA1/2, SCAN_NUMBER, INTERVAL, FLAG_ROW of both bands; python-casacore getcol for
+a table read in storage order), and in a fresh process also numba's import and the
+loading of the first cached kernels (the floor pays numba's start too); `match` matches the bands and checks every
 cell; `read` reads DATA and FLAG; `transfer` tracks and transfers; `write` writes
 the output; `verdict` reads 2 x T/dt-long blocks of times spread over the track
 (hitops/calibrate/verdict_sample.py) and predicts.
