@@ -11,6 +11,7 @@ fields.
 
 from __future__ import annotations
 
+import gc
 import numpy as np
 import pytest
 
@@ -168,3 +169,30 @@ def test_slices_and_row_subsets_are_read(pair, monkeypatch):
     assert np.array_equal(direct["ANTENNA1"], ant1[30:95])
     assert reads == [(ms, ("TIME",), 60), (ms, ("TIME", "ANTENNA1"), rows.size),
                      (ms, ("ANTENNA1",), time.size), (ms, ("ANTENNA1", "TIME"), 65)]
+
+def test_open_for_reading_direct_only_for_one_valid_group(tmp_path):
+    """A set of one field and one spectral window read in one chunk is read by
+    python-casacore (StorageRows); rows naming a FIELD row the set lacks go through the
+    grouped datasets, whose keys let the plan name the damage (as before)."""
+    from casacore import tables as pt
+
+    truth = make_pair(tmp_path, n_ant=3, n_time=40)
+    ms = str(truth.target_ms)
+    opened = msio.open_for_reading(ms, ["TIME", "DATA"], 1000, time_ordered=True, direct=True)
+    assert list(opened) == [(0, 0)] and isinstance(opened[(0, 0)], msio.StorageRows)
+    assert opened[(0, 0)].n_rows == truth.time.size
+    got, = msio.compute_columns([(opened[(0, 0)], ["DATA", "ROWID"], np.array([2, 3, 9]))])
+    with pt.table(ms, ack=False) as t:
+        assert np.array_equal(got["DATA"], t.getcol("DATA")[[2, 3, 9]])
+    assert np.array_equal(got["ROWID"], [2, 3, 9])
+    # not direct (a cluster, several chunks): dask-ms's datasets
+    grouped = msio.open_for_reading(ms, ["TIME"], 1000, time_ordered=True, direct=False)
+    assert not isinstance(grouped[(0, 0)], msio.StorageRows)
+    del grouped
+    gc.collect()   # dask-ms closes its table handle when the dataset is collected
+    with pt.table(ms, readonly=False, ack=False) as t:
+        field = t.getcol("FIELD_ID")
+        field[5] = 3
+        t.putcol("FIELD_ID", field)
+    damaged = msio.open_for_reading(ms, ["TIME"], 1000, time_ordered=True, direct=True)
+    assert sorted(damaged) == [(0, 0), (3, 0)]
