@@ -156,15 +156,17 @@ def _run(run, client, started: float) -> Dict:
     except BaseException:
         tx.rollback()
         raise
+    committed = False
     try:
         # an interrupt during the commit would leave FLAG half rewritten: it waits
         with interrupts_held():
             tx.commit()
-    except KeyboardInterrupt as stop:   # delivered after a whole commit
-        stop.add_note(_committed(run, tx))
-        raise
-    except BaseException:
-        tx.rollback()
+            committed = True
+    except BaseException as stop:
+        if not committed:   # the commit itself failed
+            tx.rollback()
+        else:               # an interrupt held back during the commit, delivered after it
+            stop.add_note(_committed(run, tx))
         raise
     try:
         reports = [group_report(run, group, result, tx, started)
