@@ -139,7 +139,10 @@ def _run(run, client, started: float) -> Dict:
 
     # everything this run changes in the target set (hitops/calibrate/output.py)
     tx = OutputTransaction(run.target_ms, run.outputs, run.columns.target_data, None,
-                           run.chunk_rows)
+                           run.chunk_rows,
+                           direct_writes=client is None and all(
+                               isinstance(g.match.datasets["tgt"], msio.StorageRows)
+                               for g in run.groups))
     tx.check_space()
     if client is not None:
         release_cluster_tables(client)   # stale handles of an earlier run on this cluster

@@ -335,17 +335,41 @@ def _single_block(value: np.ndarray, prefix: str = "hitops-write"):
                     dtype=value.dtype)
 
 
+def _put_rows(ms: str, rows: np.ndarray, arrays: Dict[str, np.ndarray]) -> None:
+    """``arrays`` into existing columns at ``rows`` with python-casacore: one putcol per run
+    of consecutive rows (a chunk of a table read in storage order is one run)."""
+    from casacore import tables as pt
+
+    order = np.argsort(rows, kind="stable")
+    rows = rows[order]
+    breaks = np.flatnonzero(np.diff(rows) != 1) + 1
+    starts = np.concatenate([[0], breaks])
+    stops = np.concatenate([breaks, [rows.size]])
+    with pt.table(ms, readonly=False, ack=False) as table:
+        table.lock(write=True)
+        for name, value in arrays.items():
+            value = np.asarray(value)[order]
+            for a, b in zip(starts, stops):
+                table.putcol(name, value[a:b], int(rows[a]), int(b - a))
+
+
 def write_main_columns(ms: str, rows: np.ndarray, arrays: Dict[str, np.ndarray],
-                       dims: Dict[str, tuple], scheduler=None) -> None:
+                       dims: Dict[str, tuple], scheduler=None, direct: bool = False) -> None:
     """Write ``arrays`` (first axis = ``rows``) into main-table columns via dask-ms.
 
     Columns that do not exist are created by dask-ms from the array's dtype and shape.
+    ``direct``: the columns exist and no dask-ms handle is open on the table (a
+    one-chunk run that read it with python-casacore): written with python-casacore's
+    putcol instead, without dask-ms's graph.
     """
+    rows = np.asarray(rows, dtype=np.int64)
+    if direct:
+        _put_rows(ms, rows, arrays)
+        return
     import dask
     import dask.threaded
     from daskms import Dataset, xds_to_table
 
-    rows = np.asarray(rows, dtype=np.int64)
     variables = {}
     for name, value in arrays.items():
         variables[name] = (dims[name], _single_block(value))
