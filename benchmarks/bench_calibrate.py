@@ -335,7 +335,8 @@ ANTENNA1/2, SCAN_NUMBER, INTERVAL, FLAG_ROW of both bands; python-casacore getco
 a table read in storage order), and in a fresh process also numba's import and the
 loading of the first cached kernels (the floor pays numba's start too); `match` matches the bands and checks every
 cell; `read` reads DATA and FLAG; `transfer` tracks and transfers; `write` writes
-the output; `verdict` reads 2 x T/dt-long blocks of times spread over the track
+the staged output (python-casacore putcol in a one-chunk run of one-group sets,
+dask-ms otherwise); `verdict` reads 2 x T/dt-long blocks of times spread over the track
 (hitops/calibrate/verdict_sample.py) and predicts.
 
 Run: `python -m benchmarks.bench_calibrate [--workdir DIR] [--repeats N] [--scenes paper,casa]`.
