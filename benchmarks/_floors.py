@@ -6,6 +6,10 @@
   ``hitops calibrate --method pwc`` reads (TIME, ANTENNA1, ANTENNA2,
   SCAN_NUMBER, INTERVAL, FLAG_ROW, DATA and FLAG of both bands) and writes
   the one column it writes: the fair floor for the same work;
+* ``same_stack``: the same-columns floor run after importing the stack that
+  ``hitops calibrate`` imports (below) and starting numba's CPU target: start-up
+  plus the same I/O, the floor a whole ``hitops calibrate`` process is held to
+  (issue 28);
 * ``imports_plain``: a process that only imports what ``hitops calibrate`` needs
   (the CLI, numpy, numba and the kernels module, python-casacore, dask and
   dask-ms), starts numba's CPU target and exits normally, touching no data: the
@@ -46,12 +50,16 @@ from numba.core.registry import cpu_target
 cpu_target.target_context.refresh()   # what the first kernel call does
 """
 
+_SAME_STACK = _IMPORTS_PLAIN + _READ_WRITE
+
 CALIBRATE_COLUMNS = ["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER", "INTERVAL", "FLAG_ROW",
                      "DATA", "FLAG"]
 
 LABELS = {
     "issue": "I/O floor (issue 2: python-casacore reads 2 x DATA, writes 1 column)",
     "same_columns": "I/O floor, same columns as calibrate (8 columns x 2 bands read, 1 written)",
+    "same_stack": "Same-stack floor: import the stack, start numba's CPU target, then the "
+                  "same-columns read and write",
     "imports_plain": "start-up only, plain: import the stack (numpy, numba, dask, dask-ms, casacore), "
                      "start numba's CPU target, normal exit",
 }
@@ -64,11 +72,15 @@ def floor_commands(workdir: Path, ref_ms, target_ms):
     rw.write_text(_READ_WRITE)
     plain = workdir / "imports_plain_floor.py"
     plain.write_text(_IMPORTS_PLAIN)
+    stack = workdir / "same_stack_floor.py"
+    stack.write_text(_SAME_STACK)
     return {
         "issue": [sys.executable, str(rw), str(ref_ms), str(target_ms), "DATA"],
         "same_columns": [sys.executable, str(rw), str(ref_ms), str(target_ms),
                          ",".join(CALIBRATE_COLUMNS)],
         "imports_plain": [sys.executable, str(plain)],
+        "same_stack": [sys.executable, str(stack), str(ref_ms), str(target_ms),
+                       ",".join(CALIBRATE_COLUMNS)],
     }
 
 

@@ -1,23 +1,28 @@
-"""Benchmark of ``hitops calibrate --method pwc`` on a paper-size pair (issue 2).
+"""Benchmark of what a user runs: ``hitops calibrate`` with default options (issue 28).
 
-Scene (hitops.testing.make_pair): the paper's 8 stations (28
-baselines), 12 h of 1 s integrations (43 200 times, 1 209 600 rows per band),
-4 correlations, one channel, random-walk troposphere with thermal noise.
-Each figure is a whole process (start-up, imports, reading, FPT, writing)
-measured by benchmarks/_report.run_process:
+Two paper-size pairs (8 stations, 28 baselines, 12 h of 1 s: 1 209 600 rows per band):
 
-* floors (benchmarks/_floors.py): the issue's I/O floor (a python-casacore
-  script that reads the two DATA columns and writes one output column), the
-  same with every column calibrate reads, and an imports-only process;
-* ``hitops calibrate --method pwc`` with a cold numba cache (fresh
-  NUMBA_CACHE_DIR: every kernel compiles) and with a warm cache (median of 3).
+* ``paper``: ``hitops simulate paper`` (RR/LL, troposphere and noise), as a user
+  makes it;
+* ``casa``: the same stations and times laid out by casatools.simulator
+  (benchmarks/casa_layout.py) with four correlations (RR, RL, LR, LL), DATA then
+  filled with a random-walk troposphere (R times larger at 230 GHz), thermal noise
+  and small cross hands (:func:`fill_casa_pair`), since the simulator leaves it
+  without signal.
 
-Targets on this 2-core machine: <= 2 s wall warm, <= 1 GB peak RSS, <= 3x the
-I/O floor.  The machine is shared, so the 1-minute load average is recorded
-beside the figures.
+Each figure is a whole process (benchmarks/_report.run_process), warm numba cache:
+``hitops calibrate REF TGT --overwrite`` (default options: PWC, the verdict) and the
+same with ``--no-verdict``, interleaved with the same-stack floor
+(benchmarks/_floors.py: importing the stack and starting numba's CPU target, then
+reading every column calibrate reads and writing one column) so a change of the
+machine's load hits all three alike; ratios are taken run by run, and the
+1-minute load average is recorded before each triple.  The machine is shared by
+several agents: the load column says how much.
 
-Run: ``python -m benchmarks.bench_calibrate [--workdir DIR]`` (writes the
-``calibrate`` section of docs/performance.md).
+Run: ``python -m benchmarks.bench_calibrate [--workdir DIR] [--repeats N]
+[--scenes paper,casa]`` (writes the ``calibrate`` section of docs/performance.md);
+``--offset-step`` measures what ``--offset-model point`` adds (docs/calibrate.md),
+``--figure`` redraws the CFPT/PWC figure.
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from ._floors import LABELS as FLOOR_LABELS, measure_floors
+from ._floors import LABELS as FLOOR_LABELS, floor_commands
 from ._report import PLOT_DIR, machine_line, median, replace_section, run_process, save_figure
 
 N_TIME = 43_200
@@ -102,29 +107,6 @@ def figure(path: Path) -> Path:
     return path
 
 
-def measure_layout(workdir: Path, ref_ms: Path, target_ms: Path, repeats: int, env: dict,
-                   tag: str) -> dict:
-    """Floors and warm calibrate runs interleaved (floor, floor, calibrate; repeated), so a
-    change of the machine's load hits both alike; the ratio is taken run by run."""
-    hitops = str(Path(sys.executable).with_name("hitops"))
-    # the transfer itself: the verdict (about 1 s on this pair) is measured in docs/calibrate.md
-    command = [hitops, "calibrate", str(ref_ms), str(target_ms), "--method", "pwc",
-               "--overwrite", "--no-verdict", "--report", str(workdir / f"report-{tag}.json")]
-    run_process(command, env=env)   # the first run after building creates the column
-    floors = {"issue": [], "same_columns": []}
-    runs = []
-    for _ in range(repeats):
-        for name, res in measure_floors(workdir, ref_ms, target_ms, repeats=1,
-                                        names=list(floors)).items():
-            floors[name].append(res)
-        runs.append(run_process(command, env=env))
-    ratios = [r["wall_s"] / f["wall_s"] for r, f in zip(runs, floors["issue"])]
-    fair = [r["wall_s"] / f["wall_s"] for r, f in zip(runs, floors["same_columns"])]
-    report = json.loads((workdir / f"report-{tag}.json").read_text())
-    return {"runs": runs, "floors": floors, "ratio": median(ratios), "ratio_fair": median(fair),
-            "command": command, "report": report}
-
-
 def measure_offset_step(workdir: Path, ref_ms: Path, target_ms: Path, repeats: int) -> str:
     """What the n0 step against a model adds (issue 16): ``--tracker antenna`` without a step
     and with ``--offset-model point``, whole processes interleaved, on the paper-size pair.
@@ -184,163 +166,188 @@ Run: `python -m benchmarks.bench_calibrate --offset-step [--workdir DIR] [--repe
     return markdown
 
 
+def build_paper(workdir: Path):
+    """``hitops simulate paper`` into ``workdir/paper`` (reused when present)."""
+    out = workdir / "paper"
+    ref, tgt = out / "sim-86.ms", out / "sim-230.ms"
+    if not (tgt / "table.dat").exists():
+        hitops = str(Path(sys.executable).with_name("hitops"))
+        run_process([hitops, "simulate", "paper", "--outdir", str(out), "--overwrite"])
+    return ref, tgt
+
+
+def fill_casa_pair(ref_ms: Path, target_ms: Path, ratio: float = 230.0 / 86.0,
+                   seed: int = 28) -> None:
+    """DATA of a casatools.simulator layout: per-antenna random-walk phases (0.05 rad per
+    sample at the reference band, R times that at the target band), unit parallel hands,
+    cross hands of 0.02, thermal noise of 0.05 (reference) and 0.1 (target) per part."""
+    import numpy as np
+    from casacore import tables as pt
+
+    rng = np.random.default_rng(seed)
+    with pt.table(str(ref_ms), ack=False) as t:
+        time, ant1, ant2 = t.getcol("TIME"), t.getcol("ANTENNA1"), t.getcol("ANTENNA2")
+        n_ant = int(max(ant1.max(), ant2.max())) + 1
+    times, t_idx = np.unique(time, return_inverse=True)
+    walk = np.cumsum(rng.normal(0.0, 0.05, (times.size, n_ant)), axis=0)
+    phase = walk[t_idx, ant1] - walk[t_idx, ant2]
+    for ms, scale, sigma in ((ref_ms, 1.0, 0.05), (target_ms, ratio, 0.1)):
+        with pt.table(str(ms), readonly=False, ack=False) as t:
+            if not np.array_equal(t.getcol("TIME"), time):
+                raise RuntimeError(f"{ms}: not the same layout as {ref_ms}")
+            n_row = time.size
+            vis = np.empty((n_row, 1, 4), dtype=np.complex64)
+            signal = np.exp(1j * scale * phase)
+            amp = np.array([1.0, 0.02, 0.02, 1.0])
+            for c in range(4):
+                noise = rng.normal(0, sigma, n_row) + 1j * rng.normal(0, sigma, n_row)
+                vis[:, 0, c] = amp[c] * signal + noise
+            t.putcol("DATA", vis)
+            t.putcol("FLAG", np.zeros((n_row, 1, 4), dtype=bool))
+
+
+def build_casa(workdir: Path):
+    """The casatools.simulator layout of the paper scene, four correlations, both bands."""
+    out = workdir / "casa"
+    ref, tgt = out / "casa-86.ms", out / "casa-230.ms"
+    if not (out / "filled").exists():
+        out.mkdir(parents=True, exist_ok=True)
+        layout = str(Path(__file__).with_name("casa_layout.py"))
+        for band, ms in (("86", ref), ("230", tgt)):
+            if not (ms / "table.dat").exists():
+                run_process([sys.executable, layout, "paper", str(ms), "--band", band,
+                             "--correlations", "RR,RL,LR,LL"])
+        fill_casa_pair(ref, tgt)
+        (out / "filled").write_text("DATA filled by benchmarks/bench_calibrate.fill_casa_pair\n")
+    return ref, tgt
+
+
+def measure_scene(workdir: Path, tag: str, ref_ms: Path, target_ms: Path, repeats: int) -> dict:
+    """Floor, default run and --no-verdict run, interleaved ``repeats`` times."""
+    hitops = str(Path(sys.executable).with_name("hitops"))
+    commands = {"default": [hitops, "calibrate", str(ref_ms), str(target_ms), "--overwrite",
+                            "--report", str(workdir / f"report-{tag}-default.json")],
+                "no_verdict": [hitops, "calibrate", str(ref_ms), str(target_ms), "--overwrite",
+                               "--no-verdict", "--report",
+                               str(workdir / f"report-{tag}-no-verdict.json")]}
+    floor_cmd = floor_commands(workdir, ref_ms, target_ms)["same_stack"]
+    run_process(commands["default"])   # the column exists, numba's cache is warm
+    run_process(floor_cmd)
+    rows = []
+    for _ in range(repeats):
+        load = os.getloadavg()[0]
+        floor = run_process(floor_cmd)
+        default = run_process(commands["default"])
+        quiet = run_process(commands["no_verdict"])
+        report = json.loads((workdir / f"report-{tag}-default.json").read_text())
+        rows.append({"load": load, "floor": floor, "default": default, "no_verdict": quiet,
+                     "timings": report.get("timings_s", {}), "time_s": report.get("time_s"),
+                     "verdict_output": "warn" if "WARNING" in default["output"] and
+                     "closure" in default["output"] else "",
+                     "stray_lines": sum(1 for line in default["output"].splitlines()
+                                        if line and not line[:2].isdigit())})
+    return {"rows": rows, "commands": commands}
+
+
+def scene_markdown(title: str, result: dict) -> str:
+    rows = result["rows"]
+    ratio = {k: median([r[k]["wall_s"] / r["floor"]["wall_s"] for r in rows])
+             for k in ("default", "no_verdict")}
+    cpu_ratio = {k: median([r[k]["cpu_s"] / r["floor"]["cpu_s"] for r in rows])
+                 for k in ("default", "no_verdict")}
+    verdict = [r["timings"].get("verdict", float("nan")) for r in rows]
+    share = median([r["timings"].get("verdict", 0.0) / r["default"]["wall_s"] for r in rows])
+    peak = max(r["default"]["peak_rss_mb"] for r in rows)
+    lines = [f"**{title}**: default options {median([r['default']['wall_s'] for r in rows]):.2f} s"
+             f" wall median ({ratio['default']:.2f}x the same-stack floor run by run; CPU "
+             f"{cpu_ratio['default']:.2f}x), `--no-verdict` "
+             f"{median([r['no_verdict']['wall_s'] for r in rows]):.2f} s ({ratio['no_verdict']:.2f}x; "
+             f"CPU {cpu_ratio['no_verdict']:.2f}x), floor "
+             f"{median([r['floor']['wall_s'] for r in rows]):.2f} s; the verdict "
+             f"{median(verdict):.2f} s inside the run ({100 * share:.0f}% of the default "
+             f"run's wall time); peak RSS {peak:.0f} MB; lines on stderr that are not log "
+             f"lines: {max(r['stray_lines'] for r in rows)}.",
+             "",
+             "| run | load (1 min) | floor wall / CPU (s) | default wall / CPU (s) | "
+             "`--no-verdict` wall / CPU (s) | default / floor | stages of the default run (s) |",
+             "|---|---|---|---|---|---|---|"]
+    for i, r in enumerate(rows, 1):
+        stages = ", ".join(f"{k} {v:.2f}" for k, v in r["timings"].items())
+        lines.append(f"| {i} | {r['load']:.1f} | {r['floor']['wall_s']:.2f} / "
+                     f"{r['floor']['cpu_s']:.2f} | {r['default']['wall_s']:.2f} / "
+                     f"{r['default']['cpu_s']:.2f} | {r['no_verdict']['wall_s']:.2f} / "
+                     f"{r['no_verdict']['cpu_s']:.2f} | "
+                     f"{r['default']['wall_s'] / r['floor']['wall_s']:.2f} | {stages} |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--workdir", default=None, help="where to build (and reuse) the pair")
-    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--workdir", default=None, help="where to build (and reuse) the pairs")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--scenes", default="paper,casa")
     parser.add_argument("--offset-step", action="store_true",
                         help="only measure what --offset-model point adds (docs/calibrate.md)")
+    parser.add_argument("--figure", action="store_true",
+                        help="only redraw docs/figures/calibrate_cfpt_vs_pwc.png")
     args = parser.parse_args(argv if argv is not None else [])
+    if args.figure:
+        print("figure:", figure(PLOT_DIR / "calibrate_cfpt_vs_pwc.png"))
+        return
     workdir = Path(args.workdir or tempfile.mkdtemp(prefix="bench-calibrate-"))
     workdir.mkdir(parents=True, exist_ok=True)
-    ref_ms, target_ms = build(workdir)
     if args.offset_step:
+        ref_ms, target_ms = build(workdir)
         print(measure_offset_step(workdir, ref_ms, target_ms, args.repeats))
         if not args.workdir:
             shutil.rmtree(workdir, ignore_errors=True)
         return
-    ref_time, target_time = build(workdir / "time-ordered", time_order=True)
+    builders = {"paper": (build_paper, "`hitops simulate paper` (RR, LL; rows in time order)"),
+                "casa": (build_casa, "casatools.simulator layout, four correlations "
+                                     "(RR, RL, LR, LL; rows in time order)")}
+    load_before = os.getloadavg()
+    for tag in args.scenes.split(","):
+        build_scene, title = builders[tag]
+        ref_ms, target_ms = build_scene(workdir)
+        result = measure_scene(workdir, tag, ref_ms, target_ms, args.repeats)
+        section = scene_markdown(title, result)
+        # kept in the work directory: a later run of the other scene writes both
+        (workdir / f"section-{tag}.md").write_text(section)
+        print(section, flush=True)
+    load_after = os.getloadavg()
+    body = "\n\n".join((workdir / f"section-{tag}.md").read_text() for tag in builders
+                         if (workdir / f"section-{tag}.md").exists())
+    markdown = f"""## hitops calibrate: what a user runs (issue 28)
 
-    cold_cache = Path(tempfile.mkdtemp(prefix="numba-cold-"))
-    env = {"NUMBA_CACHE_DIR": str(cold_cache)}
-    load_before = os.getloadavg()[0]
-    cold_command = [str(Path(sys.executable).with_name("hitops")), "calibrate", str(ref_ms),
-                    str(target_ms), "--method", "pwc", "--overwrite", "--no-verdict", "--report",
-                    str(workdir / "report-cold.json")]
-    cold = run_process(cold_command, env=env)
-    imports = measure_floors(workdir, ref_ms, target_ms, repeats=args.repeats,
-                             names=["imports_plain"], env=env)
-    layouts = {"baseline": measure_layout(workdir, ref_ms, target_ms, args.repeats, env,
-                                          "baseline"),
-               "time": measure_layout(workdir, ref_time, target_time, args.repeats, env, "time")}
-    chunked = {}
-    for tag, (ref, tgt) in (("baseline", (ref_ms, target_ms)), ("time", (ref_time, target_time))):
-        command = layouts[tag]["command"][:-1] + [str(workdir / f"report-chunked-{tag}.json"),
-                                                  "--chunk-rows", "200000"]
-        chunked[tag] = (median([run_process(command, env=env)["wall_s"] for _ in range(3)]),
-                        json.loads((workdir / f"report-chunked-{tag}.json").read_text()))
-    load_after = os.getloadavg()[0]
-    shutil.rmtree(cold_cache, ignore_errors=True)
+Machine: {machine_line()}; load average (1, 5, 15 min) {", ".join(f"{x:.1f}" for x in load_before)}
+before and {", ".join(f"{x:.1f}" for x in load_after)} after: the machine is shared by several
+agents, so wall times carry their load (see the load column, recorded before each
+triple of runs); CPU times much less.  Pairs of 8 stations, 12 h of 1 s
+(1 209 600 rows per band).  Whole processes, warm numba cache, {args.repeats} interleaved
+triples (same-stack floor, `hitops calibrate REF TGT --overwrite`, the same with
+`--no-verdict`); ratios are the median of the run-by-run ratios.
+{FLOOR_LABELS["same_stack"]} (benchmarks/_floors.py).  Targets (issue 28): default
+options <= 1.5x the floor, the verdict <= 10% of the default run, peak <= 1 GB.
 
-    base = layouts["baseline"]
-    warm_runs = base["runs"]
-    warm = median([r["wall_s"] for r in warm_runs])
-    warm_cpu = median([r["cpu_s"] for r in warm_runs])
-    warm_rss = max(r["peak_rss_mb"] for r in warm_runs)
-    best = min(r["wall_s"] for r in warm_runs)
-    floor = median([f["wall_s"] for f in base["floors"]["issue"]])
+{body}
 
-    def floor_row(label, runs):
-        return (label, median([r["wall_s"] for r in runs]), median([r["cpu_s"] for r in runs]),
-                max(r["peak_rss_mb"] for r in runs))
+Stages (from each run's report, `timings_s`): `checks` validates the inputs and opens
+the subtables; `open` opens the sets for reading (python-casacore directly for a set
+of one group read in one chunk on this process, dask-ms datasets where a set needs a
+sort, several groups, chunks or a cluster); `metadata` is the index pass (TIME,
+ANTENNA1/2, SCAN_NUMBER, INTERVAL, FLAG_ROW of both bands; python-casacore getcol for
+a table read in storage order), and in a fresh process also numba's import and the
+loading of the first cached kernels (the floor pays numba's start too); `match` matches the bands and checks every
+cell; `read` reads DATA and FLAG; `transfer` tracks and transfers; `write` writes
+the staged output (python-casacore putcol in a one-chunk run of one-group sets,
+dask-ms otherwise); `verdict` reads 2 x T/dt-long blocks of times spread over the track
+(hitops/calibrate/verdict_sample.py) and predicts.
 
-    rows = []
-    for tag, title in (("baseline", "baseline-major (as built)"),
-                       ("time", "same scene stored in time order")):
-        lay = layouts[tag]
-        rows.append(floor_row(f"{title}: {FLOOR_LABELS['issue']}", lay["floors"]["issue"]))
-        rows.append(floor_row(f"{title}: {FLOOR_LABELS['same_columns']}",
-                              lay["floors"]["same_columns"]))
-        rows.append(floor_row(f"{title}: **hitops calibrate --method pwc**, warm cache (median "
-                              f"of {args.repeats}; runs "
-                              + ", ".join(f"{r['wall_s']:.2f}" for r in lay["runs"]) + ")",
-                              lay["runs"]))
-        n_chunks = chunked[tag][1].get("chunks")
-        rows.append((f"{title}: same, --chunk-rows 200000 ({n_chunks} time chunks, median of 3)",
-                     chunked[tag][0], float("nan"), float("nan")))
-    rows.append(("baseline-major: hitops calibrate --method pwc, cold numba cache",
-                 cold["wall_s"], cold["cpu_s"], cold["peak_rss_mb"]))
-    for name in ("imports_plain",):
-        rows.append((FLOOR_LABELS[name], imports[name]["wall_s"], imports[name]["cpu_s"],
-                     imports[name]["peak_rss_mb"]))
-    table = "\n".join(f"| {name} | {w:.2f} | "
-                      + ("-" if c != c else f"{c:.2f}") + " | "
-                      + ("-" if m != m else f"{m:.0f}") + " |" for name, w, c, m in rows)
-    ratio_line = "; ".join(
-        f"{title}: {layouts[tag]['ratio']:.1f}x the issue's floor, "
-        f"{layouts[tag]['ratio_fair']:.1f}x the same-columns floor"
-        for tag, title in (("baseline", "baseline-major"), ("time", "time order")))
-    stages = base["report"].get("timings_s", {})
-    stage_line = ", ".join(f"{k} {v:.2f}" for k, v in stages.items())
-    in_tool = base["report"].get("time_s", float("nan"))
-    time_warm = median([r["wall_s"] for r in layouts["time"]["runs"]])
-    verdict = (f"warm wall {warm:.2f} s median, best {best:.2f} s (target <= 2 s: "
-               f"{'met' if warm <= 2 else 'NOT met'}; {time_warm:.2f} s on the time-ordered copy); "
-               f"run by run {base['ratio']:.1f}x the issue's I/O floor (target <= 3x: "
-               f"{'met' if base['ratio'] <= 3 else 'NOT met'}); peak RSS {warm_rss:.0f} MB "
-               f"(target <= 1024 MB: {'met' if warm_rss <= 1024 else 'NOT met'})")
-    chunk_line = "; ".join(
-        f"{title}: {chunked[tag][0]:.2f} s in {chunked[tag][1].get('chunks')} chunks against "
-        f"{median([r['wall_s'] for r in layouts[tag]['runs']]):.2f} s in one"
-        for tag, title in (("baseline", "baseline-major"), ("time", "time order")))
-    markdown = f"""## hitops calibrate (issue 2)
-
-Machine: {machine_line()}; 1-minute load average {load_before:.1f} before and
-{load_after:.1f} after the runs (the machine is shared; wall times grow with load, CPU
-times much less).  Scene: {N_ANT} stations (28 baselines), {N_TIME} times of 1 s,
-{len(CORRS)} correlations, one channel: {28 * N_TIME} rows per band
-(hitops.testing.make_pair, which stores the rows baseline by baseline), and
-the same pair stored with its rows sorted by time, as correlators and CASA write them.
-Whole processes (benchmarks/_report.run_process).  The floors and the warm calibrate
-runs are interleaved (floor, floor, calibrate, repeated) so that the machine's load
-hits them alike; the ratios are the median of the run-by-run ratios.
-
-| run | wall (s) | CPU (s) | peak RSS (MB) |
-|---|---|---|---|
-{table}
-
-Verdict: {verdict}.  Ratios: {ratio_line}.
-
-Against the paper: its PWC calibration of the 230 GHz set of the same size (8
-stations, 12 h of 1 s, ~1.2 M rows, 4 correlations) took under 20 s on two logical
-cores with 6.5 GB; here the whole `hitops calibrate --method pwc` process takes
-{warm:.2f} s warm ({20 / warm:.0f}x less than 20 s) and {cold["wall_s"]:.2f} s with a cold numba
-cache, with a peak RSS of {warm_rss / 1024:.2f} GB ({6.5 * 1024 / warm_rss:.0f}x less than 6.5 GB).
-
-Stages of the last baseline-major warm run (seconds, from the report's `timings_s`):
-{stage_line}; {in_tool:.2f} s inside `calibrate()`, the rest of the process is
-start-up (Python, the CLI, the lean import of the stack and numba's CPU target, see
-below) and exit.  `checks` validates the inputs and opens the subtables; `open` builds
-the two lazy dask-ms datasets; `metadata` reads TIME/ANTENNA1/ANTENNA2/SCAN_NUMBER/
-INTERVAL/FLAG_ROW of both bands and summarises them; `match` matches the bands and
-checks every cell; `read` reads DATA and FLAG; `transfer` counts wraps and runs the PWC
-kernels on two threads; `write` writes the output column through dask-ms.
-
-Chunked runs (memory bounded by `--chunk-rows`): {chunk_line}.  Each band is read
-through one dask-ms dataset whose row blocks are the time chunks, by both passes (the
-checks before anything is written, then the data); what remains of the difference is
-one more metadata read per chunk and, for a baseline-major table, one getcol per
-baseline run in each chunk.
-
-What start-up costs (the imports-only row above): the command imports the stack
-plainly and exits through the interpreter's normal teardown.  An earlier round hid
-SciPy while importing and skipped the teardown (0.27 s less: 0.48 s against 0.75 s
-median for importing the stack, measured 2026-11-24); both were removed
-because a tool that writes tables must never end without the interpreter's own
-clean-up, and hiding installed packages changes what other code sees.
-
-* Distinct times and row-to-time lookups: linear numba passes over the sorted runs of
-  TIME (hitops/kernels/sorted_runs.py) instead of a stable sort and a binary search per
-  row (about 0.1 s on this scene); the groups' phasors go back to row order in one numba
-  pass instead of boolean-mask indexing (about 0.1 s).
-* Tried and dropped: reading every column in a background thread while numba starts
-  (casacore releases the GIL while it reads): on two cores the threads contended and it
-  was slower than reading then starting numba.
-
-Which targets are within reach: numba's import and CPU-target start (about 0.3 s plus
-0.2 s) and dask-ms with dask.array (about 0.25 s) come before any data is touched,
-while the issue's floor process imports only numpy and python-casacore; on a 1.2 M-row
-scene that fixed cost alone is about 2x the floor's whole run.  The floors read from
-the page cache (the sets were just written), so they measure memory copies, not disks.
-Memory: one chunk holds the whole scene here; `--chunk-rows` bounds the visibility data
-(row above), not the per-row metadata of the whole track (scaling section).
-
-Run: `python -m benchmarks.bench_calibrate [--workdir DIR] [--repeats N]`.
+Run: `python -m benchmarks.bench_calibrate [--workdir DIR] [--repeats N] [--scenes paper,casa]`.
 """
     print(markdown)
     replace_section("calibrate", markdown)
-    print("figure:", figure(PLOT_DIR / "calibrate_cfpt_vs_pwc.png"))
-    if not args.workdir:   # a pair built in a temporary directory is not kept
+    if not args.workdir:   # pairs built in a temporary directory are not kept
         shutil.rmtree(workdir, ignore_errors=True)
 
 

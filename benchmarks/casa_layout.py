@@ -1,7 +1,7 @@
 """Lay out a scene with casatools.simulator (no corruption, no noise): the CASA baseline.
 
 Run as ``python benchmarks/casa_layout.py SCENE OUT.ms [--band NAME] [--duration S]
-[--integration S] [--stations A,B] [--elevation-limit DEG]`` in its own process so the benchmark can time it and read
+[--integration S] [--stations A,B] [--elevation-limit DEG] [--correlations RR,RL,LR,LL]`` in its own process so the benchmark can time it and read
 its peak memory.  Used by benchmarks/bench_simulate.py (speed comparison) and
 tests/test_simulate_casa.py (UVW sign convention and time scale cross-check).
 """
@@ -18,7 +18,7 @@ import numpy as np
 def casa_layout(scene_name: str, ms_path: str, band_name: str | None = None,
                 duration: float | None = None, stations: str | None = None,
                 elevation_limit_deg: float | None = None,
-                integration: float | None = None) -> None:
+                integration: float | None = None, correlations: str | None = None) -> None:
     from hitops.casa_env import ensure_casa_offline
     from hitops.simulate.scene import apply_overrides, parse_scene
 
@@ -26,7 +26,7 @@ def casa_layout(scene_name: str, ms_path: str, band_name: str | None = None,
     from casatools import measures, simulator
 
     scene = apply_overrides(parse_scene(scene_name), duration=duration, stations=stations,
-                            integration=integration)
+                            integration=integration, correlations=correlations)
     band = next(b for b in scene.bands if band_name in (None, b.name))
     positions = np.array([s.itrf for s in scene.stations])
     me = measures()
@@ -67,9 +67,10 @@ def main(argv=None) -> int:
     parser.add_argument("--stations")
     parser.add_argument("--elevation-limit", type=float)
     parser.add_argument("--integration", type=float)
+    parser.add_argument("--correlations", help="e.g. RR,RL,LR,LL (default: the scene's)")
     args = parser.parse_args(argv)
     casa_layout(args.scene, args.ms, args.band, args.duration, args.stations, args.elevation_limit,
-                args.integration)
+                args.integration, args.correlations)
     return 0
 
 

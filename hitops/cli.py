@@ -16,7 +16,8 @@ Stimela cabs, which run this command:
   ``--debug`` (or ``HITOPS_DEBUG=1``);
 * SIGINT and SIGTERM: the tool's own clean-up runs (calibrate drops the
   columns it created and restores FLAG), then one line and exit status 130
-  or 143.
+  or 143; the line says what the run left (a note the tool added to the
+  interrupt, e.g. calibrate's committed columns), or that nothing changed.
 
 A missing required option is reported by click before any tool code runs.
 """
@@ -31,6 +32,7 @@ import sys
 import tempfile
 import time
 import traceback
+import warnings
 
 import click
 
@@ -72,6 +74,17 @@ def _save_traceback(tool: str) -> str:
     return path
 
 
+def _what_is_left(stop: BaseException,
+                  unchanged: str = "the input files are as they were before this run; rerun "
+                                   "the same command to start again") -> str:
+    """What a stopped run leaves: the tool's own note when it had already changed a file
+    (``add_note`` where it stopped, e.g. calibrate after its commit), else ``unchanged``."""
+    notes = getattr(stop, "__notes__", None)
+    if notes:
+        return " ".join(_one_line(n) for n in notes)
+    return unchanged
+
+
 def run_tool(tool: str, func, params: dict, debug: bool = False) -> int:
     """Run one tool's function behind the error boundary; the process exit status."""
     previous = signal.signal(signal.SIGTERM, _raise_terminated)
@@ -79,17 +92,16 @@ def run_tool(tool: str, func, params: dict, debug: bool = False) -> int:
         func(**params)
         return 0
     except HitopsError as err:
-        log.error("%s", _one_line(err))
+        log.error("%s", " ".join([_one_line(err)] + [_one_line(n) for n in
+                                                     getattr(err, "__notes__", [])]))
         if debug:
             traceback.print_exc()
         return err.exit_code
-    except Terminated:
-        log.error("hitops %s: terminated (SIGTERM); the input files are as they were before "
-                  "this run; rerun the same command to start again", tool)
+    except Terminated as stop:
+        log.error("hitops %s: terminated (SIGTERM); %s", tool, _what_is_left(stop))
         return 143
-    except KeyboardInterrupt:
-        log.error("hitops %s: interrupted; the input files are as they were before this run; "
-                  "rerun the same command to start again", tool)
+    except KeyboardInterrupt as stop:
+        log.error("hitops %s: interrupted; %s", tool, _what_is_left(stop))
         return 130
     except Exception as err:
         saved = _save_traceback(tool)
@@ -97,8 +109,8 @@ def run_tool(tool: str, func, params: dict, debug: bool = False) -> int:
         detail = _one_line(err) or "no message"
         if debug:
             traceback.print_exc()
-        log.error("hitops %s failed unexpectedly: %s: %s. The input files are as they were "
-                  "before this run. %s", tool, kind, detail,
+        left = _what_is_left(err, "The input files are as they were before this run.")
+        log.error("hitops %s failed unexpectedly: %s: %s. %s %s", tool, kind, detail, left,
                   (f"Details in {saved}; rerun with --debug to print them."
                    if saved else "Rerun with --debug for the details."))
         return 1
@@ -109,6 +121,9 @@ def run_tool(tool: str, func, params: dict, debug: bool = False) -> int:
 def _make_command(tool: str) -> click.Command:
     def invoke(debug=False, **params):
         setup_logging()
+        # on a cluster (--scheduler) the inputs of each task travel in the graph by
+        # design: distributed's advice to load them with dask instead is not the user's
+        warnings.filterwarnings("ignore", "Sending large graph", UserWarning)
         module = importlib.import_module(f"hitops.{tool}.app")
         debug = debug or os.environ.get("HITOPS_DEBUG", "") not in ("", "0")
         sys.exit(run_tool(tool, module.run, params, debug))

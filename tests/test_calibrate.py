@@ -296,11 +296,11 @@ def test_time_chunks_carry_the_wrap_count(new_pair):
 
 
 @pytest.mark.parametrize("order", ["baseline", "shuffled", "time"])
-def test_chunked_run_reads_at_most_chunk_rows_at_once(new_pair, order):
+def test_chunked_run_reads_at_most_chunk_rows_at_once(new_pair, order, monkeypatch):
     """Memory is bounded by --chunk-rows: no read (metadata or data) of either band holds
     more rows than one chunk, on baseline-major, shuffled and time-ordered tables, and the
-    output is the one-chunk output.  The reads are the real dask-ms reads, counted."""
-    from hitops.io.read import record_reads
+    output is the one-chunk output.  The reads are the real reads, counted (tests/read_spy.py)."""
+    from read_spy import record_reads
 
     truth = new_pair(PairSpec(n_time=300, n_scans=2, seed=21,
                               troposphere=Troposphere(phase_offset_rad=1.0),
@@ -312,11 +312,11 @@ def test_chunked_run_reads_at_most_chunk_rows_at_once(new_pair, order):
             assert np.all(np.diff(t.getcol("TIME")) >= 0)
     add_column(truth.target_ms, "CORRECTED_DATA", np.exp(1j * truth.source_phase))
     kw = dict(method="pwc,cfpt", offset_reference_column="CORRECTED_DATA")
-    with record_reads() as whole_reads:
+    with record_reads(monkeypatch) as whole_reads:
         whole_report = calibrate(truth.ref_ms, truth.target_ms, **kw)
     whole = {c: col(truth.target_ms, c) for c in ("PWC_DATA", "CFPT_DATA", "FLAG")}
     chunk_rows = 120
-    with record_reads() as reads:
+    with record_reads(monkeypatch) as reads:
         report = calibrate(truth.ref_ms, truth.target_ms, overwrite=True, chunk_rows=chunk_rows,
                            **kw)
     for c, value in whole.items():

@@ -31,9 +31,10 @@ from ..errors import InputError
 from ..io import access
 from ..io import read as msio
 from ..options import make_options
+from ..signals import interrupts_held
 from .band_index import INDEX_COLUMNS
 from .inputs import CalibrateOptions, check_inputs, parse_methods
-from .output import OutputTransaction, drop_stale_columns, release_cluster_tables
+from .output import FLAG_BACKUP, OutputTransaction, drop_stale_columns, release_cluster_tables
 from .rules import PreparedInputs, prepare_inputs
 
 if TYPE_CHECKING:   # the plan's modules load dask-ms: imported where a run starts
@@ -158,7 +159,10 @@ def _run(run: RunPlan, client, started: float, prepared: PreparedInputs) -> Dict
 
     # everything this run changes in the target set (hitops/calibrate/output.py)
     tx = OutputTransaction(run.target_ms, run.outputs, run.columns.target_data, None,
-                           run.chunk_rows)
+                           run.chunk_rows,
+                           direct_writes=client is None and all(
+                               isinstance(g.match.datasets["tgt"], msio.StorageRows)
+                               for g in run.groups))
     tx.check_space()
     if client is not None:
         release_cluster_tables(client)   # stale handles of an earlier run on this cluster
@@ -172,12 +176,41 @@ def _run(run: RunPlan, client, started: float, prepared: PreparedInputs) -> Dict
         results = [run_group(run, group, tx, client) for group in run.groups]
         if client is not None:
             release_cluster_tables(client)
-        tx.commit()
     except BaseException:
         tx.rollback()
         raise
-    reports = [group_report(run, group, result, tx, started)
-               for group, result in zip(run.groups, results)]
-    if len(reports) == 1:
-        return write_report(run, reports[0], results[0], started, prepared, results)
-    return write_report(run, combined_report(run, reports), None, started, prepared, results)
+    committed = False
+    try:
+        # an interrupt during the commit would leave FLAG half rewritten: it waits
+        with interrupts_held():
+            tx.commit()
+            committed = True
+    except BaseException as stop:
+        if not committed:   # the commit itself failed
+            tx.rollback()
+        else:               # an interrupt held back during the commit, delivered after it
+            stop.add_note(_committed(run, tx))
+        raise
+    try:
+        reports = [group_report(run, group, result, tx, started)
+                   for group, result in zip(run.groups, results)]
+        if len(reports) == 1:
+            return write_report(run, reports[0], results[0], started, prepared, results)
+        return write_report(run, combined_report(run, reports), None, started,
+                                prepared, results)
+    except BaseException as stop:
+        # an interrupt or a failure after the commit: the set is no longer as it was, and
+        # hitops/cli.py says what it holds
+        stop.add_note(_committed(run, tx))
+        raise
+
+
+def _committed(run, tx) -> str:
+    """What the target set holds after the commit, for a run stopped before its end."""
+    columns = ", ".join(run.outputs.values())
+    flags = (f" and the updated FLAG (the flags before hitops in {FLAG_BACKUP})"
+             if tx.flag_written else "")
+    after = "the report" if run.opts.no_verdict else "the verdict and the report"
+    return (f"the run had finished writing: {run.target_ms} holds the new {columns}{flags}; "
+            f"what follows the commit ({after}) did not finish; rerun the same command with "
+            "--overwrite to redo it (the columns come out the same)")

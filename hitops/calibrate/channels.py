@@ -23,6 +23,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..io import read as msio
 from ..kernels import wideband
 from .groups import GroupPair
 
@@ -87,7 +88,7 @@ def channel_plan(pair: GroupPair, ratio: float, average_channels: bool,
 
 def check_channel_counts(ms: str, role: str, column: str, ds, n_chan: int, spw: int) -> None:
     """The column's channel axis in dataset ``ds`` agrees with SPECTRAL_WINDOW::NUM_CHAN."""
-    n_data = int(ds[column].shape[1])
+    n_data = _data_channels(ms, column, ds)
     if n_data != n_chan:
         from ..errors import MeasurementSetError
 
@@ -95,6 +96,17 @@ def check_channel_counts(ms: str, role: str, column: str, ds, n_chan: int, spw: 
             f"{role} '{ms}': column {column} has {n_data} channel(s) but spectral window "
             f"{spw} has {n_chan} in the SPECTRAL_WINDOW table; the set is inconsistent: "
             "rewrite it (CASA mstransform) or take the window out (CASA split spw=...)")
+
+
+def _data_channels(ms: str, column: str, ds) -> int:
+    """Channels of ``column`` in a group's dataset (a dask-ms dataset, or the python-casacore
+    reader of a one-group set, whose first row is the group's)."""
+    if isinstance(ds, msio.StorageRows):
+        from casacore import tables as pt
+
+        with pt.table(ms, ack=False) as t:
+            return int(t.getcell(column, 0).shape[0])
+    return int(ds[column].shape[1])
 
 
 def reduce_rows(data: np.ndarray, good: np.ndarray, chan_freq: np.ndarray, at_freq: float):

@@ -59,8 +59,12 @@ class ChunkMatch:
     """
 
     def __init__(self, ref: BandIndex, tgt: BandIndex, ref_stations: Stations,
-                 tgt_stations: Stations, ref_corr, tgt_corr, antenna_map, tolerance=None):
+                 tgt_stations: Stations, ref_corr, tgt_corr, antenna_map, tolerance=None,
+                 datasets: Dict[str, object] = None):
         self.ref, self.tgt = ref, tgt
+        # "ref"/"tgt" -> the dask-ms dataset the band is read through: the match's own
+        # (use_chunk_datasets replaces it), the bands' indexes are only read
+        self.datasets: Dict[str, object] = dict(datasets or {})
         tgt_names = tgt_stations.codes
         n_ant_t, n_ant_r = tgt_stations.n_ant, ref_stations.n_ant
         pairs = np.flatnonzero(tgt.pair_present)
@@ -100,7 +104,6 @@ class ChunkMatch:
         self.scan_of_time = np.zeros(self.times.size, dtype=np.int64)
         self.n_matched = 0
         self.n_ref_unused = 0
-        self.blocks: Dict[str, object] = {}   # see use_chunk_datasets
 
     @property
     def n_bl(self) -> int:
@@ -146,12 +149,12 @@ class ChunkMatch:
                 n, parts = span.stop - span.start, max(1, int(split.get(which, 1)))
                 sizes.extend(p for p in np.diff(np.linspace(0, n, parts + 1).astype(np.int64))
                              if p > 0)
-            if len(sizes) > 1:
+            if len(sizes) > 1 and not isinstance(self.datasets[which], msio.StorageRows):
                 datasets = msio.open_groups(band.ms, [c for c in dict.fromkeys(cols) if c != "ROWID"],
                                             tuple(sizes), band.time_ordered)
                 # the band's only dataset from now on: the first one (and the row order
                 # dask-ms keeps for it, 8 bytes per row) can go
-                self.blocks[which] = band.ds = datasets[band.key]
+                self.datasets[which] = datasets[band.key]
 
     def time_counts(self) -> np.ndarray:
         """Rows of both bands per union time (for cutting chunks)."""
@@ -161,14 +164,13 @@ class ChunkMatch:
 
     def chunk_request(self, which: str, rows: slice, columns: List[str]):
         """A :func:`hitops.io.read.compute_columns` request for a band's ``columns`` at ``rows``."""
-        band = self.tgt if which == "tgt" else self.ref
-        return (self.blocks.get(which, band.ds), list(columns), rows)
+        return (self.datasets[which], list(columns), rows)
 
     def read_meta(self, which, rows: slice, columns, scheduler=None):
         band = self.tgt if which == "tgt" else self.ref
         if band.whole is not None:
             return {c: band.whole[c][rows] for c in columns}
-        return msio.compute_columns([(band.ds, columns, rows)], scheduler)[0]
+        return msio.compute_columns([(self.datasets[which], columns, rows)], scheduler)[0]
 
     def index_rows(self, which, meta) -> ChunkRows:
         band, group = self._side(which)
@@ -278,16 +280,14 @@ class ChunkMatch:
                              & (self.scan_of_time[1:] == self.scan_of_time[:-1])) + 1
         if cut.size == 0:
             return []
-        new_scan = np.zeros(self.n_time, dtype=np.int64)
         starts = np.zeros(self.n_time, dtype=bool)
         starts[0] = True
         starts[1:] = self.scan_of_time[1:] != self.scan_of_time[:-1]
         starts[cut] = True
-        new_scan = np.cumsum(starts) - 1
         splits = [(int(self.scans[self.scan_of_time[i]]), float(self.times[i]), float(gaps[i - 1]))
                   for i in cut]
         self.scans = self.scans[self.scan_of_time[starts]]
-        self.scan_of_time = new_scan
+        self.scan_of_time = np.cumsum(starts) - 1
         return splits
 
     def _raise_duplicate(self, cells, n_t, t0, ms):

@@ -95,11 +95,13 @@ class OutputTransaction:
     """
 
     def __init__(self, target_ms: str, outputs: Dict[str, str], target_column: str,
-                 n_rows: Optional[int], chunk_rows: int):
+                 n_rows: Optional[int], chunk_rows: int, direct_writes: bool = False):
         self.target_ms = target_ms
         self.outputs = dict(outputs)
         self.target_column = target_column
         self.chunk_rows = max(1, int(chunk_rows))
+        # no dask-ms handle on the set (one chunk read by python-casacore): write with it too
+        self.direct_writes = bool(direct_writes)
         self.staging = {m: STAGING_PREFIX + col for m, col in outputs.items()}
         self.created = list(self.staging.values()) + [STAGING_FLAG]
         if n_rows is None:   # every row of the table (a run may cover several groups)
@@ -174,7 +176,8 @@ class OutputTransaction:
                       for m, p in phasors.items()}
         arrays[STAGING_FLAG] = new_flag
         msio.write_main_columns(self.target_ms, rows, arrays,
-                                {name: VIS_DIMS for name in arrays}, scheduler=scheduler)
+                                {name: VIS_DIMS for name in arrays}, scheduler=scheduler,
+                                direct=self.direct_writes)
         self.rows_written[rows] = True
 
     def commit(self) -> None:

@@ -23,7 +23,7 @@ from ..io import read as msio
 from ..io.match import parse_antenna_map
 from ..io.stations import Stations, read_stations
 from ..tracking.options import TrackingSetup
-from .band_index import INDEX_COLUMNS, ROW_COLUMNS, BandIndex, index_bands
+from .band_index import INDEX_COLUMNS, ROW_COLUMNS, BandSource, index_bands
 from .chunks import ChunkMatch, ChunkRows
 from .channels import ChannelPlan, channel_plan, check_channel_counts
 from .groups import GroupPair, describe_groups, pair_groups
@@ -153,10 +153,12 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
     n_rows = {ms: msio.row_count(ms) for ms in (ref_ms, target_ms)}
     one_chunk = sum(n_rows.values()) <= 2 * chunk_rows and max(n_rows.values()) <= chunk_rows
     in_time_order = {ms: not (one_chunk and not ordered[ms]) for ms in ordered}
-    ref_groups = msio.open_groups(ref_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.ref + columns.snr)),
-                                  io_rows, time_ordered=ordered[ref_ms] or one_chunk)
-    tgt_groups = msio.open_groups(target_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.tgt)),
-                                  io_rows, time_ordered=ordered[target_ms] or one_chunk)
+    # one chunk on this process: a set of one group is read by python-casacore directly
+    direct = one_chunk and not opts.scheduler
+    ref_groups = msio.open_for_reading(ref_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.ref + columns.snr)),
+                                       io_rows, ordered[ref_ms] or one_chunk, direct)
+    tgt_groups = msio.open_for_reading(target_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.tgt)),
+                                       io_rows, ordered[target_ms] or one_chunk, direct)
     timings["open"] = time.perf_counter() - stage
     ref_stations = read_stations(ref_ms, "reference-band Measurement Set")
     tgt_stations = read_stations(target_ms, "target-band Measurement Set")
@@ -186,9 +188,9 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
 
 
 def _band(ms: str, datasets: Dict, key, n_ant: int, time_ordered: bool,
-          in_time_order: bool) -> BandIndex:
+          in_time_order: bool) -> BandSource:
     ds = datasets[key]
-    return BandIndex(ms=ms, ds=ds, n_ant=n_ant, n_row=int(ds.sizes["row"]), key=key,
+    return BandSource(ms=ms, ds=ds, n_ant=n_ant, n_row=int(ds.sizes["row"]), key=key,
                      time_ordered=time_ordered,
                      ds_in_time_order=in_time_order)
 
@@ -214,30 +216,32 @@ def _ratio(opts: CalibrateOptions, pair: GroupPair, label: str):
     return ratio, r, eps, source
 
 
-def plan_group(run: RunPlan, pair: GroupPair, ref_band: BandIndex, tgt_band: BandIndex,
+def plan_group(run: RunPlan, pair: GroupPair, ref_source: BandSource, tgt_source: BandSource,
                ref_stations: Stations, tgt_stations: Stations, antenna_map,
                label: str) -> GroupPlan:
     """Index, match and check one group pair before anything is written."""
     opts, columns, timings = run.opts, run.columns, run.timings
-    if ref_band.n_row == 0 or tgt_band.n_row == 0:
-        empty = run.ref_ms if ref_band.n_row == 0 else run.target_ms
+    if ref_source.n_row == 0 or tgt_source.n_row == 0:
+        empty = run.ref_ms if ref_source.n_row == 0 else run.target_ms
         raise MeasurementSetError(f"{empty} has no rows ({pair.label}); nothing to calibrate")
     stage = time.perf_counter()
     # per-row metadata in blocks of at most chunk_rows rows; only summaries stay (and TIME
     # for tables not in time order), see hitops/calibrate/chunks.py
-    index_bands([ref_band, tgt_band], [INDEX_COLUMNS, INDEX_COLUMNS], run.chunk_rows)
+    ref_band, tgt_band = index_bands([ref_source, tgt_source], [INDEX_COLUMNS, INDEX_COLUMNS],
+                                     run.chunk_rows)
     timings["metadata"] = time.perf_counter() - stage
     ratio, r, eps, source = _ratio(opts, pair, label)
     channels = channel_plan(pair, ratio, opts.average_channels, label)
-    for band, group, role, column in ((ref_band, pair.ref, "reference-band Measurement Set",
+    for band, group, role, column in ((ref_source, pair.ref, "reference-band Measurement Set",
                                        columns.ref_data),
-                                      (tgt_band, pair.tgt, "target-band Measurement Set",
+                                      (tgt_source, pair.tgt, "target-band Measurement Set",
                                        columns.target_data)):
         check_channel_counts(band.ms, role, column, band.ds, group.n_chan, group.spw)
 
     stage = time.perf_counter()
     match = ChunkMatch(ref_band, tgt_band, ref_stations, tgt_stations, list(pair.ref.corr),
-                       list(pair.tgt.corr), antenna_map, opts.time_tolerance)
+                       list(pair.tgt.corr), antenna_map, opts.time_tolerance,
+                       datasets={"ref": ref_source.ds, "tgt": tgt_source.ds})
     log.info("stations paired by code (%s: ANTENNA::%s, %s: ANTENNA::%s): %s", run.ref_ms,
              ref_stations.column, run.target_ms, tgt_stations.column,
              ", ".join(f"{e['reference'] or '-'}->{e['target'] or '-'}" for e in match.pairing))

@@ -137,21 +137,23 @@ def write_report(run: RunPlan, report: Dict, result: Optional[GroupResult],
     ``group_results``: every group's (a per-channel --caltable holds all windows).
     """
     opts = run.opts
+    report_path = Path(opts.report) if opts.report else Path(run.target_ms + ".hitops-calibrate.json")
     if opts.no_verdict:
         pass
     elif result is None:
-        # the verdict reads both bands whole (hitops/calibrate/verdict.py), every group mixed
+        # the verdict reads each band as one group (hitops/calibrate/verdict_sample.py)
         log.info("no verdict: the sets hold several field/spectral-window groups and the "
-                 "verdict reads each band whole")
+                 "verdict reads each band as one")
         report["verdict"] = {"skipped": "several groups"}
     elif result.n_chunks == 1:
-        report["verdict"] = _verdict(run, run.groups[0])
+        report["verdict"] = _verdict(run, run.groups[0], str(report_path))
     else:
-        # the verdict reads both bands whole: not in a run whose memory is bounded
+        # a run whose memory is bounded by --chunk-rows makes no verdict
         log.info("no verdict: the sets are larger than --chunk-rows (%d chunks) and the verdict "
-                 "reads each band whole; raise --chunk-rows to get one", result.n_chunks)
+                 "is made in one-chunk runs only; raise --chunk-rows to get one", result.n_chunks)
         report["verdict"] = {"skipped": f"{result.n_chunks} chunks"}
-    report_path = Path(opts.report) if opts.report else Path(run.target_ms + ".hitops-calibrate.json")
+    if "verdict" in run.timings and "timings_s" in report:   # made after the summary
+        report["timings_s"]["verdict"] = round(run.timings["verdict"], 4)
     report_path.write_text(json.dumps(report, indent=1))
     if opts.caltable and run.groups[0].channels is not None:
         report["caltable"] = _write_fringe_table(run, group_results)
@@ -240,7 +242,7 @@ def _write_caltable(run: RunPlan, group: GroupPlan, result: GroupResult) -> Dict
     return {"path": str(path), "solutions": n_valid, "flagged": int(valid.size - n_valid)}
 
 
-def _verdict(run: RunPlan, group: GroupPlan) -> Dict:
+def _verdict(run: RunPlan, group: GroupPlan, report_path: str) -> Dict:
     """Will FPT help here?  The prediction per baseline (hitops/calibrate/verdict.py)."""
     from .verdict import log_verdict, predict, summary
 
@@ -253,7 +255,7 @@ def _verdict(run: RunPlan, group: GroupPlan) -> Dict:
         log.warning("no verdict: %s", err)
         return {"error": str(err)}
     log_verdict(verdict, methods_transfer_baselines=opts.tracker != "antenna",
-                has_model=bool(opts.ref_model_column))
+                has_model=bool(opts.ref_model_column), report_path=report_path)
     run.timings["verdict"] = time.perf_counter() - started
     return {**verdict.as_dict(), "summary": summary(verdict)}
 

@@ -8,7 +8,8 @@ on data already fringe fitted per band, as the EHT's public releases are, the
 bands' residual fluctuations are independent and it loses.
 
 Per baseline and parallel hand, at the interval T (diagnose's default 60 s), from
-phase increments at lags tau within scans (samples matched in time):
+phase increments at lags tau within scans and sampled blocks (samples matched in
+time):
 
 * structure functions D = -2 ln |<exp(i increment)>| (the variance of Gaussian
   increments, blind to 2 pi) of the target phase Phi, of R phi (phi unwrapped from
@@ -29,9 +30,13 @@ phase increments at lags tau within scans (samples matched in time):
 job) and source structure (see the closure check) are not in it.
 
 Closure check: the reference band's closure phases averaged per triangle; when the
-median triangle's mean closure is more than 3 of its standard errors from zero,
-the source has structure at the reference band, and a baseline-based transfer
-writes R times it into the target.
+median triangle's mean closure is more than 3 of its standard errors and more than
+1 degree from zero, the source has structure at the reference band, and a
+baseline-based transfer writes R times it into the target.
+
+Both come from blocks of times spread over the track, not the whole track
+(:mod:`hitops.calibrate.verdict_sample`); the log gets one summary line, the
+report the table per baseline.
 """
 
 from __future__ import annotations
@@ -43,12 +48,21 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
+from ..errors import MeasurementSetError
+from .verdict_sample import quiet_nanmedian
+
 log = logging.getLogger("hitops.calibrate")
 
 #: predicted or measured changes within +-this fraction count as neutral
 NEUTRAL = 0.01
 #: sample pairs per lag and series for a structure function (relative error ~1/sqrt(2 x this))
 MAX_PAIRS = 2000
+#: the reference closures show structure only beyond this many standard errors ...
+CLOSURE_SIGNIFICANCE = 3.0
+#: ... and this many degrees (median triangle's |mean closure|): float32 rounding of
+#: noise-free data is ~1e-5 deg, and R x 1 deg (2.7 deg at 230/86 GHz) is below what a
+#: mm-VLBI closure phase is usually known to
+CLOSURE_FLOOR_DEG = 1.0
 
 
 @dataclass
@@ -77,11 +91,12 @@ class Verdict:
     ratio: float
     baselines: List[BaselineVerdict] = field(default_factory=list)
     closure: Optional[Dict] = None
+    sampled: Optional[Dict] = None     # times read of the track (verdict_sample.TimeBlocks)
 
     def as_dict(self) -> Dict:
         return {"interval_s": self.interval, "ratio": self.ratio,
                 "baselines": [b.as_dict() for b in self.baselines],
-                "reference_closure": self.closure}
+                "reference_closure": self.closure, "sampled": self.sampled}
 
 
 def _word(change: float) -> str:
@@ -100,54 +115,35 @@ def expected_mean_length(c, n: float):
     return np.sqrt(c ** 2 + (1.0 - c ** 2) / max(float(n), 1.0))
 
 
-def thermal_phase_noise(vis: np.ndarray, flag: np.ndarray, scan: np.ndarray):
+def thermal_phase_noise(vis: np.ndarray, flag: np.ndarray, segment: np.ndarray):
     """(sigma_phase, amplitude, sigma_component) per (baseline, correlation) of a grid.
 
-    vis, flag (n_bl, n_time, n_corr); scan (n_bl, n_time).  Consecutive valid samples
-    of one scan give amplitude differences whose robust spread is sqrt(2) s.
+    vis, flag (n_bl, n_time, n_corr); segment (n_bl, n_time): equal values mark
+    consecutive times (one scan, one sampled block).  Consecutive valid samples of
+    one segment give amplitude differences whose robust spread is sqrt(2) s.  A
+    series without two consecutive valid samples gives NaN (reported as unknown).
     """
     amp = np.abs(vis).astype(np.float64)
     ok = ~flag & (amp > 0) & np.isfinite(amp)
-    same = (scan[:, 1:] == scan[:, :-1])[:, :, None]
+    same = (segment[:, 1:] == segment[:, :-1])[:, :, None]
     pair = ok[:, 1:] & ok[:, :-1] & same
     diff = np.where(pair, amp[:, 1:] - amp[:, :-1], np.nan)
     with np.errstate(all="ignore"):
-        mad = np.nanmedian(np.abs(diff - np.nanmedian(diff, axis=1, keepdims=True)), axis=1)
+        mad = quiet_nanmedian(np.abs(diff - quiet_nanmedian(diff, axis=1, keepdims=True)), axis=1)
         s = 1.4826 * mad / math.sqrt(2.0)
-        a = np.nanmedian(np.where(ok, amp, np.nan), axis=1)
+        a = quiet_nanmedian(np.where(ok, amp, np.nan), axis=1)
         return s / a, a, s
 
 
-def _sigma_column_ratio(ms: str, grid, s: np.ndarray) -> np.ndarray:
-    """Measured per-component scatter over the median SIGMA of each baseline/correlation."""
-    from casacore import tables as pt
-
-    out = np.full(s.shape, np.nan)
-    try:
-        with pt.table(ms, ack=False) as t:
-            if "SIGMA" not in t.colnames():
-                return out
-            sigma = t.getcol("SIGMA")
-            a1, a2 = t.getcol("ANTENNA1"), t.getcol("ANTENNA2")
-    except RuntimeError:
-        return out
-    from ..diagnose.read import STOKES_NAMES
-    from ..io import read as msio
-
-    pol = msio.read_subtable(ms, "POLARIZATION", ["CORR_TYPE"])["CORR_TYPE"][0]
-    names = [STOKES_NAMES.get(int(c), str(c)) for c in pol]
-    corr = [names.index(c) for c in grid.corr_names]
-    for b in range(grid.n_bl):
-        rows = ((a1 == grid.ant1[b]) & (a2 == grid.ant2[b])) | ((a1 == grid.ant2[b]) & (a2 == grid.ant1[b]))
-        if rows.any():
-            med = np.median(sigma[rows][:, corr], axis=0)
-            with np.errstate(all="ignore"):
-                out[b] = s[b] / med
-    return out
-
-
 def closure_check(grid, sigma_phase: np.ndarray, max_triangles: int = 200) -> Optional[Dict]:
-    """Mean reference closure phase per triangle against its standard error (first hand)."""
+    """Mean reference closure phase per triangle against its standard error (first hand).
+
+    ``grid``: a :class:`hitops.calibrate.verdict_sample.SampledBand`.  The median
+    triangle's mean closure counts as structure only when it is both more than
+    :data:`CLOSURE_SIGNIFICANCE` standard errors and more than
+    :data:`CLOSURE_FLOOR_DEG` degrees from zero: noise-free data have a standard
+    error of zero, and rounding alone would be "significant".
+    """
     from ..tracking.antenna_kernel import closure_phases
 
     ants = sorted(set(grid.ant1.tolist()) | set(grid.ant2.tolist()))
@@ -156,7 +152,7 @@ def closure_check(grid, sigma_phase: np.ndarray, max_triangles: int = 200) -> Op
     triangles = np.array([(p, q, r) for i, p in enumerate(ants) for j, q in enumerate(ants[i + 1:], i + 1)
                           for r in ants[j + 1:]], dtype=np.int64)[:max_triangles]
     c = 0
-    vis = grid.vis_stack[:, :, 0, c]
+    vis = grid.vis[:, :, c]
     valid = ~grid.flag[:, :, c] & (np.abs(vis) > 0)
     phase = np.where(valid, np.angle(vis.astype(np.complex128)), 0.0)
     closures = closure_phases(np.ascontiguousarray(phase), np.ascontiguousarray(valid),
@@ -176,88 +172,123 @@ def closure_check(grid, sigma_phase: np.ndarray, max_triangles: int = 200) -> Op
     if not stats:
         return None
     values = np.array(stats)
+    median_deg = float(np.degrees(np.median(values[:, 0])))
+    significance = float(np.median(values[:, 1]))
     return {"triangles": int(values.shape[0]),
-            "median_abs_mean_closure_deg": float(np.degrees(np.median(values[:, 0]))),
-            "median_significance": float(np.median(values[:, 1])),
-            "consistent_with_zero": bool(np.median(values[:, 1]) <= 3.0)}
+            "median_abs_mean_closure_deg": median_deg,
+            "median_significance": significance,
+            "floor_deg": CLOSURE_FLOOR_DEG,
+            "consistent_with_zero": bool(significance <= CLOSURE_SIGNIFICANCE
+                                         or median_deg <= CLOSURE_FLOOR_DEG)}
 
 
-def _aligned(tgt, ref, tolerance: float):
-    """Index into ref.times of each target time (-1 where no reference time is that close)."""
-    pos = np.clip(np.searchsorted(ref.times, tgt.times), 1, max(ref.times.size - 1, 1))
-    lo = np.clip(pos - 1, 0, ref.times.size - 1)
-    hi = np.clip(pos, 0, ref.times.size - 1)
-    near = np.where(np.abs(ref.times[lo] - tgt.times) <= np.abs(ref.times[hi] - tgt.times), lo, hi)
-    return np.where(np.abs(ref.times[near] - tgt.times) <= tolerance, near, -1)
+def _aligned(tgt_times: np.ndarray, ref_times: np.ndarray, tolerance: float):
+    """Index into ref_times of each target time (-1 where no reference time is that close)."""
+    pos = np.clip(np.searchsorted(ref_times, tgt_times), 1, max(ref_times.size - 1, 1))
+    lo = np.clip(pos - 1, 0, ref_times.size - 1)
+    hi = np.clip(pos, 0, ref_times.size - 1)
+    near = np.where(np.abs(ref_times[lo] - tgt_times) <= np.abs(ref_times[hi] - tgt_times), lo, hi)
+    return np.where(np.abs(ref_times[near] - tgt_times) <= tolerance, near, -1)
 
 
-def _unwrap_runs(phase: np.ndarray, valid: np.ndarray, scan: np.ndarray) -> np.ndarray:
-    """Phase unwrapped along the valid samples of each scan (NaN elsewhere): wraps counted
-    from one valid sample to the next, as PWC counts them."""
+def _unwrap_runs(phase: np.ndarray, valid: np.ndarray, segment: np.ndarray) -> np.ndarray:
+    """Phase unwrapped along the valid samples of each segment (NaN elsewhere): wraps
+    counted from one valid sample to the next, as PWC counts them (np.unwrap's rule,
+    restarted at each segment)."""
     out = np.full(phase.shape, np.nan)
     idx = np.flatnonzero(valid)
     if idx.size == 0:
         return out
-    cuts = np.flatnonzero(np.diff(scan[idx]) != 0) + 1
-    for run in np.split(idx, cuts):
-        out[run] = np.unwrap(phase[run])
+    p = phase[idx]
+    step = np.diff(p)
+    wrapped = np.mod(step + np.pi, 2 * np.pi) - np.pi
+    wrapped[(wrapped == -np.pi) & (step > 0)] = np.pi
+    correction = np.where(np.abs(step) < np.pi, 0.0, wrapped - step)
+    new_run = np.diff(segment[idx]) != 0
+    correction[new_run] = 0.0
+    total = np.concatenate([[0.0], np.cumsum(correction)])
+    starts = np.concatenate([[0], np.flatnonzero(new_run) + 1])
+    out[idx] = p + total - total[starts][np.cumsum(np.concatenate([[0], new_run]))]
     return out
 
 
-def _structure(increments: np.ndarray) -> float:
-    """D = -2 ln |<exp(i d)>|: the variance of Gaussian increments d, blind to 2 pi."""
-    length = np.abs(np.mean(np.exp(1j * increments)))
-    return float(-2.0 * np.log(max(length, 1e-12)))
+def _structures(phasors: np.ndarray, starts: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """D = -2 ln |<exp(i d)>| of each run of increment phasors exp(i d) (columns
+    ``starts`` of length ``sizes``) of each row: the variance of Gaussian increments d,
+    blind to 2 pi."""
+    means = np.add.reduceat(phasors, starts, axis=1) / sizes
+    return -2.0 * np.log(np.maximum(np.abs(means), 1e-12))
 
 
-def window_variances(phi_t, phi_r, valid, scan, n_window: int, ratio: float):
+def window_variances(phi_t, phi_r, valid, segment, n_window: int, ratio: float):
     """(V_t, V_r, V_d) within windows of n_window samples: of the target phase, of R times
     the reference phase, and of their difference (what FPT leaves).
 
-    phi_t, phi_r (n_time,) wrapped phases on common samples, valid (n_time,), scan
-    (n_time,).  Structure functions come from increments at lags tau (the reference
-    unwrapped from sample to sample, since R times it is what FPT transfers), as
-    D = -2 ln |<exp(i increment)>|; lags on a grid of at most 16 values, D(tau)
-    interpolated between them.
+    phi_t, phi_r (n_time,) wrapped phases on common samples, valid (n_time,), segment
+    (n_time,): equal values mark a stretch of consecutive times (a scan, or a scan's
+    part in one sampled block).  Structure functions come from increments at lags tau
+    within a segment (the reference unwrapped from sample to sample, since R times it
+    is what FPT transfers), as D = -2 ln |<exp(i increment)>|; lags on a grid of at
+    most 16 values, D(tau) interpolated between them.
     """
     n_window = max(int(n_window), 2)
     lags = np.unique(np.round(np.geomspace(1, n_window - 1, 16)).astype(int)) \
         if n_window > 2 else np.array([1])
-    ref_unwrapped = ratio * _unwrap_runs(phi_r, valid, scan)
-    d = np.full((3, lags.size), np.nan)
+    ref_unwrapped = ratio * _unwrap_runs(phi_r, valid, segment)
+    firsts, used = [], []
     for k, lag in enumerate(lags):
-        ok = np.flatnonzero(valid[lag:] & valid[:-lag] & (scan[lag:] == scan[:-lag]))
+        ok = np.flatnonzero(valid[lag:] & valid[:-lag] & (segment[lag:] == segment[:-lag]))
         if ok.size < 3:
             continue
         if ok.size > MAX_PAIRS:      # a statistic: an even spread of pairs is enough
             ok = ok[np.linspace(0, ok.size - 1, MAX_PAIRS).astype(np.int64)]
-        d_t = phi_t[ok + lag] - phi_t[ok]
-        d_r = ref_unwrapped[ok + lag] - ref_unwrapped[ok]
-        d[:, k] = [_structure(d_t), _structure(d_r), _structure(d_t - d_r)]
-    good = np.isfinite(d[0])
-    if not good.any():
+        firsts.append(ok)
+        used.append(k)
+    if not used:
         return float("nan"), float("nan"), float("nan")
+    sizes = np.array([f.size for f in firsts])
+    first = np.concatenate(firsts)
+    second = first + np.repeat(lags[used], sizes)
+    # phasors once per sample, increments as products: exp(i (a - b)) = exp(i a) exp(-i b)
+    phasor_t = np.exp(1j * np.where(valid, phi_t, 0.0))
+    phasor_r = np.exp(1j * np.where(valid, ref_unwrapped, 0.0))
+    step_t = phasor_t[second] * np.conj(phasor_t[first])
+    step_r = phasor_r[second] * np.conj(phasor_r[first])
+    d = _structures(np.stack([step_t, step_r, step_t * np.conj(step_r)]),
+                    np.concatenate([[0], np.cumsum(sizes)[:-1]]), sizes)
     taus = np.arange(1, n_window)
     weights = (n_window - taus) / n_window ** 2
-    return tuple(float(np.sum(weights * np.interp(taus, lags[good], d[i, good])))
+    return tuple(float(np.sum(weights * np.interp(taus, lags[used], d[i])))
                  for i in range(3))
 
 
 def predict(ref_ms: str, target_ms: str, ratio: float, ref_column: str = "DATA",
             target_column: str = "DATA", interval: float = 60.0) -> Verdict:
-    """The prediction per baseline (parallel hands) and the reference closure check."""
-    from ..diagnose.read import read_grid
+    """The prediction per baseline (parallel hands) and the reference closure check, from
+    blocks of times spread over the track (:mod:`hitops.calibrate.verdict_sample`)."""
+    from .verdict_sample import (choose_blocks, distinct_times, read_sampled, read_times,
+                                 sampling_interval)
 
-    tgt = read_grid(target_ms, [target_column])
-    ref = read_grid(ref_ms, [ref_column])
-    verdict = Verdict(interval=float(interval), ratio=float(ratio))
-    sig_t, _, s_t = thermal_phase_noise(tgt.vis[target_column], tgt.flag, tgt.scan)
-    sig_r, _, s_r = thermal_phase_noise(ref.vis[ref_column], ref.flag, ref.scan)
-    ratio_t = _sigma_column_ratio(target_ms, tgt, s_t)
-    ratio_r = _sigma_column_ratio(ref_ms, ref, s_r)
+    tgt_time, ref_time = read_times(target_ms), read_times(ref_ms)
+    tgt_times, ref_times = distinct_times(tgt_time), distinct_times(ref_time)
+    if tgt_times.size == 0 or ref_times.size == 0:
+        raise MeasurementSetError(f"{target_ms if tgt_times.size == 0 else ref_ms}: the main "
+                                  "table has no rows")
+    dt = {"tgt": sampling_interval(tgt_times), "ref": sampling_interval(ref_times)}
+    if not dt["tgt"] > 0:   # one time step: no increment to take, nothing to predict
+        return Verdict(interval=float(interval), ratio=float(ratio),
+                       sampled={"times_read": 0, "times": int(tgt_times.size), "blocks": 0})
+    n_window = int(round(interval / dt["tgt"]))
+    blocks = choose_blocks(tgt_times, n_window, MAX_PAIRS)
+    tgt = read_sampled(target_ms, target_column, tgt_time, blocks)
+    ref = read_sampled(ref_ms, ref_column, ref_time, blocks)
+    verdict = Verdict(interval=float(interval), ratio=float(ratio), sampled=blocks.as_dict())
+    sig_t, _, s_t = thermal_phase_noise(tgt.vis, tgt.flag, tgt.segment)
+    sig_r, _, s_r = thermal_phase_noise(ref.vis, ref.flag, ref.segment)
+    with np.errstate(all="ignore"):   # SIGMA zero or absent: no ratio
+        ratio_t, ratio_r = s_t / tgt.sigma, s_r / ref.sigma
     verdict.closure = closure_check(ref, sig_r)
-    at = _aligned(tgt, ref, 0.5 * min(tgt.dt, ref.dt))
-    n_window = int(round(interval / tgt.dt))
+    at = _aligned(tgt.times, ref.times, 0.5 * min(dt["tgt"], dt["ref"]))
     ref_index = {}
     for b in range(ref.n_bl):
         p, q = ref.antenna_names[ref.ant1[b]], ref.antenna_names[ref.ant2[b]]
@@ -272,15 +303,15 @@ def predict(ref_ms: str, target_ms: str, ratio: float, ref_column: str = "DATA",
             if corr not in ref.corr_names:
                 continue
             rc = ref.corr_names.index(corr)
-            vis_t = tgt.vis[target_column][b, :, c]
-            vis_r = np.where(at >= 0, ref.vis[ref_column][rb, np.maximum(at, 0), rc], 0)
+            vis_t = tgt.vis[b, :, c]
+            vis_r = np.where(at >= 0, ref.vis[rb, np.maximum(at, 0), rc], 0)
             valid = (~tgt.flag[b, :, c] & (at >= 0) & ~ref.flag[rb, np.maximum(at, 0), rc]
                      & (np.abs(vis_t) > 0) & (np.abs(vis_r) > 0))
             if valid.sum() < 3:
                 continue
             v_t, v_r, v_d = window_variances(np.angle(vis_t.astype(np.complex128)),
                                              sign * np.angle(vis_r.astype(np.complex128)),
-                                             valid, tgt.scan[b], n_window, ratio)
+                                             valid, tgt.segment[b], n_window, ratio)
             change = (float(expected_mean_length(math.exp(-v_d / 2), n_window)
                             / expected_mean_length(math.exp(-v_t / 2), n_window)) - 1
                       if math.isfinite(v_r) else float("nan"))
@@ -325,22 +356,28 @@ def summary(verdict: Verdict) -> Dict:
             "median_abs_error": float(np.median(np.abs(errors))) if errors.size else None}
 
 
-def log_verdict(verdict: Verdict, methods_transfer_baselines: bool, has_model: bool) -> None:
-    """One line per baseline and correlation, a summary, and the closure warning if due."""
-    for e in verdict.baselines:
-        measured = (f", measured {100 * e.measured_change:+.1f}%"
-                    if math.isfinite(e.measured_change) else "")
-        log.info("verdict %s %s: FPT expected to %s (C(%.0f s) %+.1f%%%s): it removes the "
-                 "shared fluctuation %.2f rad^2 and brings %.2f rad^2 from the reference band "
-                 "(thermal R x sigma_ref %.0f deg per sample)", e.baseline, e.correlation,
-                 e.verdict, verdict.interval, 100 * e.predicted_change, measured,
-                 e.window_var_shared, e.window_var_ref,
-                 math.degrees(verdict.ratio * e.sigma_ref_rad))
+def log_verdict(verdict: Verdict, methods_transfer_baselines: bool, has_model: bool,
+                report_path: str = "the JSON report") -> None:
+    """One summary line (the per-baseline table is in the report), and the closure warning
+    if due."""
     s = summary(verdict)
-    log.info("verdict: FPT expected to help on %d, hurt on %d, be neutral on %d baseline x "
-             "correlation series%s", s["help"], s["hurt"], s["neutral"],
+    known = [e for e in verdict.baselines if math.isfinite(e.predicted_change)]
+    spread = ""
+    if known:
+        low = min(known, key=lambda e: e.predicted_change)
+        high = max(known, key=lambda e: e.predicted_change)
+        spread = (f"; predicted change of C({verdict.interval:.0f} s) from "
+                  f"{100 * low.predicted_change:+.1f}% ({low.baseline} {low.correlation}) to "
+                  f"{100 * high.predicted_change:+.1f}% ({high.baseline} {high.correlation})")
+    sampled = verdict.sampled or {}
+    basis = (f", from {sampled['times_read']} of {sampled['times']} times"
+             if sampled and sampled["times_read"] < sampled["times"] else "")
+    log.info("verdict%s: FPT expected to help on %d, hurt on %d, be neutral on %d baseline x "
+             "correlation series%s%s; per baseline in %s (verdict)", basis, s["help"], s["hurt"],
+             s["neutral"], spread,
              (f"; measured after the run: the verdict matches on {s['verdict_agrees']} of "
-              f"{s['measured']}, the sign on {s['sign_agrees']}" if s["measured"] else ""))
+              f"{s['measured']}, the sign on {s['sign_agrees']}" if s["measured"] else ""),
+             report_path)
     cl = verdict.closure
     if cl and not cl["consistent_with_zero"] and methods_transfer_baselines and not has_model:
         log.warning("the reference band's closure phases are not consistent with zero (median "

@@ -4,7 +4,9 @@ Only dask-ms's public API (``xds_from_ms``, ``xds_to_table``, ``Dataset``):
 calibrate opens one dataset per (field, spectral window) group in time order
 (:func:`open_groups`), diagnose one dataset of the whole table in storage
 order (:func:`open_main`); callers lay rows out by (baseline, time)
-themselves.  Writes go back through ``ROWID`` so any row subset can be
+themselves.  Row ranges of a table read in storage order, where no dask graph
+is needed (calibrate's index pass), come from python-casacore directly
+(:class:`MainTable`).  Writes go back through ``ROWID`` so any row subset can be
 written.  Small subtables (SPECTRAL_WINDOW, POLARIZATION,
 ANTENNA) are read with python-casacore directly: they are a few rows and
 dask-ms adds only overhead there.
@@ -12,8 +14,7 @@ dask-ms adds only overhead there.
 
 from __future__ import annotations
 
-import contextlib
-import weakref
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, Iterable, List, Optional, Sequence
 
@@ -75,9 +76,6 @@ def selection_columns(ms: str) -> List[str]:
     return ["DATA_DESC_ID", "FIELD_ID"] if (n_dd > 1 or n_field > 1) else []
 
 
-#: the Measurement Set each dataset opened here came from (for record_reads)
-_SOURCES: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
-
 #: the main-table columns that tell one (field, spectral window) group from another
 GROUP_COLUMNS = ("FIELD_ID", "DATA_DESC_ID")
 
@@ -88,7 +86,6 @@ def open_main(ms: str, columns: Sequence[str], chunk_rows: int = 1 << 21):
 
     (ds,) = xds_from_ms(ms, columns=list(columns), index_cols=[], group_cols=[],
                         chunks={"row": int(chunk_rows)})
-    _SOURCES[ds] = ms
     return ds
 
 
@@ -98,6 +95,110 @@ def row_count(ms: str) -> int:
 
     with pt.table(ms, ack=False) as t:
         return int(t.nrows())
+
+
+class MainTable:
+    """One main table held open to read row ranges of columns in storage order.
+
+    python-casacore's ``getcol(column, startrow, nrow)``: exactly the columns asked
+    for, no dask graph, no query (the cheapest public path; calibrate's index pass of
+    a table read in storage order).  A context manager: the table closes on exit.
+    """
+
+    def __init__(self, ms: str):
+        from casacore import tables as pt
+
+        self.ms = ms
+        self._table = pt.table(ms, ack=False)
+
+    @property
+    def n_rows(self) -> int:
+        return int(self._table.nrows())
+
+    def read(self, columns: Sequence[str], start: int, stop: int) -> Dict[str, np.ndarray]:
+        """Rows [start, stop) of ``columns``."""
+        return {c: self._table.getcol(c, int(start), int(stop - start)) for c in columns}
+
+    def read_rows(self, columns: Sequence[str], rows) -> Dict[str, np.ndarray]:
+        """``columns`` at ``rows`` (a slice, ascending row numbers, or None for all);
+        ``ROWID`` gives the row numbers themselves."""
+        if rows is None or isinstance(rows, slice):
+            start, stop, _ = (rows or slice(None)).indices(self.n_rows)
+            out = self.read([c for c in columns if c != "ROWID"], start, stop)
+            row_ids = np.arange(start, stop, dtype=np.int64)
+        else:
+            row_ids = np.asarray(rows, dtype=np.int64)
+            read = rows_reader(self._table, row_ids)
+            out = {c: read(c) for c in columns if c != "ROWID"}
+        if "ROWID" in columns:
+            out["ROWID"] = row_ids
+        return out
+
+    def close(self) -> None:
+        self._table.close()
+
+    def __enter__(self) -> "MainTable":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+#: rows_reader reads runs of consecutive rows one getcol each when there are at most this
+#: many runs, else through one row selection
+MAX_RUNS = 512
+
+
+def rows_reader(table, rows: np.ndarray):
+    """A function column -> values at ascending ``rows`` of an open casacore ``table``:
+    one getcol per run of consecutive rows when the runs are few (a table in time order),
+    else one getcol through a row selection (``selectrows``)."""
+    if rows.size == table.nrows():
+        return table.getcol
+    breaks = np.flatnonzero(np.diff(rows) != 1) + 1
+    if breaks.size < MAX_RUNS:
+        starts = np.concatenate([[0], breaks])
+        stops = np.concatenate([breaks, [rows.size]])
+
+        def read_runs(column):
+            parts = [table.getcol(column, int(rows[a]), int(b - a)) for a, b in zip(starts, stops)]
+            return np.concatenate(parts) if len(parts) > 1 else parts[0]
+        return read_runs
+    return table.selectrows(rows).getcol
+
+
+@dataclass(frozen=True)
+class StorageRows:
+    """A whole main table read in storage order with python-casacore, in place of a
+    dask-ms dataset (:func:`open_for_reading`); :func:`compute_columns` reads it."""
+
+    ms: str
+    n_rows: int
+
+    @property
+    def sizes(self) -> Dict[str, int]:
+        return {"row": self.n_rows}
+
+
+def open_for_reading(ms: str, columns: Sequence[str], chunks, time_ordered: bool,
+                     direct: bool) -> Dict[tuple, object]:
+    """What calibrate reads a set through, keyed by (FIELD_ID, DATA_DESC_ID).
+
+    ``direct``: the set is read in one chunk on this process's threads (no cluster,
+    no reads overlapping writes): a set of one field and one spectral window
+    (:func:`selection_columns`) read in storage order (``time_ordered``) is then
+    a :class:`StorageRows` under (0, 0), read by python-casacore's getcol (dask-ms's
+    query and graph cost more than the read itself); any other set opens through
+    :func:`open_groups`.
+    """
+    if direct and time_ordered and not selection_columns(ms):
+        with MainTable(ms) as table:
+            # rows naming another FIELD/DATA_DESCRIPTION row than the one there is: the
+            # grouped datasets carry that key, and the plan reports the damage
+            ids = table.read(list(GROUP_COLUMNS), 0, table.n_rows)
+            if not any(np.any(values != 0) for values in ids.values()):
+                return {(0, 0): StorageRows(ms, table.n_rows)}
+    return open_groups(ms, columns, chunks, time_ordered=time_ordered)
 
 
 def is_time_ordered(ms: str, block_rows: int = 1 << 20) -> bool:
@@ -154,7 +255,6 @@ def open_groups(ms: str, columns: Sequence[str], chunks,
     out = {}
     for ds in datasets:
         key = (int(ds.attrs.get("FIELD_ID", 0)), int(ds.attrs.get("DATA_DESC_ID", 0)))
-        _SOURCES[ds] = ms
         out[key] = ds
     return out
 
@@ -181,35 +281,6 @@ def _take_rows(array, rows: Optional[np.ndarray]):
     return parts[0] if len(parts) == 1 else da.concatenate(parts, axis=0)
 
 
-#: active recorders of main-table reads (see record_reads)
-_RECORDERS: List[list] = []
-
-
-@contextlib.contextmanager
-def record_reads():
-    """Record every main-table read made through :func:`compute_columns`.
-
-    Yields a list that receives one ``(ms, columns, n_rows)`` tuple per dataset
-    read, so tests can check how many rows a run holds at once (the reads are
-    real; nothing is replaced).
-    """
-    log = []
-    _RECORDERS.append(log)
-    try:
-        yield log
-    finally:
-        _RECORDERS.remove(log)
-
-
-def _record(ds, columns, rows) -> None:
-    n_all = int(ds.sizes["row"])
-    n_rows = (len(range(*rows.indices(n_all))) if isinstance(rows, slice)
-              else len(rows) if rows is not None else n_all)
-    entry = (_SOURCES.get(ds), tuple(columns), n_rows)
-    for log in _RECORDERS:
-        log.append(entry)
-
-
 def compute_columns(requests, scheduler=None) -> List[Dict[str, np.ndarray]]:
     """Compute several datasets' columns in one dask call (tables are read concurrently).
 
@@ -221,16 +292,19 @@ def compute_columns(requests, scheduler=None) -> List[Dict[str, np.ndarray]]:
     import dask
     import dask.threaded
 
-    graphs = []
-    for ds, columns, rows in requests:
-        if _RECORDERS:
-            _record(ds, [c for c in columns if c != "ROWID"] or columns, rows)
-        if isinstance(rows, slice):
+    graphs, direct = [], {}
+    for i, (ds, columns, rows) in enumerate(requests):
+        if isinstance(ds, StorageRows):   # python-casacore, one table at a time
+            with MainTable(ds.ms) as table:
+                direct[i] = table.read_rows(list(columns), rows)
+        elif isinstance(rows, slice):
             graphs.append({c: ds[c].data[rows] for c in columns})
         else:
             graphs.append({c: _take_rows(ds[c].data, rows) for c in columns})
     # a callable scheduler avoids dask probing for a distributed client on every call
-    return list(dask.compute(*graphs, scheduler=scheduler or dask.threaded.get))
+    computed = iter(dask.compute(*graphs, scheduler=scheduler or dask.threaded.get)
+                    if graphs else [])
+    return [direct[i] if i in direct else next(computed) for i in range(len(requests))]
 
 
 def read_main_columns(ms: str, columns: Sequence[str], rows: Optional[np.ndarray] = None,
@@ -261,17 +335,41 @@ def _single_block(value: np.ndarray, prefix: str = "hitops-write"):
                     dtype=value.dtype)
 
 
+def _put_rows(ms: str, rows: np.ndarray, arrays: Dict[str, np.ndarray]) -> None:
+    """``arrays`` into existing columns at ``rows`` with python-casacore: one putcol per run
+    of consecutive rows (a chunk of a table read in storage order is one run)."""
+    from casacore import tables as pt
+
+    order = np.argsort(rows, kind="stable")
+    rows = rows[order]
+    breaks = np.flatnonzero(np.diff(rows) != 1) + 1
+    starts = np.concatenate([[0], breaks])
+    stops = np.concatenate([breaks, [rows.size]])
+    with pt.table(ms, readonly=False, ack=False) as table:
+        table.lock(write=True)
+        for name, value in arrays.items():
+            value = np.asarray(value)[order]
+            for a, b in zip(starts, stops):
+                table.putcol(name, value[a:b], int(rows[a]), int(b - a))
+
+
 def write_main_columns(ms: str, rows: np.ndarray, arrays: Dict[str, np.ndarray],
-                       dims: Dict[str, tuple], scheduler=None) -> None:
+                       dims: Dict[str, tuple], scheduler=None, direct: bool = False) -> None:
     """Write ``arrays`` (first axis = ``rows``) into main-table columns via dask-ms.
 
     Columns that do not exist are created by dask-ms from the array's dtype and shape.
+    ``direct``: the columns exist and no dask-ms handle is open on the table (a
+    one-chunk run that read it with python-casacore): written with python-casacore's
+    putcol instead, without dask-ms's graph.
     """
+    rows = np.asarray(rows, dtype=np.int64)
+    if direct:
+        _put_rows(ms, rows, arrays)
+        return
     import dask
     import dask.threaded
     from daskms import Dataset, xds_to_table
 
-    rows = np.asarray(rows, dtype=np.int64)
     variables = {}
     for name, value in arrays.items():
         variables[name] = (dims[name], _single_block(value))
