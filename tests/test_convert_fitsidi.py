@@ -11,11 +11,9 @@ from __future__ import annotations
 import datetime
 
 import numpy as np
-import pytest
 
 from hitops.calibrate import calibrate
 from hitops.testing import PairSpec, Storage, expected_pwc_phase, wrap
-from hitops.errors import InputError
 from hitops.io import convert
 from hitops.io.fits import bintable as _bintable, card as _card, gst0_deg as _gst0_deg
 from hitops.io.fits import header_bytes as _header_bytes

@@ -30,7 +30,6 @@ from casacore import tables as pt
 
 from hitops.calibrate import calibrate
 from hitops.diagnose.closures import row_closures
-from hitops.errors import MeasurementSetError
 
 HITOPS = Path(sys.executable).with_name("hitops")
 

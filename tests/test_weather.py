@@ -16,7 +16,6 @@ from casacore import tables as pt
 import hitops.weather as weather
 from hitops.errors import HitopsError
 from hitops.simulate import parse_scene, simulate
-from hitops import radiometer as noise_mod
 from hitops.simulate import troposphere as tp
 from hitops.simulate.api import coherence_times, observe, station_weathers
 from hitops.simulate.scene import load_scene_mapping
