@@ -156,12 +156,11 @@ def read_chunk(run: RunPlan, group: GroupPlan, k: int, extent: Tuple[int, int],
         tgt["FLAG"] = tgt.pop(columns.flag)
     channels = group.channels
     tvis, tok = reduce(tgt[columns.target_data], tgt["FLAG"], t_idx.flag_row, channels, "tgt")
+    ref_data = ref[columns.ref_data]
     if columns.ref_model and channels is not None:
         # the model divides out channel by channel, before the channels are reduced
-        rvis, rok = reduce(ref[columns.ref_data] * np.conj(ref[columns.ref_model]), ref["FLAG"],
-                           r_idx.flag_row, channels, "ref")
-    else:
-        rvis, rok = reduce(ref[columns.ref_data], ref["FLAG"], r_idx.flag_row, channels, "ref")
+        ref_data = ref_data * np.conj(ref[columns.ref_model])
+    rvis, rok = reduce(ref_data, ref["FLAG"], r_idx.flag_row, channels, "ref")
     if columns.ref_model and channels is None:
         mvis, _ = average(ref[columns.ref_model], np.zeros_like(ref["FLAG"]),
                           np.zeros_like(r_idx.flag_row))

@@ -194,6 +194,7 @@ def no_offset_step_warning(run: RunPlan, group: GroupPlan, solution) -> Optional
 def _write_fringe_table(run: RunPlan, results: Sequence[GroupResult]) -> Dict:
     """--caltable of a per-channel transfer: one CASA 'Fringe Jones' table for every target
     window, phase at the window centre and a delay across it (hitops/calibrate/gains.py)."""
+    from ..io.caltable import scan_of_times
     from ..solutions.write import write_fringe_table
     from .gains import antenna_turns, fringe_window
 
@@ -203,7 +204,7 @@ def _write_fringe_table(run: RunPlan, results: Sequence[GroupResult]) -> Dict:
         psi, valid = antenna_turns(result.tracker.antenna_phase, result.tracker.antenna_segment,
                                    match.scan_of_time, offsets=result.offsets.antennas)
         windows.append(fringe_window(
-            psi, valid, match.times, _scan_numbers(run.target_ms, match.times), group.ratio,
+            psi, valid, match.times, scan_of_times(run.target_ms, match.times), group.ratio,
             group.channels.ref_freq, group.pair.tgt.spw, group.pair.tgt.key[0],
             group.channels.tgt_centre))
     n_ant = len(run.groups[0].antenna_names)
@@ -215,11 +216,6 @@ def _write_fringe_table(run: RunPlan, results: Sequence[GroupResult]) -> Dict:
              n_row, len(windows), n_valid)
     return {"path": str(run.opts.caltable), "type": "Fringe Jones", "rows": n_row,
             "solutions": n_valid}
-
-
-def _scan_numbers(ms: str, times):
-    from ..io.caltable import scan_of_times
-    return scan_of_times(ms, times)
 
 
 def _write_caltable(run: RunPlan, group: GroupPlan, result: GroupResult) -> Dict:

@@ -59,7 +59,9 @@ def row_delays(vis, ok, chan_freq):
     """Delay (seconds) of each (row, correlation) across a window's channels.
 
     vis: (n_row, n_chan, n_corr) complex; ok: same shape, bool (unflagged);
-    chan_freq: (n_chan,) Hz, increasing and evenly spaced (checked by the caller).
+    chan_freq: (n_chan,) Hz, increasing (hitops/calibrate/groups.py checks it); the
+    spacing taken is the window's mean, exact for evenly spaced channels (as
+    correlators deliver them), approximate otherwise.
     The delay is arg(sum_k V_{k+1} conj(V_k)) / (2*pi*dnu): the lag-1 product
     of neighbouring channels weighted by their amplitudes, unambiguous for
     |tau| < 1 / (2*dnu) (4 ns for 125-MHz channels).  Rows with no usable
