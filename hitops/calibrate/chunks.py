@@ -34,7 +34,7 @@ import numpy as np
 
 from ..errors import MeasurementSetError
 from ..io import read as msio
-from ..io.layout import unique_times
+from ..io.layout import GridShape, unique_times
 from ..io.match import correlation_map, pair_antennas, pairing_table
 from ..io.stations import Stations
 from ..io.ms_create import CORR_NAMES
@@ -65,7 +65,7 @@ class MatchCheck:
     first_chunk: Optional[Tuple[ChunkRows, ChunkRows]]
 
 
-class ChunkMatch:
+class ChunkMatch(GridShape):
     """The two bands' common grid (times, baselines) without per-row arrays.
 
     Built whole here, then only read: the common grid (times, ant1, ant2,
@@ -119,14 +119,6 @@ class ChunkMatch:
         self.ref_group = group[tgt.unique_time.size:]
         # distinct SCAN_NUMBER values of both bands
         self.scan_numbers = np.union1d(tgt.scans, ref.scans)
-
-    @property
-    def n_bl(self) -> int:
-        return self.ant1.size
-
-    @property
-    def n_time(self) -> int:
-        return self.times.size
 
     def _time_range(self, band: BandIndex, group: np.ndarray, t0: int, t1: int):
         """TIME values [lo, hi) of the band's rows whose union time index is in [t0, t1)."""

@@ -19,6 +19,7 @@ from typing import List, Optional, Tuple
 import numpy as np
 
 from ..errors import InputError
+from ..io.layout import GridShape
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -74,7 +75,7 @@ class ScanAxis:
 
 
 @dataclass(frozen=True)
-class TrackGrid:
+class TrackGrid(GridShape):
     """What a tracker reads of calibrate's plan: the (baseline, time) grid and its scans."""
 
     times: np.ndarray               # (n_time,) union times (MJD seconds)
@@ -82,14 +83,6 @@ class TrackGrid:
     ant2: np.ndarray
     baseline_names: List[str]       # "ANT1-ANT2" station codes of each baseline
     scans: ScanAxis
-
-    @property
-    def n_bl(self) -> int:
-        return self.ant1.size
-
-    @property
-    def n_time(self) -> int:
-        return self.times.size
 
 
 def grid_positions(times: np.ndarray, scan_of_time: Optional[np.ndarray] = None,
