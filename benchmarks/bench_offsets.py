@@ -66,15 +66,15 @@ def antenna_scene(workdir: Path, n_ant: int, rho: float, n_scans: int, seed: int
 @contextlib.contextmanager
 def capture_antenna_model(captured: dict):
     """Within the block, every AntennaTracker.track call stores its baselines' model phase
-    (what the target receives) and the match's ant1/ant2/times in ``captured``."""
+    (what the target receives) and the grid's ant1/ant2/times in ``captured``."""
     from hitops.tracking.antenna import AntennaTracker
 
     original = AntennaTracker.track
 
     def track(self, *args, **kwargs):
         result = original(self, *args, **kwargs)
-        captured.update(model=result.ref_model, ant1=self.match.ant1, ant2=self.match.ant2,
-                        times=self.match.times)
+        captured.update(model=result.ref_model, ant1=self.grid.ant1, ant2=self.grid.ant2,
+                        times=self.grid.times)
         return result
 
     AntennaTracker.track = track

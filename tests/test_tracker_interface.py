@@ -10,19 +10,12 @@ in turn tests/test_tracking.py holds to the paper's rule written out.
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
 
 from hitops.tracking.base import ChunkTracking, Tracked, TrackedWraps
 from hitops.tracking.count import CountTracker
-
-
-def _match(scan_of_time, n_bl):
-    """The fields of a ChunkMatch the count tracker reads."""
-    return SimpleNamespace(scan_of_time=np.asarray(scan_of_time, np.int64), n_bl=n_bl,
-                           baseline_names=[f"B{b}" for b in range(n_bl)])
+from track_grids import scan_grid  # tests/ is on sys.path (rootdir-relative)
 
 
 def _phases(seed=5, n_bl=4, n_corr=2, n_time=300):
@@ -43,11 +36,11 @@ def _phases(seed=5, n_bl=4, n_corr=2, n_time=300):
 def test_count_shares_in_the_tasks_equal_the_tracker_on_the_whole_grid(chunk, groups):
     phase, valid, scan = _phases()
     n_bl, n_corr, n_time = phase.shape
-    whole = CountTracker(_match(scan, n_bl), ["RR", "LL"])
+    whole = CountTracker(scan_grid(scan, n_bl), ["RR", "LL"])
     expected = whole.track(0, 0, n_time, n_time, phase, valid, None).ref_wraps
     assert np.abs(np.diff(expected, axis=-1)).sum() > 50      # the case does wrap
 
-    tracker = CountTracker(_match(scan, n_bl), ["RR", "LL"])
+    tracker = CountTracker(scan_grid(scan, n_bl), ["RR", "LL"])
     assert not tracker.grids_reference and not tracker.segmented
     got = np.zeros_like(expected)
     for t0 in range(0, n_time, chunk):

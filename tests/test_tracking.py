@@ -14,6 +14,7 @@ from hitops.tracking.smooth_kernel import track_wraps_smooth
 from hitops.simulate.troposphere import fbm_circulant
 from hitops.tracking import theory
 from hitops.tracking.windows import half_windows
+from track_grids import scan_grid  # tests/ is on sys.path (rootdir-relative)
 
 TWO_PI = 2.0 * np.pi
 
@@ -424,15 +425,21 @@ def test_per_sample_windows_follow_local_coherence():
 
 # ---------------------------------------------------------------- the count tracker (issue 12)
 
-class _Match:
-    """The part of calibrate's station/time match a tracker reads."""
+def test_split_at_gaps_gives_a_new_axis_with_a_scan_started_at_each_long_gap():
+    """Gaps inside a SCAN_NUMBER longer than the limit start tracking scans (the number
+    repeats); a gap at a scan change or a short one does not; the input axis is unchanged."""
+    from hitops.tracking.grid import ScanAxis, ScanSplit
 
-    def __init__(self, scan_of_time, n_bl):
-        self.scan_of_time = np.asarray(scan_of_time, np.int64)
-        self.n_time = self.scan_of_time.size
-        self.times = np.arange(self.n_time, dtype=np.float64)
-        self.n_bl = n_bl
-        self.baseline_names = [f"B{b}" for b in range(n_bl)]
+    times = np.array([0.0, 10, 20, 200, 210, 220, 400, 410, 430, 440])
+    scan_of_time = np.array([0, 0, 0, 0, 0, 0, 1, 1, 1, 1])
+    axis = ScanAxis(np.array([3, 5]), scan_of_time)
+    split, splits = axis.split_at_gaps(times, 50.0)
+    assert splits == [ScanSplit(3, 200.0, 180.0)]
+    assert np.array_equal(split.scan_numbers, [3, 3, 5]) and split.n_scan == 3
+    assert np.array_equal(split.scan_of_time, [0, 0, 0, 1, 1, 1, 2, 2, 2, 2])
+    assert np.array_equal(axis.scan_of_time, scan_of_time) and axis.n_scan == 2
+    same, none = axis.split_at_gaps(times, 500.0)
+    assert same is axis and none == []
 
 
 def _count_reference(phase, valid, scan_of_time, carry):
@@ -490,7 +497,7 @@ def test_count_tracker_equals_the_transfer_counter_whole_and_chunked(chunk):
     # NaN samples marked valid: count_wraps skips them, so the whole-track counts are the
     # transfer counter's, and chunked ones equal them (the carry skips them too)
     expected, _ = _count_reference(np.angle(vis), valid, scan, Carry.empty(n_bl, n_corr))
-    tracker = CountTracker(_Match(scan, n_bl), ["RR", "LL"])
+    tracker = CountTracker(scan_grid(scan, n_bl), ["RR", "LL"])
     assert tracker.context == 0 and tracker.extended(10, 20) == (10, 20)
     got = []
     for t0 in range(0, n_time, chunk):
@@ -500,7 +507,7 @@ def test_count_tracker_equals_the_transfer_counter_whole_and_chunked(chunk):
         got.append(out.ref_wraps)
     assert np.array_equal(np.concatenate(got, axis=-1), expected)
     # the reference counts restart in every scan, and the events do not count the restarts
-    whole = CountTracker(_Match(scan, n_bl), ["RR", "LL"])
+    whole = CountTracker(scan_grid(scan, n_bl), ["RR", "LL"])
     whole.track(0, 0, n_time, n_time, vis, valid, None)
     assert np.array_equal(tracker.stats.per_series["wrap_events"],
                           whole.stats.per_series["wrap_events"])

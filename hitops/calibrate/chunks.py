@@ -14,8 +14,9 @@ per time chunk:
    n_ant^2);
 3. :meth:`ChunkMatch.check` takes each time chunk's baselines and times (from
    the pair keys and the rows' positions, or read again when they were not
-   kept), checks for duplicate cells, counts matched rows and fills the scan
-   of each time, all before anything is written;
+   kept), checks for duplicate cells, counts matched rows and finds the scan
+   of each time, all before anything is written, and returns them as a
+   :class:`MatchCheck` (the match itself is not changed);
 4. :meth:`ChunkMatch.row_numbers` and :meth:`ChunkMatch.index_rows` give a
    chunk's row numbers, baseline and time indices when it is processed.
 
@@ -25,17 +26,19 @@ station and correlation maps), so the result equals the whole-track match.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
-from typing import Dict, List
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
 from ..errors import MeasurementSetError
 from ..io import read as msio
-from ..io.layout import unique_times
+from ..io.layout import GridShape, unique_times
 from ..io.match import correlation_map, pair_antennas, pairing_table
 from ..io.stations import Stations
 from ..io.ms_create import CORR_NAMES
+from ..tracking.grid import ScanAxis
 from .band_index import ROW_COLUMNS, BandIndex
 
 
@@ -51,19 +54,33 @@ class ChunkRows:
     scan: np.ndarray
 
 
-class ChunkMatch:
+@dataclass(frozen=True)
+class MatchCheck:
+    """What :meth:`ChunkMatch.check` found in every chunk (nothing of it is kept on the match)."""
+
+    n_matched: int                  # target rows with a reference row in their cell
+    n_ref_unused: int               # reference rows without a target row in their cell
+    scans: ScanAxis                 # from SCAN_NUMBER (the target's where it has a row)
+    # (target, reference) rows of a one-chunk run, so its read need not index them again
+    first_chunk: Optional[Tuple[ChunkRows, ChunkRows]]
+
+
+class ChunkMatch(GridShape):
     """The two bands' common grid (times, baselines) without per-row arrays.
 
-    Gives the calibration stages the common grid: (times, ant1, ant2, baseline_names, corr_map, corr_names, scans,
-    scan_of_time, tolerance, n_matched, n_ref_unused).
+    Built whole here, then only read: the common grid (times, ant1, ant2,
+    baseline_names, corr_map, corr_names, scan_numbers, tolerance) and each
+    band's rows of a time chunk.  :meth:`check` returns what it counts
+    (:class:`MatchCheck`); :meth:`with_datasets` gives a copy reading through
+    other datasets.
     """
 
     def __init__(self, ref: BandIndex, tgt: BandIndex, ref_stations: Stations,
                  tgt_stations: Stations, ref_corr, tgt_corr, antenna_map, tolerance=None,
                  datasets: Dict[str, object] = None):
         self.ref, self.tgt = ref, tgt
-        # "ref"/"tgt" -> the dask-ms dataset the band is read through: the match's own
-        # (use_chunk_datasets replaces it), the bands' indexes are only read
+        # "ref"/"tgt" -> the dask-ms dataset the band is read through (the match's own;
+        # chunk_datasets makes others for with_datasets), the bands' indexes are only read
         self.datasets: Dict[str, object] = dict(datasets or {})
         tgt_names = tgt_stations.codes
         n_ant_t, n_ant_r = tgt_stations.n_ant, ref_stations.n_ant
@@ -100,18 +117,8 @@ class ChunkMatch:
                                          self.tolerance)
         self.tgt_group = group[:tgt.unique_time.size]
         self.ref_group = group[tgt.unique_time.size:]
-        self.scans = np.union1d(tgt.scans, ref.scans)
-        self.scan_of_time = np.zeros(self.times.size, dtype=np.int64)
-        self.n_matched = 0
-        self.n_ref_unused = 0
-
-    @property
-    def n_bl(self) -> int:
-        return self.ant1.size
-
-    @property
-    def n_time(self) -> int:
-        return self.times.size
+        # distinct SCAN_NUMBER values of both bands
+        self.scan_numbers = np.union1d(tgt.scans, ref.scans)
 
     def _time_range(self, band: BandIndex, group: np.ndarray, t0: int, t1: int):
         """TIME values [lo, hi) of the band's rows whose union time index is in [t0, t1)."""
@@ -131,16 +138,25 @@ class ChunkMatch:
             return slice(0, band.n_row)
         return band.rows_in(*self._time_range(band, group, t0, t1))
 
-    def use_chunk_datasets(self, bounds: List[int], columns: Dict[str, List[str]],
-                           split: Dict[str, int] = None) -> None:
-        """Read the bands named in ``columns`` ("tgt", "ref") through a dataset whose dask
-        blocks are the time chunks, so each chunk's read is exactly its rows.
+    def with_datasets(self, datasets: Dict[str, object]) -> "ChunkMatch":
+        """A copy of this match reading the bands named in ``datasets`` ("tgt", "ref")
+        through those datasets (the grid's arrays are shared, not copied)."""
+        other = copy.copy(self)
+        other.datasets = {**self.datasets, **datasets}
+        return other
+
+    def chunk_datasets(self, bounds: List[int], columns: Dict[str, List[str]],
+                       split: Dict[str, int] = None) -> Dict[str, object]:
+        """For each band named in ``columns`` ("tgt", "ref") whose dataset is not the
+        table itself, a dataset whose dask blocks are the time chunks, so each chunk's
+        read is exactly its rows (for :meth:`with_datasets`).
 
         ``split``: blocks per chunk for a band read with context beyond its chunks
         (the robust trackers' reference band): a read then touches at most a small
         block on either side instead of whole neighbouring chunks.
         """
         split = split or {}
+        chunked = {}
         for which, cols in columns.items():
             band = self.tgt if which == "tgt" else self.ref
             sizes = []
@@ -152,9 +168,10 @@ class ChunkMatch:
             if len(sizes) > 1 and not isinstance(self.datasets[which], msio.StorageRows):
                 datasets = msio.open_groups(band.ms, [c for c in dict.fromkeys(cols) if c != "ROWID"],
                                             tuple(sizes), band.time_ordered)
-                # the band's only dataset from now on: the first one (and the row order
+                # the band's only dataset from then on: the first one (and the row order
                 # dask-ms keeps for it, 8 bytes per row) can go
-                self.datasets[which] = datasets[band.key]
+                chunked[which] = datasets[band.key]
+        return chunked
 
     def time_counts(self) -> np.ndarray:
         """Rows of both bands per union time (for cutting chunks)."""
@@ -206,21 +223,25 @@ class ChunkMatch:
         return self._on_grid(which, band.pair_key[rows], group[at].astype(np.int32),
                              band.time_scan[at])
 
-    def check(self, bounds: List[int], scheduler=None, keep_single: bool = True):
-        """Check every chunk's cells, count matches, fill scan_of_time (before any write).
+    def check(self, bounds: List[int], scheduler=None, keep_single: bool = True) -> MatchCheck:
+        """Check every chunk's cells, count matches, find each time's scan (before any write).
 
-        Returns the chunk's (tgt, ref) :class:`ChunkRows` when there is one chunk
-        and ``keep_single`` (so it is not computed twice), else None.
+        The result's ``first_chunk`` holds the chunk's (tgt, ref) :class:`ChunkRows`
+        when there is one chunk and ``keep_single`` (so it is not computed twice).
         """
         kept = None
+        n_matched = n_ref_unused = 0
+        scan_of_time = np.zeros(self.times.size, dtype=np.int64)
         cols = ["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER"]
         from_index = self.tgt.pair_key is not None and self.ref.pair_key is not None
         for t0, t1 in zip(bounds[:-1], bounds[1:]):
             t_rows = self.row_numbers("tgt", t0, t1)
             r_rows = self.row_numbers("ref", t0, t1)
             if from_index:   # nothing to read (hitops/calibrate/band_index.py)
-                self._check_chunk(self._indexed_rows("tgt", t_rows),
-                                  self._indexed_rows("ref", r_rows), t0, t1)
+                matched, unused = self._check_chunk(self._indexed_rows("tgt", t_rows),
+                                                    self._indexed_rows("ref", r_rows), t0, t1,
+                                                    scan_of_time)
+                n_matched, n_ref_unused = n_matched + matched, n_ref_unused + unused
                 continue
             if self.tgt.whole is not None and self.ref.whole is not None:
                 t_meta = self.read_meta("tgt", t_rows, ROW_COLUMNS + ["ROWID"])
@@ -231,19 +252,24 @@ class ChunkMatch:
                      self.chunk_request("ref", r_rows, cols)], scheduler)
             tgt = self.index_rows("tgt", t_meta)
             ref = self.index_rows("ref", r_meta)
-            self._check_chunk(tgt, ref, t0, t1)
+            matched, unused = self._check_chunk(tgt, ref, t0, t1, scan_of_time)
+            n_matched, n_ref_unused = n_matched + matched, n_ref_unused + unused
             if len(bounds) == 2 and keep_single and "FLAG_ROW" in t_meta:
                 kept = (tgt, ref)
-        if self.n_matched == 0:
+        if n_matched == 0:
             raise MeasurementSetError(
                 f"no row of {self.tgt.ms} has a counterpart in {self.ref.ms} at the same time "
                 f"(tolerance {self.tolerance:g} s) and station pair: target times "
                 f"{self.tgt.unique_time[0]:.1f}..{self.tgt.unique_time[-1]:.1f}, reference "
                 f"times {self.ref.unique_time[0]:.1f}..{self.ref.unique_time[-1]:.1f} "
                 "(MJD seconds); check that the two sets cover the same observation")
-        return kept
+        return MatchCheck(n_matched=n_matched, n_ref_unused=n_ref_unused,
+                          scans=ScanAxis(self.scan_numbers, scan_of_time), first_chunk=kept)
 
-    def _check_chunk(self, tgt: ChunkRows, ref: ChunkRows, t0: int, t1: int) -> None:
+    def _check_chunk(self, tgt: ChunkRows, ref: ChunkRows, t0: int, t1: int,
+                     scan_of_time: np.ndarray) -> Tuple[int, int]:
+        """(matched target rows, unused reference rows) of one chunk; sets the chunk's
+        times in ``scan_of_time`` (check's own array, filled chunk by chunk)."""
         n_t = t1 - t0
         n_cells = self.n_bl * n_t
         t_cells = tgt.bl.astype(np.int64) * n_t + (tgt.time - t0)
@@ -257,38 +283,11 @@ class ChunkMatch:
         has_ref[r_cells] = True
         if np.count_nonzero(has_ref) != r_cells.size:
             self._raise_duplicate(r_cells, n_t, t0, self.ref.ms)
-        self.n_matched += int(np.count_nonzero(has_ref[t_cells]))
-        self.n_ref_unused += int(ref.bl.size - np.count_nonzero(has_tgt[r_cells]))
         # target's SCAN_NUMBER where the target has a row at that time, else the reference's
-        self.scan_of_time[ref.time] = np.searchsorted(self.scans, ref.scan)
-        self.scan_of_time[tgt.time] = np.searchsorted(self.scans, tgt.scan)
-
-    def split_at_gaps(self, min_gap_s: float) -> List[tuple]:
-        """Start a new tracking scan at every time gap longer than ``min_gap_s``.
-
-        Wrap counting must not run across a stretch with no data at all, whatever
-        SCAN_NUMBER says (a UVFITS round trip through CASA can merge every scan
-        into one).  Call after :meth:`check` (which fills ``scan_of_time``);
-        ``scans`` then holds the SCAN_NUMBER of each tracking scan (a number
-        repeats where one was split).  Returns (SCAN_NUMBER, time of the first
-        sample after the gap, gap length) of every split.
-        """
-        if self.n_time < 2:
-            return []
-        gaps = np.diff(self.times)
-        cut = np.flatnonzero((gaps > min_gap_s)
-                             & (self.scan_of_time[1:] == self.scan_of_time[:-1])) + 1
-        if cut.size == 0:
-            return []
-        starts = np.zeros(self.n_time, dtype=bool)
-        starts[0] = True
-        starts[1:] = self.scan_of_time[1:] != self.scan_of_time[:-1]
-        starts[cut] = True
-        splits = [(int(self.scans[self.scan_of_time[i]]), float(self.times[i]), float(gaps[i - 1]))
-                  for i in cut]
-        self.scans = self.scans[self.scan_of_time[starts]]
-        self.scan_of_time = np.cumsum(starts) - 1
-        return splits
+        scan_of_time[ref.time] = np.searchsorted(self.scan_numbers, ref.scan)
+        scan_of_time[tgt.time] = np.searchsorted(self.scan_numbers, tgt.scan)
+        return (int(np.count_nonzero(has_ref[t_cells])),
+                int(ref.bl.size - np.count_nonzero(has_tgt[r_cells])))
 
     def _raise_duplicate(self, cells, n_t, t0, ms):
         counts = np.bincount(cells, minlength=self.n_bl * n_t)

@@ -151,7 +151,7 @@ class GroupPipeline:
     def new_tracker(self) -> WrapTracker:
         """A fresh tracker of --tracker (empty state)."""
         group = self.group
-        return new_tracker(self.run.opts.tracker, group.match, group.match.corr_names,
+        return new_tracker(self.run.opts.tracker, group.grid, group.match.corr_names,
                            group.tracking, len(group.antenna_names), list(group.antenna_names),
                            workers=1 if self.client is not None else 0)
 
@@ -195,7 +195,8 @@ class GroupPipeline:
         import dask
 
         match, group = self.group.match, self.group
-        scan_local = match.scan_of_time[chunk.t0:chunk.t1]
+        scans = group.grid.scans
+        scan_local = scans.scan_of_time[chunk.t0:chunk.t1]
         # per-segment sums: a segmented tracker's first pass (no per-scan shifts) with a step
         sum_segments = (tracked.segment_keys is not None and offsets is None
                         and bool(self.run.columns.offset))
@@ -209,7 +210,7 @@ class GroupPipeline:
                                       local=self.client is not None)
             inputs = TransferInputs(
                 rows=rows, corr_map=match.corr_map, scan_of_time=scan_local,
-                n_scan=match.scans.size, methods=self.codes, ratio=group.ratio, eps=group.eps,
+                n_scan=scans.n_scan, methods=self.codes, ratio=group.ratio, eps=group.eps,
                 reference=tracked.for_group(bls), tgt_carry=tgt_carry.subset(bls),
                 offsets=None if offsets is None else offsets[bls],
                 offset_k=None if offset_k is None else offset_k[bls],
@@ -276,12 +277,12 @@ class GroupPipeline:
         their integers (a per-channel transfer's delays need them); ``segment_k``:
         per-segment integers (segmented trackers); ``kept``: a dict that collects the output
         instead of writing (a first pass whose writing pass only shifts)."""
-        match, n_corr, n_scan = self.group.match, self.group.n_corr, self.group.match.scans.size
+        match, n_corr, scans = self.group.match, self.group.n_corr, self.group.grid.scans
         off_col = self.run.columns.offset
         tracker = self.new_tracker()
         tgt_carry = Carry.empty(match.n_bl, n_corr)
         result = PassResult(samples=SampleCounts(), tracker=tracker,
-                            sums=OffsetSums.empty(match.n_bl, n_corr, n_scan))
+                            sums=OffsetSums.empty(match.n_bl, n_corr, scans.n_scan))
         for k, chunk, next_read in self.chunks(keep_reads):
             stage = time.perf_counter()
             tracked = tracker.track_chunk(chunk.t0, chunk.t1, chunk.reference)
@@ -293,7 +294,7 @@ class GroupPipeline:
                                        offset_k)
             _add_parts(result, tracker, tgt_carry, parts)
             tracker.finish_chunk(chunk.t1)
-            tgt_carry.last_scan = int(match.scan_of_time[chunk.t1 - 1])
+            tgt_carry.last_scan = int(scans.scan_of_time[chunk.t1 - 1])
             if kept is not None:
                 kept[k] = KeptChunk(out, tracked.segment_keys)
                 if offsets is None and off_col:

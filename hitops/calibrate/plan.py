@@ -3,9 +3,11 @@
 A :class:`RunPlan` holds what the whole run shares (options, columns, chunk
 size, the open dask-ms datasets); a :class:`GroupPlan` holds one (field,
 spectral window) pair of groups: the matched stations, correlations and times
-(:class:`hitops.calibrate.chunks.ChunkMatch`), the chunk bounds, R and its
-split r + eps, and the resolved tracking setup.  Every chunk's cells are
-checked here, so a plan that builds is one the pipeline can write.
+(:class:`hitops.calibrate.chunks.ChunkMatch`), the grid and tracking scans the
+trackers run on (:class:`hitops.tracking.grid.TrackGrid`), the chunk bounds, R
+and its split r + eps, and the resolved tracking setup.  Every chunk's cells
+are checked here, so a plan that builds is one the pipeline can write.  Each
+plan is built whole, then only read.
 """
 
 from __future__ import annotations
@@ -22,9 +24,10 @@ from ..errors import InputError, MeasurementSetError
 from ..io import read as msio
 from ..io.match import parse_antenna_map
 from ..io.stations import Stations, read_stations
+from ..tracking.grid import ScanAxis, TrackGrid
 from ..tracking.options import TrackingSetup
 from .band_index import INDEX_COLUMNS, ROW_COLUMNS, BandSource, index_bands
-from .chunks import ChunkMatch, ChunkRows
+from .chunks import ChunkMatch, ChunkRows, MatchCheck
 from .channels import ChannelPlan, channel_plan, check_channel_counts
 from .groups import GroupPair, describe_groups, pair_groups
 from .inputs import CalibrateOptions, Columns
@@ -39,6 +42,7 @@ class GroupPlan:
     pair: GroupPair
     label: str                      # '' when the sets hold one group
     match: ChunkMatch
+    grid: TrackGrid                 # the match's baselines and times, the tracking scans
     bounds: List[int]               # chunk k covers union times [bounds[k], bounds[k+1])
     # the checks' (target, reference) rows of a one-chunk run, reused by the read
     first_chunk: Optional[Tuple[ChunkRows, ChunkRows]]
@@ -49,6 +53,8 @@ class GroupPlan:
     # the smooth/antenna trackers' resolved parameters; the count tracker has none (None)
     tracking: Optional[TrackingSetup]
     n_target_rows: int
+    n_matched: int                  # target rows with a reference row (ChunkMatch.check)
+    n_ref_unused: int               # reference rows without a target row
     antenna_names: List[str]        # station codes of the target set, by antenna index
     # several channels: one ratio per target channel (hitops/calibrate/channels.py)
     channels: Optional[ChannelPlan] = None
@@ -249,43 +255,51 @@ def plan_group(run: RunPlan, pair: GroupPair, ref_source: BandSource, tgt_source
     if len(bounds) > 2:
         # one dataset per band whose row blocks are the chunks, read by both passes; the
         # robust trackers read reference context beyond each chunk: finer blocks there
-        match.use_chunk_datasets(bounds, {"tgt": ROW_COLUMNS + ["ROWID"] + columns.tgt,
-                                          "ref": ROW_COLUMNS + ["ROWID"] + columns.ref + columns.snr},
-                                 split={"ref": 1 if opts.tracker == "count" else 8})
+        match = match.with_datasets(match.chunk_datasets(
+            bounds, {"tgt": ROW_COLUMNS + ["ROWID"] + columns.tgt,
+                     "ref": ROW_COLUMNS + ["ROWID"] + columns.ref + columns.snr},
+            split={"ref": 1 if opts.tracker == "count" else 8}))
     # every chunk's cells are checked (duplicates, matches, scans) before anything is written
-    first_chunk = match.check(bounds)
-    _split_long_gaps(match, float(opts.coherence_time))
+    checked = match.check(bounds)
+    grid = TrackGrid(times=match.times, ant1=match.ant1, ant2=match.ant2,
+                     baseline_names=match.baseline_names,
+                     scans=_split_long_gaps(checked.scans, match.times,
+                                            float(opts.coherence_time)))
     timings["match"] = time.perf_counter() - stage
     from .tracking_setup import tracking_setup
-    setup = tracking_setup(opts, match, run.target_ms, tgt_stations.codes, columns.snr_from)
-    _log_match(run, match, tgt_band.n_row)
-    return GroupPlan(pair=pair, label=label, match=match, bounds=bounds, first_chunk=first_chunk,
-                     ratio=ratio, r=r, eps=eps, ratio_source=source, tracking=setup,
-                     n_target_rows=tgt_band.n_row, antenna_names=list(tgt_stations.codes),
-                     channels=channels)
+    setup = tracking_setup(opts, grid, run.target_ms, tgt_stations.codes, columns.snr_from)
+    _log_match(run, match, grid, checked, tgt_band.n_row)
+    return GroupPlan(pair=pair, label=label, match=match, grid=grid, bounds=bounds,
+                     first_chunk=checked.first_chunk, ratio=ratio, r=r, eps=eps,
+                     ratio_source=source, tracking=setup, n_target_rows=tgt_band.n_row,
+                     n_matched=checked.n_matched, n_ref_unused=checked.n_ref_unused,
+                     antenna_names=list(tgt_stations.codes), channels=channels)
 
 
-def _split_long_gaps(match: ChunkMatch, coherence_time: float) -> None:
-    """No wrap is counted across a stretch without data, whatever SCAN_NUMBER says."""
-    steps = np.diff(match.times)
+def _split_long_gaps(scans: ScanAxis, times: np.ndarray, coherence_time: float) -> ScanAxis:
+    """The tracking scans: no wrap is counted across a stretch without data, whatever
+    SCAN_NUMBER says."""
+    steps = np.diff(times)
     min_gap = max(5.0 * float(np.median(steps)) if steps.size else 0.0, coherence_time)
-    splits = match.split_at_gaps(min_gap)
+    scans, splits = scans.split_at_gaps(times, min_gap)
     if splits:
         log.info("%d time gap(s) longer than %.0f s inside scans start new tracking scans "
                  "(SCAN_NUMBER %s)", len(splits), min_gap,
-                 ", ".join(f"{n} at +{t - match.times[0]:.0f} s after {g:.0f} s"
-                           for n, t, g in splits[:6]) + (" ..." if len(splits) > 6 else ""))
+                 ", ".join(f"{s.scan_number} at +{s.time - times[0]:.0f} s after {s.gap_s:.0f} s"
+                           for s in splits[:6]) + (" ..." if len(splits) > 6 else ""))
+    return scans
 
 
-def _log_match(run: RunPlan, match: ChunkMatch, n_target_rows: int) -> None:
+def _log_match(run: RunPlan, match: ChunkMatch, grid: TrackGrid, checked: MatchCheck,
+               n_target_rows: int) -> None:
     for c, name in enumerate(match.corr_names):
         if match.corr_map[0, c] < 0:
             log.warning("correlation %s of %s has no counterpart in %s: flagged in the output",
                         name, run.target_ms, run.ref_ms)
     log.info("matched %d of %d target rows to %s (time tolerance %.3g s, %d baselines, "
              "%d times, %d scans); %d reference rows unused",
-             match.n_matched, n_target_rows, run.ref_ms, match.tolerance, match.n_bl,
-             match.n_time, match.scans.size, match.n_ref_unused)
-    if match.n_matched < n_target_rows:
+             checked.n_matched, n_target_rows, run.ref_ms, match.tolerance, match.n_bl,
+             match.n_time, grid.scans.n_scan, checked.n_ref_unused)
+    if checked.n_matched < n_target_rows:
         log.warning("%d target rows have no reference row (time/station) and are flagged",
-                    n_target_rows - match.n_matched)
+                    n_target_rows - checked.n_matched)

@@ -71,8 +71,8 @@ def group_report(run: RunPlan, group: GroupPlan, result: GroupResult, tx: Output
         "tracking": tracking,
         "flags": {"column": "FLAG", "backup_column": FLAG_BACKUP, "flag_updated": tx.flag_written,
                   "input_flags": columns.flag, "backup_created": tx.backup_written},
-        "rows": {"target": int(group.n_target_rows), "matched": match.n_matched,
-                 "reference_unused": match.n_ref_unused},
+        "rows": {"target": int(group.n_target_rows), "matched": group.n_matched,
+                 "reference_unused": group.n_ref_unused},
         "samples": {"target": samples.n_samples, "flagged": flagged,
                     "no_reference_row": samples.no_reference_row,
                     "target_invalid": samples.target_invalid,
@@ -202,7 +202,7 @@ def _write_fringe_table(run: RunPlan, results: Sequence[GroupResult]) -> Dict:
     for group, result in zip(run.groups, results):
         match = group.match
         psi, valid = antenna_turns(result.tracker.antenna_phase, result.tracker.antenna_segment,
-                                   match.scan_of_time, offsets=result.offsets.antennas)
+                                   group.grid.scans.scan_of_time, offsets=result.offsets.antennas)
         windows.append(fringe_window(
             psi, valid, match.times, scan_of_times(run.target_ms, match.times), group.ratio,
             group.channels.ref_freq, group.pair.tgt.spw, group.pair.tgt.key[0],
@@ -225,7 +225,7 @@ def _write_caltable(run: RunPlan, group: GroupPlan, result: GroupResult) -> Dict
 
     match, tracker = group.match, result.tracker
     phase, valid = antenna_gain_phases(tracker.antenna_phase, tracker.antenna_segment,
-                                       match.scan_of_time, group.ratio, group.eps,
+                                       group.grid.scans.scan_of_time, group.ratio, group.eps,
                                        offsets=result.offsets.antennas)
     # the cross hands of the column are transferred per baseline: the table holds the
     # parallel hands' antenna gains, from which CASA forms every correlation

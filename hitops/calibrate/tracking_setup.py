@@ -13,9 +13,8 @@ from dataclasses import fields
 from typing import Optional
 
 from ..geometry import station_sin_elevation
-from ..tracking.grid import grid_positions
+from ..tracking.grid import TrackGrid, grid_positions
 from ..tracking.options import ANTENNA_TRACK_HALF_WINDOW, TrackingSetup, setup_tracking
-from .chunks import ChunkMatch
 from .inputs import CalibrateOptions
 
 log = logging.getLogger("hitops.calibrate")
@@ -27,7 +26,7 @@ ROBUST_OPTIONS = ("half_window", "coherence_time", "snr", "max_gap", "jump_thres
                   "no_elevation_scaling")
 
 
-def tracking_setup(opts: CalibrateOptions, match: ChunkMatch, target_ms: str, antenna_names,
+def tracking_setup(opts: CalibrateOptions, grid: TrackGrid, target_ms: str, antenna_names,
                    snr_from: str) -> Optional[TrackingSetup]:
     """The TrackingSetup of ``--tracker smooth|antenna`` (None for count, which has no
     parameters); checks --refant."""
@@ -42,11 +41,11 @@ def tracking_setup(opts: CalibrateOptions, match: ChunkMatch, target_ms: str, an
         return None
     if opts.refant and opts.tracker != "antenna":
         log.warning("--refant is used by --tracker antenna only; ignored")
-    _, dt = grid_positions(match.times, match.scan_of_time)
+    _, dt = grid_positions(grid.times, grid.scans.scan_of_time)
     fixed = float(opts.snr) > 0 or int(opts.half_window) > 0
     sin_el = None
     if not opts.no_elevation_scaling:
-        sin_el = station_sin_elevation(target_ms, match.times)
+        sin_el = station_sin_elevation(target_ms, grid.times)
         if sin_el is None:
             log.info("no station geometry in %s (ANTENNA positions off the Earth's surface): "
                      "--coherence-time is used without elevation scaling", target_ms)

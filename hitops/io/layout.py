@@ -17,14 +17,9 @@ import numpy as np
 from ..errors import MeasurementSetError
 
 
-@dataclass(frozen=True)
-class BaselineTimeLayout:
-    ant1: np.ndarray        # (n_bl,) ANTENNA1 of each baseline
-    ant2: np.ndarray        # (n_bl,) ANTENNA2 of each baseline
-    times: np.ndarray       # (n_time,) distinct times, ascending
-    bl_of_row: np.ndarray   # (n_row,) baseline index of each row
-    time_of_row: np.ndarray  # (n_row,) time index of each row
-    rows: np.ndarray        # (n_bl, n_time) row index, -1 where the cell is empty
+class GridShape:
+    """n_bl and n_time of a (baseline, time) grid with ``ant1`` (n_bl,) and ``times``
+    (n_time,) arrays (the layout here, calibrate's match and the trackers' grid)."""
 
     @property
     def n_bl(self) -> int:
@@ -33,6 +28,16 @@ class BaselineTimeLayout:
     @property
     def n_time(self) -> int:
         return self.times.size
+
+
+@dataclass(frozen=True)
+class BaselineTimeLayout(GridShape):
+    ant1: np.ndarray        # (n_bl,) ANTENNA1 of each baseline
+    ant2: np.ndarray        # (n_bl,) ANTENNA2 of each baseline
+    times: np.ndarray       # (n_time,) distinct times, ascending
+    bl_of_row: np.ndarray   # (n_row,) baseline index of each row
+    time_of_row: np.ndarray  # (n_row,) time index of each row
+    rows: np.ndarray        # (n_bl, n_time) row index, -1 where the cell is empty
 
     def to_grid(self, values: np.ndarray, fill) -> np.ndarray:
         """Scatter per-row ``values`` (n_row, ...) onto (n_bl, n_time, ...)."""

@@ -17,6 +17,8 @@ from typing import NamedTuple
 
 import numba
 import numpy as np
+from numba import types
+from numba.extending import overload
 
 
 class SegmentSums(NamedTuple):
@@ -27,12 +29,91 @@ class SegmentSums(NamedTuple):
     counts: np.ndarray    # (m,) int64 samples
 
 
+class GridSamples(NamedTuple):
+    """A baseline group's samples on its grid (the transfer task's form)."""
+
+    tgt_phase: np.ndarray     # (n_bl, n_corr, n_time) float64 target phase
+    phasor: np.ndarray        # (n_bl, n_time, n_corr) output phasor
+    calibrated: np.ndarray    # (n_bl, n_time, n_corr) bool
+    off_phase: np.ndarray     # (n_bl, n_corr, n_time) float64 offset reference/model phase
+    off_valid: np.ndarray     # (n_bl, n_corr, n_time) bool
+
+
+class RowSamples(NamedTuple):
+    """A chunk's row-ordered samples read through its row grid (the driver's form)."""
+
+    tgt_rows: np.ndarray      # (n_bl, n_time) row of each cell, -1: none
+    tgt_vis: np.ndarray       # (n_row, n_corr) target visibilities
+    phasor: np.ndarray        # (n_row, n_corr) output phasors
+    calibrated: np.ndarray    # (n_row, n_corr) bool
+    off_vis: np.ndarray       # (n_row, n_corr) offset reference/model visibilities
+    off_ok: np.ndarray        # (n_row, n_corr) bool
+
+
+# The two forms share one run-summing kernel (_segment_runs); what differs is how a
+# cell's sample is reached and tested, chosen when numba compiles the kernel for the
+# samples' type (numba.extending.overload).  Each form's arithmetic is written once,
+# in the order the sums have always been taken, so the sums keep every bit.
+
+def _usable(samples, b, c, t):
+    """Whether cell (b, c, t) holds a sample to sum (numba only; see the overload)."""
+    raise NotImplementedError("numba-compiled only")
+
+
+def _phase_diff(samples, b, c, t):
+    """Phi_ref - Phi_out of a usable cell (numba only; see the overload)."""
+    raise NotImplementedError("numba-compiled only")
+
+
+def _form(samples):
+    """GridSamples or RowSamples, from the numba type of ``samples`` (else None)."""
+    if isinstance(samples, types.BaseNamedTuple):
+        return samples.instance_class
+    return None
+
+
+@overload(_usable, inline="always")
+def _usable_impl(samples, b, c, t):
+    if _form(samples) is GridSamples:
+        def usable(samples, b, c, t):
+            return samples.calibrated[b, t, c] and samples.off_valid[b, c, t]
+        return usable
+    if _form(samples) is RowSamples:
+        def usable(samples, b, c, t):
+            row = samples.tgt_rows[b, t]
+            if row < 0 or not (samples.calibrated[row, c] and samples.off_ok[row, c]):
+                return False
+            o = samples.off_vis[row, c]
+            return (math.isfinite(o.real) and math.isfinite(o.imag)
+                    and not (o.real == 0 and o.imag == 0))
+        return usable
+    return None
+
+
+@overload(_phase_diff, inline="always")
+def _phase_diff_impl(samples, b, c, t):
+    if _form(samples) is GridSamples:
+        def phase_diff(samples, b, c, t):
+            p = samples.phasor[b, t, c]
+            return samples.off_phase[b, c, t] - (samples.tgt_phase[b, c, t]
+                                                 + math.atan2(p.imag, p.real))
+        return phase_diff
+    if _form(samples) is RowSamples:
+        def phase_diff(samples, b, c, t):
+            row = samples.tgt_rows[b, t]
+            o = samples.off_vis[row, c]
+            v = samples.tgt_vis[row, c] * samples.phasor[row, c]
+            return math.atan2(o.imag, o.real) - math.atan2(v.imag, v.real)
+        return phase_diff
+    return None
+
+
 @numba.njit(cache=True, nogil=True)
-def _segment_runs(keys, tgt_phase, phasor, calibrated, off_phase, off_valid, fill):
+def _segment_runs(keys, samples, fill):
     """Sums of exp(i (Phi_ref - Phi_out)) over runs of equal segment key in time.
 
-    keys/tgt_phase/off_phase/off_valid (n_bl, n_corr, n_time), phasor/calibrated
-    (n_bl, n_time, n_corr).  With ``fill`` False only the number of runs is
+    keys (n_bl, n_corr, n_time); ``samples`` a :class:`GridSamples` or
+    :class:`RowSamples`.  With ``fill`` False only the number of runs is
     counted; otherwise returns the runs (baseline, correlation, key), sums, counts.
     """
     n_bl, n_corr, n_time = keys.shape
@@ -52,7 +133,7 @@ def _segment_runs(keys, tgt_phase, phasor, calibrated, off_phase, off_valid, fil
                 cur = -1
                 for t in range(n_time):
                     key = keys[b, c, t]
-                    if key < 0 or not (calibrated[b, t, c] and off_valid[b, c, t]):
+                    if key < 0 or not _usable(samples, b, c, t):
                         continue
                     if key != cur:
                         cur = key
@@ -65,38 +146,19 @@ def _segment_runs(keys, tgt_phase, phasor, calibrated, off_phase, off_valid, fil
                         index[r, 2] = key
                     elif sweep == 0:
                         continue
-                    p = phasor[b, t, c]
-                    d = off_phase[b, c, t] - (tgt_phase[b, c, t] + math.atan2(p.imag, p.real))
+                    d = _phase_diff(samples, b, c, t)
                     sums[r] += complex(math.cos(d), math.sin(d))
                     counts[r] += 1
-    return index, sums, counts
-    r = -1
-    for b in range(n_bl):
-        for c in range(n_corr):
-            cur = -1
-            for t in range(n_time):
-                key = keys[b, c, t]
-                if key < 0 or not (calibrated[b, t, c] and off_valid[b, c, t]):
-                    continue
-                if key != cur:
-                    r += 1
-                    cur = key
-                    index[r, 0] = b
-                    index[r, 1] = c
-                    index[r, 2] = key
-                p = phasor[b, t, c]
-                d = off_phase[b, c, t] - (tgt_phase[b, c, t] + math.atan2(p.imag, p.real))
-                sums[r] += complex(math.cos(d), math.sin(d))
-                counts[r] += 1
     return index, sums, counts
 
 
 def segment_run_sums(keys, tgt_phase, phasor, calibrated, off_phase, off_valid) -> SegmentSums:
     """The sums per distinct (baseline, correlation, key) from the gridded phases."""
-    args = (np.ascontiguousarray(keys, np.int64), np.ascontiguousarray(tgt_phase, np.float64),
-            np.ascontiguousarray(phasor), np.ascontiguousarray(calibrated),
-            np.ascontiguousarray(off_phase, np.float64), np.ascontiguousarray(off_valid))
-    return _merge_runs(*_segment_runs(*args, True))
+    samples = GridSamples(np.ascontiguousarray(tgt_phase, np.float64),
+                          np.ascontiguousarray(phasor), np.ascontiguousarray(calibrated),
+                          np.ascontiguousarray(off_phase, np.float64),
+                          np.ascontiguousarray(off_valid))
+    return _merge_runs(*_segment_runs(np.ascontiguousarray(keys, np.int64), samples, True))
 
 
 def _merge_runs(index, sums, counts) -> SegmentSums:
@@ -134,55 +196,11 @@ def shifted_rows(tgt_rows, k, table, k_min, phasors):
     return out
 
 
-@numba.njit(cache=True, nogil=True)
-def _segment_row_runs(tgt_rows, keys, tgt_vis, phasor, calibrated, off_vis, off_ok, fill):
-    """:func:`_segment_runs` reading row-ordered arrays through the chunk's row grid."""
-    n_bl, n_corr, n_time = keys.shape
-    n_runs = 0
-    r = -1
-    index = np.zeros((0, 3), np.int64)
-    sums = np.zeros(0, np.complex128)
-    counts = np.zeros(0, np.int64)
-    for sweep in range(2 if fill else 1):
-        if sweep == 1:
-            index = np.zeros((n_runs, 3), np.int64)
-            sums = np.zeros(n_runs, np.complex128)
-            counts = np.zeros(n_runs, np.int64)
-        for b in range(n_bl):
-            for c in range(n_corr):
-                cur = -1
-                for t in range(n_time):
-                    row = tgt_rows[b, t]
-                    key = keys[b, c, t]
-                    if row < 0 or key < 0 or not (calibrated[row, c] and off_ok[row, c]):
-                        continue
-                    o = off_vis[row, c]
-                    if not (math.isfinite(o.real) and math.isfinite(o.imag)) or (o.real == 0 and o.imag == 0):
-                        continue
-                    if key != cur:
-                        cur = key
-                        if sweep == 0:
-                            n_runs += 1
-                            continue
-                        r += 1
-                        index[r, 0] = b
-                        index[r, 1] = c
-                        index[r, 2] = key
-                    elif sweep == 0:
-                        continue
-                    v = tgt_vis[row, c] * phasor[row, c]
-                    d = math.atan2(o.imag, o.real) - math.atan2(v.imag, v.real)
-                    sums[r] += complex(math.cos(d), math.sin(d))
-                    counts[r] += 1
-    return index, sums, counts
-
-
 def segment_row_sums(tgt_rows, keys, tgt_vis, phasor, calibrated, off_vis, off_ok) -> SegmentSums:
     """Sums of exp(i (Phi_ref - Phi_out)) per (baseline, correlation, segment key), sorted,
     from the chunk's row-ordered target visibilities, output phasors and reference (or
     model) visibilities; the driver's form of :func:`segment_run_sums` (no phase grids)."""
-    return _merge_runs(*_segment_row_runs(
-        np.ascontiguousarray(tgt_rows), np.ascontiguousarray(keys, np.int64),
-        np.ascontiguousarray(tgt_vis), np.ascontiguousarray(phasor),
-        np.ascontiguousarray(calibrated), np.ascontiguousarray(off_vis),
-        np.ascontiguousarray(off_ok), True))
+    samples = RowSamples(np.ascontiguousarray(tgt_rows), np.ascontiguousarray(tgt_vis),
+                         np.ascontiguousarray(phasor), np.ascontiguousarray(calibrated),
+                         np.ascontiguousarray(off_vis), np.ascontiguousarray(off_ok))
+    return _merge_runs(*_segment_runs(np.ascontiguousarray(keys, np.int64), samples, True))

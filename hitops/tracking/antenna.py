@@ -22,7 +22,7 @@ import numpy as np
 
 from .antenna_kernel import baseline_counts_from_antennas, solve_antenna_phases
 from .antenna_state import AntennaHistory
-from .grid import on_grid
+from .grid import TrackGrid, on_grid
 from .modes import track_antennas
 from .options import ANTENNA_TRACK_HALF_WINDOW, MIN_COHERENCE
 from .smooth import Chunk, Run, SmoothTracker
@@ -62,18 +62,18 @@ class AntennaTracker(SmoothTracker):
 
     name = "antenna"
 
-    def __init__(self, match, corr_names, setup, n_ant: int = 0, antenna_names=(),
+    def __init__(self, grid: TrackGrid, corr_names, setup, n_ant: int = 0, antenna_names=(),
                  workers: int = 0, sin_elevation=None):
-        super().__init__(match, corr_names, setup, n_ant, antenna_names, workers, sin_elevation)
+        super().__init__(grid, corr_names, setup, n_ant, antenna_names, workers, sin_elevation)
         parallel = [len(c) == 2 and c[0] == c[1] for c in self.corr_names]
         self.antenna_corrs = [c for c in range(self.n_corr) if parallel[c]]
         self.smooth_corrs = [c for c in range(self.n_corr) if not parallel[c]]
         self.antennas = AntennaHistory.empty(setup.context, self.n_corr, n_ant)
         # each station's unwrapped reference phase per correlation and union time, as
         # transferred (the gains of a calibration table); NaN where unsolved ...
-        self.antenna_phase = np.full((n_ant, self.n_corr, match.n_time), np.nan)
+        self.antenna_phase = np.full((n_ant, self.n_corr, grid.n_time), np.nan)
         # ... and its tracking segment (aligned across chunks; -1 where none)
-        self.antenna_segment = np.full((n_ant, self.n_corr, match.n_time), -1, np.int64)
+        self.antenna_segment = np.full((n_ant, self.n_corr, grid.n_time), -1, np.int64)
         if not self.antenna_corrs:
             log.warning("antenna tracking needs parallel-hand correlations (RR, LL, XX, YY); "
                         "%s are tracked per baseline with the smooth tracker",
@@ -111,8 +111,8 @@ class AntennaTracker(SmoothTracker):
         rho = per_sample_snr(vis, valid, sigma, setup.snr_window)
         power = np.nansum(np.where(valid, rho, 0.0) ** 2, axis=0)
         present = np.zeros((self.n_ant, valid.shape[1]), bool)
-        present[self.match.ant1] |= valid
-        present[self.match.ant2] |= valid
+        present[self.grid.ant1] |= valid
+        present[self.grid.ant2] |= valid
         n_present = present.sum(axis=0)
         with np.errstate(invalid="ignore", divide="ignore"):
             rho_ant = np.sqrt(2.0 * power / n_present)
@@ -124,7 +124,7 @@ class AntennaTracker(SmoothTracker):
         """Antenna mode on one regular scan run of one correlation; results at ``pos``."""
         setup = self.setup
         fixed = np.ndim(solve_half_window) == 0
-        res = track_antennas(vis, valid, self.match.ant1, self.match.ant2, self.n_ant,
+        res = track_antennas(vis, valid, self.grid.ant1, self.grid.ant2, self.n_ant,
                              refants=setup.refants, antenna_tracker="smooth",
                              solve_half_window=solve_half_window,
                              half_window=ANTENNA_TRACK_HALF_WINDOW, max_gap=setup.max_gap,
@@ -139,8 +139,8 @@ class AntennaTracker(SmoothTracker):
         # above chooses the lobes, but its smoothing error would enter the target band
         if np.any(np.asarray(solve_half_window) > 0):
             raw_phase, raw_valid = solve_antenna_phases(
-                np.ascontiguousarray(vis), np.ascontiguousarray(valid), self.match.ant1,
-                self.match.ant2, self.n_ant, np.asarray(setup.refants, np.int64))[:2]
+                np.ascontiguousarray(vis), np.ascontiguousarray(valid), self.grid.ant1,
+                self.grid.ant2, self.n_ant, np.asarray(setup.refants, np.int64))[:2]
         else:
             raw_phase, raw_valid = res.extra["ant_phase"], res.extra["ant_valid"]
         return {"counts": res.counts[:, pos], "seg": res.segment[:, pos],
@@ -163,7 +163,7 @@ class AntennaTracker(SmoothTracker):
             # the baselines of an aligned run take their counts from the shifted antennas
             bl_counts, _ = baseline_counts_from_antennas(
                 np.ascontiguousarray(out["bl_phase"]), np.ascontiguousarray(out["bl_valid"]),
-                self.match.ant1, self.match.ant2, np.ascontiguousarray(out["ant_phase"]),
+                self.grid.ant1, self.grid.ant2, np.ascontiguousarray(out["ant_phase"]),
                 np.ascontiguousarray(out["ant_valid"]), np.ascontiguousarray(out["ant_counts"]))
             out["counts"] = bl_counts
             ch.counts[:, c, a:b] = bl_counts
@@ -174,7 +174,7 @@ class AntennaTracker(SmoothTracker):
         """Each baseline's reference phase as its antenna model, the unwrapped difference of
         its two stations' tracked phases, and the counts and segments that go with it."""
         model = np.full(ch.valid.shape, np.nan)
-        p_ant, q_ant = self.match.ant1, self.match.ant2
+        p_ant, q_ant = self.grid.ant1, self.grid.ant2
         for c, runs in ch.ant.items():
             for a, b, out in runs:
                 # a baseline's segment is the pair of its antennas' (aligned) segments
@@ -199,8 +199,8 @@ class AntennaTracker(SmoothTracker):
 
     def _jump_flags(self, scan, i0, i1, ch: Chunk) -> None:
         super()._jump_flags(scan, i0, i1, ch)
-        self.antennas.jump_flags(ch.ant, i0, i1, scan, ch.valid, self.match.ant1,
-                                 self.match.ant2, ch.exclude)
+        self.antennas.jump_flags(ch.ant, i0, i1, scan, ch.valid, self.grid.ant1,
+                                 self.grid.ant2, ch.exclude)
 
     def _collect(self, scan, t_lo, i0, i1, ch: Chunk) -> None:
         super()._collect(scan, t_lo, i0, i1, ch)

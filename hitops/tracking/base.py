@@ -38,7 +38,7 @@ class ReferenceGrid:
     """The reference band of [t_lo, t_hi) on the (baseline, correlation, time) grid.
 
     vis complex128, valid bool, sigma float64 or None: (n_bl, n_corr, t_hi - t_lo),
-    baselines in the order of the run's match; what a ``grids_reference`` tracker reads.
+    baselines in the order of the run's TrackGrid; what a ``grids_reference`` tracker reads.
     """
 
     t_lo: int
@@ -185,7 +185,7 @@ class WrapTracker(ABC):
         """Counts of chunk [t0, t1) from the reference grid of [t_lo, t_hi).
 
         vis (complex), valid (bool), sigma (float64 or None):
-        (n_bl, n_corr, t_hi - t_lo), baselines in the order of ``match``.
+        (n_bl, n_corr, t_hi - t_lo), baselines in the order of the tracker's ``grid``.
         """
 
     @abstractmethod

@@ -26,6 +26,7 @@ import numba
 import numpy as np
 
 from .base import ChunkTracking, GroupWraps, ResolvedWraps, Tracked, WrapTracker, scan_runs
+from .grid import TrackGrid
 from .state import Stats
 
 
@@ -184,12 +185,12 @@ class CountTracker(WrapTracker):
     grids_reference = False
     segmented = False
 
-    def __init__(self, match, corr_names, setup=None, **_unused):
-        self.match = match
+    def __init__(self, grid: TrackGrid, corr_names, setup=None, **_unused):
+        self.grid = grid
         self.setup = setup
         self.context = 0
         self.corr_names = list(corr_names)
-        n_bl, n_corr = match.n_bl, len(self.corr_names)
+        n_bl, n_corr = grid.n_bl, len(self.corr_names)
         self.state = Carry.empty(n_bl, n_corr)
         self.stats = Stats(n_bl, n_corr, 0)
         self.antenna_phase = self.antenna_segment = None   # no antenna model
@@ -201,7 +202,7 @@ class CountTracker(WrapTracker):
         i0, i1 = t0 - t_lo, t1 - t_lo
         vis, valid = vis[..., i0:i1], valid[..., i0:i1]
         phase = np.angle(vis) if np.iscomplexobj(vis) else np.asarray(vis, dtype=np.float64)
-        scan = self.match.scan_of_time[t0:t1]
+        scan = self.grid.scans.scan_of_time[t0:t1]
         wraps, carry = count_scans(phase, valid, scan, self.state)
         self.stats.per_series["wrap_events"] += chunk_wrap_events(wraps, scan, self.state)
         self.state = carry
@@ -219,11 +220,11 @@ class CountTracker(WrapTracker):
         self.stats.per_series["wrap_events"][bls] += wrap_events
 
     def finish_chunk(self, t1: int) -> None:
-        self.state.last_scan = int(self.match.scan_of_time[t1 - 1])
+        self.state.last_scan = int(self.grid.scans.scan_of_time[t1 - 1])
 
     def report(self, times) -> dict:
         """The JSON report's tracking entry: wrap events per baseline."""
         events = self.stats.per_series["wrap_events"]
         return {"setup": {"tracker": "count"},
                 "baselines": [{"baseline": name, "wrap_events": int(events[b].sum())}
-                              for b, name in enumerate(self.match.baseline_names)]}
+                              for b, name in enumerate(self.grid.baseline_names)]}

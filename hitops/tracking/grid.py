@@ -1,4 +1,8 @@
-"""The regular time grid the trackers work on, and the reference samples gathered onto it.
+"""The grid the trackers work on, and the reference samples gathered onto it.
+
+A tracker runs on a :class:`TrackGrid`: calibrate's matched baselines and union
+times, and the tracking scans (:class:`ScanAxis`) no wrap is counted across.
+Both are built whole by calibrate's plan, then only read.
 
 The kernels count in samples of a *regular* grid: within each scan the union
 time axis of calibrate is mapped onto a grid of step dt (the median time
@@ -9,13 +13,76 @@ tracker can see.
 from __future__ import annotations
 
 import logging
-from typing import Optional
+from dataclasses import dataclass
+from typing import List, Optional, Tuple
 
 import numpy as np
 
 from ..errors import InputError
+from ..io.layout import GridShape
 
 log = logging.getLogger("hitops.calibrate")
+
+
+@dataclass(frozen=True)
+class ScanSplit:
+    """A tracking scan started inside a SCAN_NUMBER at a long time gap."""
+
+    scan_number: int                # the SCAN_NUMBER that was split
+    time: float                     # first time after the gap (MJD seconds)
+    gap_s: float                    # length of the gap (seconds)
+
+
+@dataclass(frozen=True)
+class ScanAxis:
+    """The tracking scans of a time axis: wraps are counted within a scan, never across.
+
+    Built by :meth:`hitops.calibrate.chunks.ChunkMatch.check` from SCAN_NUMBER,
+    then by :meth:`split_at_gaps` (a new axis; this one is left as it is).
+    """
+
+    scan_numbers: np.ndarray        # (n_scan,) SCAN_NUMBER of each tracking scan
+    scan_of_time: np.ndarray        # (n_time,) int64 index in scan_numbers of each time
+
+    @property
+    def n_scan(self) -> int:
+        return self.scan_numbers.size
+
+    def split_at_gaps(self, times: np.ndarray,
+                      min_gap_s: float) -> Tuple["ScanAxis", List[ScanSplit]]:
+        """(the axis with a new tracking scan at every time gap longer than ``min_gap_s``,
+        the splits).
+
+        Wrap counting must not run across a stretch with no data at all, whatever
+        SCAN_NUMBER says (a UVFITS round trip through CASA can merge every scan
+        into one).  ``scan_numbers`` of the new axis repeats a SCAN_NUMBER where
+        one was split.
+        """
+        scan_of_time = self.scan_of_time
+        if times.size < 2:
+            return self, []
+        gaps = np.diff(times)
+        cut = np.flatnonzero((gaps > min_gap_s) & (scan_of_time[1:] == scan_of_time[:-1])) + 1
+        if cut.size == 0:
+            return self, []
+        starts = np.zeros(times.size, dtype=bool)
+        starts[0] = True
+        starts[1:] = scan_of_time[1:] != scan_of_time[:-1]
+        starts[cut] = True
+        splits = [ScanSplit(int(self.scan_numbers[scan_of_time[i]]), float(times[i]),
+                            float(gaps[i - 1])) for i in cut]
+        return ScanAxis(self.scan_numbers[scan_of_time[starts]], np.cumsum(starts) - 1), splits
+
+
+@dataclass(frozen=True)
+class TrackGrid(GridShape):
+    """What a tracker reads of calibrate's plan: the (baseline, time) grid and its scans."""
+
+    times: np.ndarray               # (n_time,) union times (MJD seconds)
+    ant1: np.ndarray                # (n_bl,) target-set antenna index of each baseline
+    ant2: np.ndarray
+    baseline_names: List[str]       # "ANT1-ANT2" station codes of each baseline
+    scans: ScanAxis
 
 
 def grid_positions(times: np.ndarray, scan_of_time: Optional[np.ndarray] = None,

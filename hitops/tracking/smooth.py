@@ -26,7 +26,7 @@ import numpy as np
 
 from . import theory
 from .base import Tracked, WrapTracker, scan_runs
-from .grid import grid_positions, on_grid
+from .grid import TrackGrid, grid_positions, on_grid
 from .options import MIN_COHERENCE, TrackingSetup
 from .smooth_kernel import track_wraps_smooth
 from .state import SeriesHistory, Stats, baseline_report, segment_keys
@@ -84,17 +84,17 @@ class SmoothTracker(WrapTracker):
 
     name = "smooth"
 
-    def __init__(self, match, corr_names, setup: TrackingSetup, n_ant: int = 0,
+    def __init__(self, grid: TrackGrid, corr_names, setup: TrackingSetup, n_ant: int = 0,
                  antenna_names=(), workers: int = 0, sin_elevation=None):
         self.setup = setup
-        self.match = match
-        self.n_bl = match.n_bl
+        self.grid = grid
+        self.n_bl = grid.n_bl
         self.n_corr = len(corr_names)
         self.n_ant = n_ant
         self.corr_names = list(corr_names)
         self.antenna_names = list(antenna_names)
         self.context = setup.context
-        self.pos, _ = grid_positions(match.times, match.scan_of_time)
+        self.pos, _ = grid_positions(grid.times, grid.scans.scan_of_time)
         # local coherence time per station and time: t_c sin(el)^(3/5) (the phase
         # variance of a thin screen grows with airmass), when the geometry is known
         if sin_elevation is None:
@@ -109,14 +109,14 @@ class SmoothTracker(WrapTracker):
 
     def extended(self, t0: int, t1: int):
         ctx = self.setup.context
-        return max(0, t0 - ctx), min(self.match.n_time, t1 + ctx)
+        return max(0, t0 - ctx), min(self.grid.n_time, t1 + ctx)
 
     def track(self, t_lo, t0, t1, t_hi, vis, valid, sigma) -> Tracked:
         """Counts (n_bl, n_corr, t1-t0), excluded samples, segment keys and model of [t0, t1).
 
         vis/valid/sigma: (n_bl, n_corr, t_hi - t_lo) gridded reference samples.
         """
-        scan = self.match.scan_of_time[t_lo:t_hi]
+        scan = self.grid.scans.scan_of_time[t_lo:t_hi]
         ch = Chunk.empty(valid)
         for a, b, _ in scan_runs(scan):
             pos = self.pos[t_lo + a:t_lo + b] - self.pos[t_lo + a]
@@ -151,7 +151,7 @@ class SmoothTracker(WrapTracker):
         if self.station_tc is not None:
             # baseline: the worse station's local t_c (docs/tracking.md)
             tc = self.station_tc[:, t_lo + run.a:t_lo + run.b]
-            tc_bl = on_grid(np.minimum(tc[self.match.ant1], tc[self.match.ant2]), run.pos,
+            tc_bl = on_grid(np.minimum(tc[self.grid.ant1], tc[self.grid.ant2]), run.pos,
                             run.length)
         for c in self.smooth_corrs:
             rho = per_sample_snr(run.vis[:, c], run.valid[:, c],
@@ -205,5 +205,5 @@ class SmoothTracker(WrapTracker):
     def report(self, times: np.ndarray) -> dict:
         """Per-baseline confidence numbers for the JSON report."""
         return {"setup": self.setup.as_dict(),
-                "baselines": baseline_report(self.stats, times, self.match.baseline_names,
+                "baselines": baseline_report(self.stats, times, self.grid.baseline_names,
                                              self.corr_names)}

@@ -83,7 +83,7 @@ def solve_offsets(run: RunPlan, group: GroupPlan, tracker: WrapTracker,
     stage = time.perf_counter()
     match = group.match
     max_k, ambiguity = int(run.opts.max_offset_wraps), float(run.opts.offset_ambiguity_deg)
-    shape = (match.n_bl, group.n_corr, match.scans.size)
+    shape = (match.n_bl, group.n_corr, group.grid.scans.n_scan)
     solution = OffsetSolution(offsets=np.zeros(shape), offset_k=np.zeros(shape, np.int64))
     if not tracker.segmented:
         _per_scan(solution, group, sums.scan_sums, sums.scan_counts, max_k, ambiguity)
@@ -112,15 +112,15 @@ def solve_offsets(run: RunPlan, group: GroupPlan, tracker: WrapTracker,
 def _antenna_lattice(solution: OffsetSolution, group: GroupPlan, sums, tracker: WrapTracker,
                      max_k: int, ambiguity: float):
     """Integers per antenna and segment for the parallel hands; returns the other sums."""
-    match = group.match
+    match, scans = group.match, group.grid.scans
     antenna_corrs = {c for c, name in enumerate(match.corr_names)
                      if len(name) == 2 and name[0] == name[1]}
     # the first pass's antenna phases tie the two hands
     hands = None if tracker.antenna_phase is None else HandPhases(
-        tracker.antenna_phase, tracker.antenna_segment, match.scan_of_time)
+        tracker.antenna_phase, tracker.antenna_segment, scans.scan_of_time)
     found = antenna_offsets(
         sums, antenna_corrs, match.ant1, match.ant2, list(group.antenna_names),
-        match.baseline_names, match.corr_names, match.scans, group.eps, max_k, ambiguity,
+        match.baseline_names, match.corr_names, scans.scan_numbers, group.eps, max_k, ambiguity,
         refants=group.tracking.refants, segment_key=int(SEGMENT_KEY), hands=hands)
     solution.segment_k.update(found.segment_k)
     solution.series.extend(found.series)
@@ -147,11 +147,11 @@ def _entry(choice, base: dict, segment: bool) -> dict:
 
 def _per_segment(solution: OffsetSolution, group: GroupPlan, sums, max_k: int,
                  ambiguity: float) -> None:
-    match = group.match
+    match, scan_numbers = group.match, group.grid.scans.scan_numbers
     for (b, c, key), (z, n) in sorted(sums.items()):
         choice = choose_offset(complex(z), int(n), group.eps, max_k, ambiguity)
         base = {"baseline": match.baseline_names[b], "correlation": match.corr_names[c],
-                "scan": int(match.scans[key // SEGMENT_KEY]), "segment": int(key % SEGMENT_KEY)}
+                "scan": int(scan_numbers[key // SEGMENT_KEY]), "segment": int(key % SEGMENT_KEY)}
         if choice is not None:
             solution.segment_k[(b, c, key)] = choice.k
         solution.series.append(_entry(choice, base, segment=True))
@@ -159,14 +159,14 @@ def _per_segment(solution: OffsetSolution, group: GroupPlan, sums, max_k: int,
 
 def _per_scan(solution: OffsetSolution, group: GroupPlan, sums, counts, max_k: int,
               ambiguity: float) -> None:
-    match = group.match
+    match, scans = group.match, group.grid.scans
     for b in range(match.n_bl):
         for c in range(group.n_corr):
-            for s in range(match.scans.size):
+            for s in range(scans.n_scan):
                 choice = choose_offset(complex(sums[b, c, s]), int(counts[b, c, s]), group.eps,
                                        max_k, ambiguity)
                 base = {"baseline": match.baseline_names[b], "correlation": match.corr_names[c],
-                        "scan": int(match.scans[s])}
+                        "scan": int(scans.scan_numbers[s])}
                 if choice is not None:
                     solution.offsets[b, c, s] = 2 * math.pi * group.eps * choice.k
                     solution.offset_k[b, c, s] = choice.k
