@@ -32,7 +32,8 @@ PAPER = {
 #: Display names of the usual labels.
 METHOD_NAMES = {"raw": "raw (DATA)", "ffsc": "FF+SC (CORRECTED_DATA)",
                 "cfpt": "CFPT (CFPT_DATA)", "pwc": "PWC (PWC_DATA)",
-                "pwcnc": "PWC, no control (PWC_NC_DATA)"}
+                "pwcnc": "PWC, no control (PWC_NC_DATA)",
+                "pwcwin": "PWC, one ratio per window (PWC_WIN_DATA)"}
 
 
 def recovery(peak: float, peak_err: float, input_peak: float,
@@ -243,6 +244,7 @@ _ALIASES = {
     "cfpt": "cfpt", "cfpt_data": "cfpt",
     "pwc": "pwc", "pwc_data": "pwc",
     "pwcnc": "pwcnc", "pwc_nc_data": "pwcnc",
+    "pwcwin": "pwcwin", "pwc_win_data": "pwcwin",
 }
 
 
@@ -314,7 +316,7 @@ def compare(fits, labels=None, input_peak: float = 1.0, input_peak_err: float = 
 
 #: Short names of the methods for the terminal
 SHORT_NAMES = {"raw": "raw", "ffsc": "FF+SC", "cfpt": "CFPT", "cwu": "CWU", "pwc": "PWC",
-               "pwcnc": "PWC-NC"}
+               "pwcnc": "PWC-NC", "pwcwin": "PWC-win"}
 
 
 def text_summary(payload: Dict) -> str:
