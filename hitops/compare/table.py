@@ -32,7 +32,8 @@ PAPER = {
 #: Display names of the usual labels.
 METHOD_NAMES = {"raw": "raw (DATA)", "ffsc": "FF+SC (CORRECTED_DATA)",
                 "cfpt": "CFPT (CFPT_DATA)", "pwc": "PWC (PWC_DATA)",
-                "pwcnc": "PWC, no control (PWC_NC_DATA)"}
+                "pwcnc": "PWC, no control (PWC_NC_DATA)",
+                "pwcwin": "PWC, one ratio per window (PWC_WIN_DATA)"}
 
 
 def recovery(peak: float, peak_err: float, input_peak: float,
@@ -161,7 +162,9 @@ def markdown(rows: List[Dict], coherence: Optional[Dict], reference: str) -> str
                          if r.get("paper_recovery") is not None else "-")
         out.append("| " + " | ".join(cells) + " |")
     if coherence:
-        out += ["", "# Coherence of the residual phases (per baseline)", ""]
+        measure = coherence.get("measure", "per channel")
+        out += ["", "# Coherence of the residual phases (per baseline"
+                + ("" if measure == "per channel" else f"; {measure}") + ")", ""]
         cols = coherence["columns"]
         out.append("| baseline | " + " | ".join(cols) + " | PWC vs FF+SC |")
         out.append("|" + "---|" * (len(cols) + 2))
@@ -199,6 +202,9 @@ def coherence_summary(path: str) -> Dict:
         raise InputError(f"diagnose summary '{path}' does not exist; run hitops diagnose first")
     data = json.loads(p.read_text())
     per_bl = _extract_per_baseline(data)
+    all_channels = _all_channel_coherence(data)
+    for name, values in all_channels.items():
+        per_bl.setdefault(name, {}).update(values)
     if not per_bl:
         raise InputError(f"diagnose summary '{path}' has no per-baseline coherence values "
                          "this tool recognises")
@@ -234,7 +240,28 @@ def coherence_summary(path: str) -> Dict:
             "pwc_ge_ffsc_every_baseline": bool(np.all(pwc >= ffsc)),
         }
     return {"source": str(path), "interval_s": data.get("interval_s"), "columns": order,
-            "baselines": rows, "stats": stats}
+            "baselines": rows, "stats": stats,
+            "measure": "time and all channels averaged together" if all_channels else "per channel"}
+
+
+def _all_channel_coherence(data) -> Dict[str, Dict]:
+    """Per baseline and column, C over every channel of every window (time and channels
+    averaged together), from a wideband `hitops diagnose` summary's ``spectral`` block;
+    empty for a one-channel summary.
+
+    This is the coherence a multi-frequency-synthesis image sees: it falls with a phase
+    slope across the channels (one ratio per window applied to an excess path), which
+    the per-channel ``coherence_factor`` does not see (docs/diagnose.md, "Wideband").
+    """
+    spectral = data.get("spectral") if isinstance(data, dict) else None
+    columns = spectral.get("columns") if isinstance(spectral, dict) else None
+    out: Dict[str, Dict] = {}
+    for column, block in (columns or {}).items():
+        for name, entry in (block.get("baselines") or {}).items():
+            value = entry.get("all_channels") if isinstance(entry, dict) else None
+            if isinstance(value, (int, float)):
+                out.setdefault(str(name), {})[column] = float(value)
+    return out
 
 
 _ALIASES = {
@@ -243,6 +270,7 @@ _ALIASES = {
     "cfpt": "cfpt", "cfpt_data": "cfpt",
     "pwc": "pwc", "pwc_data": "pwc",
     "pwcnc": "pwcnc", "pwc_nc_data": "pwcnc",
+    "pwcwin": "pwcwin", "pwc_win_data": "pwcwin",
 }
 
 
@@ -314,7 +342,7 @@ def compare(fits, labels=None, input_peak: float = 1.0, input_peak_err: float = 
 
 #: Short names of the methods for the terminal
 SHORT_NAMES = {"raw": "raw", "ffsc": "FF+SC", "cfpt": "CFPT", "cwu": "CWU", "pwc": "PWC",
-               "pwcnc": "PWC-NC"}
+               "pwcnc": "PWC-NC", "pwcwin": "PWCwin"}
 
 
 def text_summary(payload: Dict) -> str:
@@ -349,6 +377,8 @@ def text_summary(payload: Dict) -> str:
         cols = coh["columns"]
         interval = coh.get("interval_s")
         title = f"Coherence C({interval:g} s)" if isinstance(interval, (int, float)) else "Coherence"
+        if coh.get("measure", "per channel") != "per channel":
+            title += f", {coh['measure']},"
         has_gain = any(b.get("pwc_over_ffsc_pct") is not None for b in coh["baselines"])
         names = [SHORT_NAMES.get(c, c) for c in cols]
         out += ["", f"{title} per baseline:",
