@@ -109,6 +109,13 @@ def check_calibrator_field(run) -> Optional[CalibratorField]:
     name = run.opts.calibrator_field
     if not name:
         return None
+    if run.opts.tracker != "count" or run.columns.offset is not None:
+        raise InputError(f"--calibrator-field {name} works on the count tracker's output "
+                         "without an n0 step (its per-scan counts are carried across the field "
+                         "switches; docs/solutions.md): drop --tracker "
+                         f"{run.opts.tracker}" if run.opts.tracker != "count" else
+                         f"--calibrator-field {name} replaces the n0 offset step: drop "
+                         "--offset-model / --offset-reference-column")
     names = [str(n) for n in msio.read_subtable(run.target_ms, "FIELD", ["NAME"])["NAME"]]
     if name not in names:
         raise InputError(f"--calibrator-field {name}: no such field in {run.target_ms} "
@@ -228,42 +235,85 @@ def _refant(run, names: List[str], cal_ant: np.ndarray) -> int:
     return int(np.bincount(cal_ant, minlength=len(names)).argmax())
 
 
+def _bridge_window(table, tx, column: str, rows: np.ndarray, counts: np.ndarray, group,
+                   block: int) -> None:
+    """Every scan's rows times exp(-i 2 pi R_k N) (hitops/calibrate/phase_ref_bridge.py):
+    as a phase at nu_0 and a delay N / nu_ref, the per-channel transfer's own form."""
+    if group.channels is not None:
+        ratio, centre = group.channels.ratio, group.channels.tgt_centre
+    else:
+        ratio, centre = group.ratio, group.pair.tgt.freq
+    chan_offset = np.asarray(group.pair.tgt.chan_freq) - centre
+    moved = rows[(counts != 0).any(axis=1)]
+    counts = counts[(counts != 0).any(axis=1)]
+    for start in range(0, moved.size, block):
+        part, n = moved[start:start + block], counts[start:start + block]
+        read = msio.rows_reader(table, part)
+        phasor = np.exp(-2j * np.pi * ratio * n)
+        arrays = {column: rotate_channels(read(column), phasor, n * (ratio / centre),
+                                          chan_offset)}
+        msio.write_main_columns(tx.target_ms, part, arrays, {c: VIS_DIMS for c in arrays},
+                                direct=tx.direct_writes)
+
+
+def _reference_window(run, tx, table, column, meta, cal, ddid, groups, bridge) -> Dict:
+    """One target window of one staged column: bridged, solved on the calibrator,
+    applied to the other fields; its report entry."""
+    from .phase_ref_report import window_report
+
+    group = groups[0]
+    names = group.antenna_names
+    rows = _window_rows(meta, tx.rows_written, ddid, cal, len(names))
+    hands, hand_corr, corr_hands = _hands(group.pair.tgt.corr)
+    if not hands:
+        raise InputError(f"--calibrator-field {cal.name}: spectral window "
+                         f"{group.pair.tgt.spw} of {run.target_ms} has no parallel-hand "
+                         "correlation (RR, LL, XX, YY) to solve on")
+    both = np.union1d(rows.cal_rows, rows.target_rows)
+    _bridge_window(table, tx, column, both, bridge.counts, group, run.chunk_rows)
+    refant = _refant(run, names, np.concatenate([meta["ANTENNA1"][rows.cal_rows],
+                                                 meta["ANTENNA2"][rows.cal_rows]]))
+    solution = _solve_window(table, column, rows, group, hands, hand_corr, refant,
+                             len(names), ddid, meta["TIME"])
+    chan_offset = np.asarray(group.pair.tgt.chan_freq) - group.pair.tgt.freq
+    n_flagged = _apply_window(table, tx, column, rows.target_rows, meta, solution,
+                              corr_hands, chan_offset, run.chunk_rows)
+    entry = window_report(solution, names, rows.target_rows.size, n_flagged)
+    entry["switches"] = {"scan_starts": bridge.n_scan_starts,
+                         "largest_step_deg": round(bridge.largest_step_deg, 3),
+                         "steps_over_90_deg": bridge.n_risky}
+    return entry
+
+
 def phase_reference(run, tx, cal: Optional[CalibratorField]) -> Optional[Dict]:
-    """Solve on the calibrator's scans, apply to the other fields' rows, in every staged
-    output column of ``tx``; the report's entry (None without a calibrator)."""
+    """Bridge the scans, solve on the calibrator's, apply to the other fields' rows, in
+    every staged output column of ``tx``; the report's entry (None without a calibrator)."""
     from casacore import tables as pt
 
-    from .phase_ref_report import log_summary, window_report
+    from .phase_ref_bridge import switch_counts
+    from .phase_ref_report import log_summary
 
     if cal is None:
         return None
-    windows = {}
-    for group in run.groups:
-        if group.pair.tgt.field == cal.name:
-            windows[group.pair.tgt.key[1]] = group
+    windows: Dict[int, List] = {}
+    for group in sorted(run.groups, key=lambda g: g.pair.tgt.field != cal.name):
+        windows.setdefault(group.pair.tgt.key[1], []).append(group)
     entry: Dict = {"calibrator_field": cal.name, "field_id": cal.field_id,
                    "target_field_ids": list(cal.target_field_ids), "methods": {}}
     with pt.table(run.target_ms, ack=False) as table:
         meta = {c: table.getcol(c) for c in ("TIME", "ANTENNA1", "ANTENNA2", "FIELD_ID",
                                              "DATA_DESC_ID", "SCAN_NUMBER")}
+        bridges = {}
+        for ddid, groups in windows.items():
+            if groups[0].pair.tgt.field != cal.name:
+                continue     # a window the calibrator was not observed in
+            n_ant = len(groups[0].antenna_names)
+            rows = _window_rows(meta, tx.rows_written, ddid, cal, n_ant)
+            bridges[ddid] = switch_counts(run, groups, meta,
+                                          np.union1d(rows.cal_rows, rows.target_rows))
         for method, column in tx.staging.items():
-            reports = []
-            for ddid, group in sorted(windows.items()):
-                names = group.antenna_names
-                rows = _window_rows(meta, tx.rows_written, ddid, cal, len(names))
-                hands, hand_corr, corr_hands = _hands(group.pair.tgt.corr)
-                if not hands:
-                    raise InputError(f"--calibrator-field {cal.name}: spectral window "
-                                     f"{group.pair.tgt.spw} of {run.target_ms} has no parallel-"
-                                     "hand correlation (RR, LL, XX, YY) to solve on")
-                refant = _refant(run, names, np.concatenate([meta["ANTENNA1"][rows.cal_rows],
-                                                             meta["ANTENNA2"][rows.cal_rows]]))
-                solution = _solve_window(table, column, rows, group, hands, hand_corr, refant,
-                                         len(names), ddid, meta["TIME"])
-                chan_offset = np.asarray(group.pair.tgt.chan_freq) - group.pair.tgt.freq
-                n_flagged = _apply_window(table, tx, column, rows.target_rows, meta, solution,
-                                          corr_hands, chan_offset, run.chunk_rows)
-                reports.append(window_report(solution, names, rows.target_rows.size, n_flagged))
-            entry["methods"][run.outputs[method]] = reports
+            entry["methods"][run.outputs[method]] = [
+                _reference_window(run, tx, table, column, meta, cal, ddid, windows[ddid],
+                                  bridge) for ddid, bridge in sorted(bridges.items())]
     log_summary(entry)
     return entry
