@@ -209,3 +209,36 @@ def test_bad_input_one_line_nothing_written(pair, tmp_path, case):
     assert len(lines) == 1 and expect in lines[0], result.stderr
     assert "Traceback" not in result.stderr
     assert _columns(tgt) == before
+
+
+@pytest.mark.parametrize("change, where", [
+    (lambda s: s["observation"].pop("scan_length"), "observation.scan_length"),
+    (lambda s: s["calibrator"].update(name="M87"), "calibrator.name"),
+    (lambda s: s["calibrator"].pop("flux"), "calibrator.flux"),
+    (lambda s: s["calibrator"].update(colour="red"), "calibrator.colour"),
+])
+def test_scene_calibrator_errors(change, where):
+    import copy
+
+    from hitops.errors import SceneError
+    from hitops.simulate.scene import parse_scene
+
+    scene = copy.deepcopy(SCENE)
+    change(scene)
+    with pytest.raises(SceneError, match=where.replace(".", r"\.")):
+        parse_scene(scene)
+
+
+def test_scene_calibrator_scans(pair):
+    """Target and calibrator alternate as the scene says: 120 s, then 60 s, numbered in
+    time order, each field's rows in its own scans."""
+    with pt.table(str(pair["230"]), ack=False) as t:
+        field, scan, time = t.getcol("FIELD_ID"), t.getcol("SCAN_NUMBER"), t.getcol("TIME")
+        names = list(pt.table(f"{pair['230']}::FIELD", ack=False).getcol("NAME"))
+    assert names == ["M87", "3C273"]
+    for s in np.unique(scan):
+        rows = scan == s
+        assert np.unique(field[rows]).size == 1
+        assert field[rows][0] == (0 if s % 2 else 1)
+        span = time[rows].max() - time[rows].min() + 2.0
+        assert span == pytest.approx(120.0 if s % 2 else 60.0)
