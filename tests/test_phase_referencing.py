@@ -158,7 +158,8 @@ def test_without_carrying_the_count_across_switches_fails(pair, tmp_path, monkey
     from hitops.calibrate import phase_ref_bridge
 
     monkeypatch.setattr(phase_ref_bridge, "_continued_count",
-                        lambda phase: np.zeros(phase.size, np.int64))
+                        lambda time, phase: (np.zeros(phase.size, np.int64),
+                                             np.zeros(max(phase.size - 1, 0))))
     ref, tgt = _copy(pair, tmp_path)
     calibrate(ref, tgt, calibrator_field="3C273", no_verdict=True)
     assert _target_coherence(tgt).min() < COHERENCE

@@ -31,6 +31,8 @@ from .channels import reduce_rows
 
 #: a step at a scan's first sample beyond this (deg) is counted as a risky switch
 RISKY_STEP_DEG = 90.0
+#: samples on each side of a gap whose rate carries the phase across it
+RATE_SAMPLES = 5
 
 
 @dataclass(frozen=True)
@@ -39,7 +41,7 @@ class SwitchCounts:
 
     counts: np.ndarray           # (n_row, n_corr) int64
     n_scan_starts: int           # series x scans bridged
-    largest_step_deg: float      # the largest |reference phase step| at a scan's first sample
+    largest_step_deg: float      # the largest |step residual| at a scan's first sample
     n_risky: int                 # scan starts with a step beyond RISKY_STEP_DEG
 
 
@@ -66,10 +68,38 @@ def _reference_series(run, groups, ref_rows: np.ndarray) -> Tuple[Dict, np.ndarr
     return meta, np.angle(phasor), ok
 
 
-def _continued_count(phase: np.ndarray) -> np.ndarray:
-    """Wrap count n_c (from 0) that makes phase + 2 pi n_c continuous (steps <= pi)."""
-    steps = np.round(np.diff(phase) / (2.0 * np.pi)).astype(np.int64)
-    return np.concatenate([[0], -np.cumsum(steps)])
+def _side_rate(time: np.ndarray, phase: np.ndarray) -> float:
+    """Least-squares rate (rad/s) of a short run of samples, unwrapped step by step."""
+    if time.size < 2:
+        return 0.0
+    y = np.unwrap(phase)
+    x = time - time.mean()
+    return float(np.dot(x, y - y.mean()) / np.dot(x, x))
+
+
+def _continued_count(time: np.ndarray, phase: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Wrap count n_c (from 0) that makes phase + 2 pi n_c continuous, and each step's
+    residual (rad, in [-pi, pi]: what the count had to decide on).
+
+    Between consecutive samples a step > pi is a wrap.  Across a gap (a slew: more
+    than 1.5 regular steps) the phase is carried by its rates instead: each side's
+    rate over its last / first RATE_SAMPLES samples predicts the phase at the gap's
+    middle, and the wrap count is what makes the two predictions meet; the
+    troposphere's motion during the slew, beyond its linear part, is what is left to
+    the Itoh condition.
+    """
+    dphase = np.diff(phase)
+    if time.size > 2:
+        dt = np.diff(time)
+        regular = float(np.median(dt))
+        for g in np.flatnonzero(dt > 1.5 * regular):
+            left = slice(max(0, g + 1 - RATE_SAMPLES), g + 1)
+            right = slice(g + 1, min(time.size, g + 1 + RATE_SAMPLES))
+            half = 0.5 * dt[g]
+            dphase[g] -= half * (_side_rate(time[left], phase[left])
+                                 + _side_rate(time[right], phase[right]))
+    steps = np.round(dphase / (2.0 * np.pi)).astype(np.int64)
+    return np.concatenate([[0], -np.cumsum(steps)]), dphase - 2.0 * np.pi * steps
 
 
 def switch_counts(run, groups: List, tgt_meta: Dict[str, np.ndarray],
@@ -109,8 +139,8 @@ def switch_counts(run, groups: List, tgt_meta: Dict[str, np.ndarray],
                 series = phase[keep, ref_c] * (-1.0 if swapped else 1.0)
                 if not keep.size:
                     continue
-                n_c = _continued_count(series)
-                _scan_starts(meta["TIME"][keep], series, n_c, t_time[mine], t_scan[mine],
+                n_c, residual = _continued_count(meta["TIME"][keep], series)
+                _scan_starts(meta["TIME"][keep], residual, n_c, t_time[mine], t_scan[mine],
                              counts[:, c], mine, steps)
     steps_deg = np.degrees(np.abs(np.asarray(steps))) if steps else np.zeros(0)
     return SwitchCounts(counts, int(steps_deg.size),
@@ -118,9 +148,9 @@ def switch_counts(run, groups: List, tgt_meta: Dict[str, np.ndarray],
                         int((steps_deg > RISKY_STEP_DEG).sum()))
 
 
-def _scan_starts(ref_time, series, n_c, tgt_time, tgt_scan, out, mine, steps) -> None:
+def _scan_starts(ref_time, residual, n_c, tgt_time, tgt_scan, out, mine, steps) -> None:
     """``out[mine]`` = the continued count at the first reference sample of each target
-    scan (at or after the scan's first row); the wrapped step there into ``steps``."""
+    scan (at or after the scan's first row); the step's residual there into ``steps``."""
     for scan in np.unique(tgt_scan):
         rows = tgt_scan == scan
         first = int(np.searchsorted(ref_time, tgt_time[rows].min() - 1e-3))
@@ -128,4 +158,4 @@ def _scan_starts(ref_time, series, n_c, tgt_time, tgt_scan, out, mine, steps) ->
             continue
         out[mine[rows]] = n_c[first]
         if first > 0:
-            steps.append(float(np.angle(np.exp(1j * (series[first] - series[first - 1])))))
+            steps.append(float(residual[first - 1]))
