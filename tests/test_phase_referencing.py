@@ -90,6 +90,7 @@ def test_calibrator_step_restores_the_target(pair, tmp_path):
     after = _target_coherence(tgt2)
     assert before.min() < 0.5, before          # FPT alone: the instrumental term remains
     assert after.min() >= COHERENCE, after
+    assert np.abs(_target_phases(tgt2)).max() < 1.0
     entry = report["phase_referencing"]["methods"]["PWC_DATA"][0]
     assert entry["target_rows"] > 0 and entry["target_rows_flagged"] == 0
     assert len(entry["scans"]) == 6
@@ -129,6 +130,50 @@ def test_solutions_match_the_scene(pair, tmp_path):
     # expected phases move far beyond the tolerance
     wrong = big - 2 * small
     assert np.degrees(np.abs(np.angle(np.exp(1j * (wrong - phase))))).max() > 10 * PHASE_TOL_DEG
+
+
+def _target_phases(ms: str, column: str = "PWC_DATA") -> np.ndarray:
+    """Phase (deg) of the vector mean of each target baseline (every channel and hand)."""
+    with pt.table(ms, ack=False) as t:
+        sel = t.getcol("FIELD_ID") == 0
+        a1, a2 = t.getcol("ANTENNA1")[sel], t.getcol("ANTENNA2")[sel]
+        data = t.getcol(column)[sel][..., [0, -1]]
+    return np.array([np.degrees(np.angle(data[(a1 == p) & (a2 == q)].sum()))
+                     for p, q in sorted(set(zip(a1.tolist(), a2.tolist())))])
+
+
+@pytest.fixture(scope="module")
+def non_closing_pair(tmp_path_factory):
+    """86-GHz instrumental phases of PV and GL 300 deg apart: the reference phase of PV-GL
+    starts a whole turn away from PV's minus GL's, so the count tracker's per-baseline
+    count leaves 2 pi eps on that baseline that no antenna term can absorb."""
+    import copy
+
+    scene = copy.deepcopy(SCENE)
+    scene["stations"][1]["bands"]["86"]["instrumental"]["phase_deg"] = 150
+    scene["stations"][2]["bands"]["86"]["instrumental"]["phase_deg"] = -150
+    return simulate(scene, tmp_path_factory.mktemp("non-closing"))
+
+
+def test_non_closing_offsets_removed(non_closing_pair, tmp_path):
+    ref, tgt = _copy(non_closing_pair, tmp_path)
+    report = calibrate(ref, tgt, calibrator_field="3C273", no_verdict=True)
+    assert np.abs(_target_phases(tgt)).max() < 1.0
+    assert _target_coherence(tgt).min() >= COHERENCE
+    residual = report["phase_referencing"]["methods"]["PWC_DATA"][0]["baseline_residual_deg"]
+    assert abs(residual["PV-GL"]["R"]) > 30.0      # what the antenna model could not take
+
+
+def test_antenna_terms_alone_leave_closure_errors(non_closing_pair, tmp_path, monkeypatch):
+    """The plausible antenna-only step: coherent target, but phases off on every baseline
+    the per-baseline count touched (the image's closure phases)."""
+    from hitops.calibrate import phase_ref
+
+    monkeypatch.setattr(phase_ref, "_baseline_factors",
+                        lambda solution, ant1, ant2, corr_hands, n_ant: 1.0)
+    ref, tgt = _copy(non_closing_pair, tmp_path)
+    calibrate(ref, tgt, calibrator_field="3C273", no_verdict=True)
+    assert np.abs(_target_phases(tgt)).max() > 10.0
 
 
 def test_phase_without_delay_fails(pair, tmp_path):

@@ -38,7 +38,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..io import read as msio
-from ..kernels.phase_ref import antenna_phasors, baseline_sums, phase_and_delay
+from ..kernels.phase_ref import antenna_phasors, baseline_sums, model_residuals, phase_and_delay
 from ..kernels.wideband import rotate_channels
 from .output import STAGING_FLAG, VIS_DIMS
 
@@ -81,6 +81,11 @@ class WindowSolution:
     hands: Tuple[str, ...]       # the receptor letters of the parallel hands ('R', 'L')
     refant: int
     scans: List[ScanSolution]
+    # what the antenna model leaves per calibrator baseline (ant1 * n_ant + ant2 in
+    # ``baselines``), channel and hand, summed over every scan: its phase is removed
+    # from the target's same baseline (hitops/kernels/phase_ref.py: model_residuals)
+    baselines: np.ndarray = None        # (n_bl,) int64
+    residual: np.ndarray = None         # (n_bl, n_chan, n_hand) complex128
 
     def at(self, times: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(phase, delay) (n_time, n_ant, n_hand) interpolated at ``times``; solved
@@ -184,6 +189,7 @@ def _solve_window(table, column: str, rows: _WindowRows, group, hands, hand_corr
     """Every calibrator scan of one window solved (hitops/kernels/phase_ref.py)."""
     chan_offset = np.asarray(group.pair.tgt.chan_freq) - group.pair.tgt.freq
     scans = []
+    residual = 0j
     for scan in np.unique(rows.cal_scan):
         pick = rows.cal_scan == scan
         read = msio.rows_reader(table, rows.cal_rows[pick])
@@ -192,13 +198,35 @@ def _solve_window(table, column: str, rows: _WindowRows, group, hands, hand_corr
         g, solved = antenna_phasors(sums, counts, rows.ant1, rows.ant2, n_ant, refant,
                                     SOLVE_ITERATIONS)
         phase, delay, valid = phase_and_delay(g, solved, chan_offset)
+        residual = residual + model_residuals(sums, counts, rows.ant1, rows.ant2, phase, delay,
+                                              valid, chan_offset)
         scans.append(ScanSolution(int(scan), float(np.mean(times[rows.cal_rows[pick]])),
                                   phase, delay, valid))
-    return WindowSolution(ddid, group.pair.tgt.spw, group.pair.tgt.freq, hands, refant, scans)
+    return WindowSolution(ddid, group.pair.tgt.spw, group.pair.tgt.freq, hands, refant, scans,
+                          rows.ant1.astype(np.int64) * n_ant + rows.ant2, residual)
+
+
+def _baseline_factors(solution: WindowSolution, ant1, ant2, corr_hands, n_ant: int):
+    """(n_row, n_chan, n_corr) complex64: exp(-i x the calibrator's model residual phase)
+    of each row's baseline on its parallel hands; 1 for cross hands and baselines the
+    calibrator did not observe."""
+    n_chan = solution.residual.shape[1]
+    out = np.ones((ant1.size, n_chan, corr_hands.shape[0]), np.complex64)
+    pos = np.searchsorted(solution.baselines, ant1.astype(np.int64) * n_ant + ant2)
+    pos = np.minimum(pos, solution.baselines.size - 1)
+    seen = solution.baselines[pos] == ant1.astype(np.int64) * n_ant + ant2
+    for c, (h1, h2) in enumerate(corr_hands):
+        if h1 < 0 or h1 != h2:
+            continue
+        res = solution.residual[pos[seen], :, h1]
+        out[seen, :, c] = np.where(np.abs(res) > 0, np.conj(res) / np.maximum(np.abs(res), 1e-300),
+                                   1.0)
+    return out
 
 
 def _apply_window(table, tx, column: str, rows: np.ndarray, meta, solution: WindowSolution,
-                  corr_hands: np.ndarray, chan_offset: np.ndarray, block: int) -> int:
+                  corr_hands: np.ndarray, chan_offset: np.ndarray, block: int,
+                  n_ant: int) -> int:
     """The interpolated correction applied to the target rows of one window, block by
     block, written through the transaction's own write path; rows touching an antenna
     without a solution are flagged.  Returns the number of rows flagged."""
@@ -216,8 +244,9 @@ def _apply_window(table, tx, column: str, rows: np.ndarray, meta, solution: Wind
         dtau = delay[i, a1, h1] - delay[i, a2, h2]
         phasor = np.where(ok, np.exp(-1j * dphi), 1.0 + 0j)
         read = msio.rows_reader(table, part)
-        arrays = {column: rotate_channels(read(column), phasor, np.where(ok, dtau, 0.0),
-                                          chan_offset)}
+        rotated = rotate_channels(read(column), phasor, np.where(ok, dtau, 0.0), chan_offset)
+        arrays = {column: rotated * _baseline_factors(solution, a1[:, 0], a2[:, 0], corr_hands,
+                                                      n_ant)}
         if not ok.all():
             arrays[STAGING_FLAG] = read(STAGING_FLAG) | ~ok[:, None, :]
             n_flagged += int((~ok).any(axis=1).sum())
@@ -277,7 +306,7 @@ def _reference_window(run, tx, table, column, meta, cal, ddid, groups, bridge) -
                              len(names), ddid, meta["TIME"])
     chan_offset = np.asarray(group.pair.tgt.chan_freq) - group.pair.tgt.freq
     n_flagged = _apply_window(table, tx, column, rows.target_rows, meta, solution,
-                              corr_hands, chan_offset, run.chunk_rows)
+                              corr_hands, chan_offset, run.chunk_rows, len(names))
     entry = window_report(solution, names, rows.target_rows.size, n_flagged)
     entry["switches"] = {"scan_starts": bridge.n_scan_starts,
                          "largest_step_deg": round(bridge.largest_step_deg, 3),

@@ -37,10 +37,16 @@ def window_report(solution, names: List[str], n_target_rows: int, n_flagged: int
                 "delay_rms_between_scans_ns": round(_step_rms(delay) * 1e9, 6),
             }
         antennas[name] = per_hand or {"unsolved": True}
+    n_ant = len(names)
+    baselines = {}
+    for b, code in enumerate(solution.baselines):
+        label = f"{names[code // n_ant]}-{names[code % n_ant]}"
+        baselines[label] = {hand: round(float(np.degrees(np.angle(
+            solution.residual[b, :, h].sum()))), 3) for h, hand in enumerate(solution.hands)}
     return {"spw": solution.spw, "freq_hz": solution.freq, "refant": names[solution.refant],
             "scans": [{"scan": s.scan, "time": s.time} for s in solution.scans],
             "target_rows": n_target_rows, "target_rows_flagged": n_flagged,
-            "antennas": antennas}
+            "antennas": antennas, "baseline_residual_deg": baselines}
 
 
 def log_summary(entry: Dict) -> None:

@@ -143,3 +143,32 @@ def phase_and_delay(g, solved, chan_offset):
             delay[a, h] = slope / two_pi
             phase[a, h] = np.angle(np.exp(1j * intercept))
     return phase, delay, valid
+
+
+@numba.njit(cache=True, nogil=True)
+def model_residuals(sums, counts, ant1, ant2, phase, delay, valid, chan_offset):
+    """What the antenna model leaves on each baseline: sum of V_pq exp(-i (m_p - m_q)),
+    m_a = phase[a, h] + 2 pi chan_offset[k] delay[a, h].
+
+    sums, counts: :func:`baseline_sums` (n_bl, n_chan, n_hand); phase, delay, valid:
+    :func:`phase_and_delay` (n_ant, n_hand).  Returns (n_bl, n_chan, n_hand)
+    complex128, 0 where a baseline has no data or an antenna no solution.  On a point
+    source its phase is the part no antenna term can absorb: with the count tracker's
+    per-baseline wrap counts, 2 pi R_k (m_pq - m_p + m_q) per baseline (a whole
+    number m of turns of the reference phase), the same on every field.
+    """
+    n_bl, n_chan, n_hand = sums.shape
+    out = np.zeros((n_bl, n_chan, n_hand), dtype=np.complex128)
+    two_pi = 2.0 * np.pi
+    for b in range(n_bl):
+        p, q = ant1[b], ant2[b]
+        for h in range(n_hand):
+            if not (valid[p, h] and valid[q, h]):
+                continue
+            for k in range(n_chan):
+                if counts[b, k, h] == 0:
+                    continue
+                model = (phase[p, h] - phase[q, h]
+                         + two_pi * chan_offset[k] * (delay[p, h] - delay[q, h]))
+                out[b, k, h] = sums[b, k, h] * np.exp(-1j * model)
+    return out
