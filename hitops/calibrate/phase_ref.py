@@ -15,7 +15,18 @@ source-frequency phase referencing (Rioja & Dodson 2011, AJ 141, 114) removes it
    last);
 3. every other field's rows of the same column are multiplied by
    exp(-i (phi_p - phi_q)) exp(-2 pi i (nu_k - nu_0)(tau_p - tau_q)), hands p and q
-   taken from the correlation (RL: p's R, q's L).
+   taken from the correlation (RL: p's R, q's L), and, on the parallel hands, by the
+   conjugate phase of what the antenna model leaves on the calibrator's same baseline
+   and channel over all its scans.  That part is real: the count tracker counts wraps
+   per baseline, so a baseline whose reference phase starts a whole turn away from its
+   antennas' difference carries 2 pi R_k m that no antenna term absorbs, the same on
+   both fields (it assumes a point-like calibrator: any closure phase of its own would
+   be copied onto the target).
+
+Before the solve, every scan of both fields is multiplied by exp(-i 2 pi R_k N), N the
+reference wrap count continued across the scan and field switches
+(hitops/calibrate/phase_ref_bridge.py): the count tracker restarts at every scan, and
+without this each scan would carry its own 2 pi R_k n0.
 
 The correction is written into the staged output column itself (the same
 :class:`~hitops.calibrate.output.OutputTransaction`, committed or rolled back with the
@@ -23,9 +34,7 @@ transfer), so PWC_DATA holds the phase-referenced target: one column, as diagnos
 export and the recipes expect.  The calibrator's own rows stay as transferred, to be
 checked.  Rows of an antenna with no solution on any calibrator scan are flagged.
 
-What it needs: the wrap count of the reference phase must run on across the field
-switches, since a scan that restarts it carries its own 2 pi eps n0 (docs/solutions.md,
-"The instrumental term", measures what that leaves).
+docs/solutions.md, "The instrumental term", has the measurements and the limits.
 """
 
 from __future__ import annotations
