@@ -121,7 +121,8 @@ def switch_counts(run, groups: List, tgt_meta: Dict[str, np.ndarray],
                        else -1 for c in ref_codes])
     corr_map = correlation_map(pair.ref.corr, pair.tgt.corr)
     t_a1, t_a2 = tgt_meta["ANTENNA1"][tgt_rows], tgt_meta["ANTENNA2"][tgt_rows]
-    t_time, t_scan = tgt_meta["TIME"][tgt_rows], tgt_meta["SCAN_NUMBER"][tgt_rows]
+    t_time = tgt_meta["TIME"][tgt_rows]
+    t_scan = _tracking_scans(groups, t_time, tgt_meta["FIELD_ID"][tgt_rows])
     r_a1, r_a2 = to_tgt[meta["ANTENNA1"]], to_tgt[meta["ANTENNA2"]]
     counts = np.zeros((tgt_rows.size, len(pair.tgt.corr)), np.int64)
     steps: List[float] = []
@@ -146,6 +147,20 @@ def switch_counts(run, groups: List, tgt_meta: Dict[str, np.ndarray],
     return SwitchCounts(counts, int(steps_deg.size),
                         float(steps_deg.max()) if steps_deg.size else 0.0,
                         int((steps_deg > RISKY_STEP_DEG).sum()))
+
+
+def _tracking_scans(groups: List, time: np.ndarray, field: np.ndarray) -> np.ndarray:
+    """The transfer's own tracking scan of each row (SCAN_NUMBER, split where calibrate
+    split it at long gaps: each group's ``match.scan_of_time``), numbered apart per field."""
+    out = np.zeros(time.size, np.int64)
+    for g, group in enumerate(groups):
+        rows = field == group.pair.tgt.key[0]
+        axis = np.asarray(group.match.times)
+        pos = np.clip(np.searchsorted(axis, time[rows]), 1, max(axis.size - 1, 1))
+        nearest = np.where(np.abs(axis[pos - 1] - time[rows]) <= np.abs(axis[pos] - time[rows]),
+                           pos - 1, pos) if axis.size > 1 else np.zeros(rows.sum(), np.int64)
+        out[rows] = g * (1 << 32) + np.asarray(group.match.scan_of_time)[nearest]
+    return out
 
 
 def _scan_starts(ref_time, residual, n_c, tgt_time, tgt_scan, out, mine, steps) -> None:
