@@ -1,8 +1,8 @@
 """The instrumental term with and without --calibrator-field: numbers for docs/solutions.md.
 
-Simulates a target (M87) and a calibrator (3C273) in alternating scans through one
-troposphere with per-station instrumental phases, delays and drifts at both bands and
-thermal noise, then per variant runs ``hitops calibrate`` (count tracker, PWC) on a
+Simulates the packaged scene ``phaseref`` (M87 and the calibrator 3C273 in alternating
+scans through one troposphere, per-station instrumental phases, delays and drifts at
+both bands, thermal noise), then per variant runs ``hitops calibrate`` (count tracker, PWC) on a
 fresh copy of the pair, measures the target field's whole-track coherence per
 baseline (|mean V| / the source's 1 Jy over every channel and parallel hand: the
 noise averages out, unlike in the mean of unit phasors) and images the
@@ -22,40 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-STATIONS = [
-    {"code": "AP", "bands": {"86": {"instrumental": {"phase_deg": 20, "delay_ns": 0.1}},
-                             "230": {"instrumental": {"phase_deg": -40, "delay_ns": 0.2,
-                                                      "phase_drift_deg_per_hour": 30}}}},
-    {"code": "PV", "bands": {"86": {"instrumental": {"phase_deg": 40, "delay_ns": 0.2}},
-                             "230": {"instrumental": {"phase_deg": -70, "delay_ns": 0.3,
-                                                      "phase_drift_deg_per_hour": 60}}}},
-    {"code": "GL", "bands": {"86": {"instrumental": {"phase_deg": -25}},
-                             "230": {"instrumental": {"phase_deg": 100, "delay_ns": -0.25}}}},
-    "PB",
-    {"code": "KP", "bands": {"230": {"instrumental": {
-        "phase_deg": 30, "delay_ns": 0.15, "delay_drift_ns_per_hour": 0.2}}}},
-]
-
-
+#: the target's flux density at 230 GHz in the packaged scene
 TARGET_JY = 1.0
-
-
-def scene(scan_gap: float, seed: int) -> dict:
-    return {
-        "name": "phase-referencing-measure",
-        "source": {"name": "M87", "ra": "12h30m49.42s", "dec": "+12d23m28.04s",
-                   "flux": {"86": 1.1, "230": TARGET_JY}},
-        "calibrator": {"name": "3C273", "ra": "12h29m06.70s", "dec": "+02d03m08.6s",
-                       "flux": {"86": 5.0, "230": 3.0}, "scan_length": 60},
-        "observation": {"start": "2023-04-10T02:00:00", "duration": 3600, "integration": 2,
-                        "scan_length": 120, "scan_gap": scan_gap,
-                        "correlations": ["RR", "LL"]},
-        "bands": [{"name": "86", "freq_ghz": 86, "bandwidth_ghz": 2},
-                  {"name": "230", "freq_ghz": 230, "bandwidth_ghz": 2, "n_chan": 16}],
-        "corruptions": {"troposphere": True, "noise": True, "seed": seed,
-                        "coherence_freq_ghz": 230},
-        "stations": STATIONS,
-    }
 
 
 def coherence(ms: str, column: str) -> np.ndarray:
@@ -96,7 +64,8 @@ def main() -> None:
     from hitops.simulate import simulate
 
     out = Path(args.outdir)
-    pair = simulate(scene(args.scan_gap, args.seed), out / "sim", overwrite=True)
+    pair = simulate("phaseref", out / "sim", overwrite=True, scan_gap=args.scan_gap,
+                    seed=args.seed)
     variants = {"pwc": {}, "pwc+calibrator": {"calibrator_field": "3C273"},
                 "pwc+n0 point": {"offset_model": "point"}}
     results = {}

@@ -19,32 +19,13 @@ from casacore import tables as pt
 
 from hitops.calibrate import calibrate
 from hitops.simulate import simulate
+from hitops.simulate.scene import load_scene_mapping
 
 REF_GHZ, TGT_GHZ = 86.0, 230.0
-SCENE = {
-    "name": "phase-referencing",
-    "source": {"name": "M87", "ra": "12h30m49.42s", "dec": "+12d23m28.04s",
-               "flux": {"86": 1.1, "230": 1.0}},
-    "calibrator": {"name": "3C273", "ra": "12h29m06.70s", "dec": "+02d03m08.6s",
-                   "flux": {"86": 5.0, "230": 3.0}, "scan_length": 60},
-    "observation": {"start": "2023-04-10T02:00:00", "duration": 1200, "integration": 2,
-                    "scan_length": 120, "scan_gap": 0, "correlations": ["RR", "LL"]},
-    "bands": [{"name": "86", "freq_ghz": REF_GHZ, "bandwidth_ghz": 2},
-              {"name": "230", "freq_ghz": TGT_GHZ, "bandwidth_ghz": 2, "n_chan": 16}],
-    "corruptions": {"troposphere": True, "noise": False, "seed": 7},
-    "stations": [
-        "AP",
-        {"code": "PV", "bands": {
-            "86": {"instrumental": {"phase_deg": 40, "delay_ns": 0.2}},
-            "230": {"instrumental": {"phase_deg": -70, "delay_ns": 0.3,
-                                     "phase_drift_deg_per_hour": 60}}}},
-        {"code": "GL", "bands": {"86": {"instrumental": {"phase_deg": -25}},
-                                 "230": {"instrumental": {"phase_deg": 100, "delay_ns": -0.25}}}},
-        "PB",
-        {"code": "KP", "bands": {"230": {"instrumental": {
-            "phase_deg": 30, "delay_ns": 0.15, "delay_drift_ns_per_hour": 0.2}}}},
-    ],
-}
+#: the packaged scene (hitops/scenes/phaseref.yml) cut to 20 minutes without noise
+SCENE = load_scene_mapping("phaseref")[0]
+SCENE["observation"]["duration"] = 1200
+SCENE["corruptions"]["noise"] = False
 #: what the step must reach on every target baseline, noise-free
 COHERENCE = 0.99
 #: solved against true per-antenna terms (noise-free; the scan average of a drift

@@ -262,7 +262,7 @@ def simulate(scene, outdir, prefix: str = "sim", seed: Optional[int] = None,
     """Simulate a scene; return {band name: MS path, ['truth': npz path]}.
 
     ``scene`` is a :class:`Scene`, a YAML path, a packaged scene name
-    ('paper', 'demo', 'triband', 'ngeht') or a mapping; keyword overrides replace the scene's
+    ('paper', 'demo', 'triband', 'ngeht', 'phaseref') or a mapping; keyword overrides replace the scene's
     values (see :func:`hitops.simulate.scene.apply_overrides`).
     """
     scene = scene if isinstance(scene, Scene) else parse_scene(scene)

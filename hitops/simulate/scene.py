@@ -23,7 +23,7 @@ from ..errors import SceneError
 from .scene_parts import (BandSpec, Calibrator, Instrumental, SourceComponent, parse_band,
                           parse_calibrator, parse_component, parse_instrumental)
 
-PACKAGED_SCENES = ("paper", "demo", "triband", "ngeht")
+PACKAGED_SCENES = ("paper", "demo", "triband", "ngeht", "phaseref")
 #: default phase coherence length at 230 GHz (m) turning a wind speed into t_c = r0 / v
 #: (10 m/s gives 10 s, the typical EHT value at 230 GHz; see docs/simulate.md)
 DEFAULT_R0_230 = 100.0
