@@ -77,6 +77,8 @@ def test_calibrator_step_restores_the_target(pair, tmp_path):
     assert len(entry["scans"]) == 6
     written = json.loads(open(report["report_path"]).read())
     assert written["phase_referencing"]["calibrator_field"] == "3C273"
+    steps = {g["field"]: g["offset_step"] for g in written["groups"]}
+    assert steps["M87"]["warning"] is None and "3C273" in steps["M87"]["note"]
 
 
 def test_solutions_match_the_scene(pair, tmp_path):

@@ -155,7 +155,7 @@ def _plan_and_run(opts: CalibrateOptions, methods: List[str], ref_ms: str, targe
 
 def _run(run: RunPlan, client, started: float, prepared: PreparedInputs) -> Dict:
     """Every group pair into one OutputTransaction, committed once; then the report."""
-    from .phase_ref import check_calibrator_field, phase_reference
+    from .phase_ref import check_calibrator_field, phase_reference, settle_n0_warnings
     from .pipeline import run_group
     from .report import combined_report, group_report, write_report
 
@@ -203,6 +203,7 @@ def _run(run: RunPlan, client, started: float, prepared: PreparedInputs) -> Dict
         report = reports[0] if len(reports) == 1 else combined_report(run, reports)
         if referencing is not None:
             report["phase_referencing"] = referencing
+            settle_n0_warnings(report, calibrator)
         return write_report(run, report, results[0] if len(reports) == 1 else None, started,
                             prepared, results)
     except BaseException as stop:

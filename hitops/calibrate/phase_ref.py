@@ -336,6 +336,10 @@ def phase_reference(run, tx, cal: Optional[CalibratorField]) -> Optional[Dict]:
     windows: Dict[int, List] = {}
     for group in sorted(run.groups, key=lambda g: g.pair.tgt.field != cal.name):
         windows.setdefault(group.pair.tgt.key[1], []).append(group)
+    for ddid, groups in windows.items():
+        if groups[0].pair.tgt.field != cal.name:
+            log.warning("--calibrator-field %s: no calibrator rows in target spectral window %d; "
+                        "its rows are left as transferred", cal.name, groups[0].pair.tgt.spw)
     entry: Dict = {"calibrator_field": cal.name, "field_id": cal.field_id,
                    "target_field_ids": list(cal.target_field_ids), "methods": {}}
     with pt.table(run.target_ms, ack=False) as table:
@@ -355,3 +359,15 @@ def phase_reference(run, tx, cal: Optional[CalibratorField]) -> Optional[Dict]:
                                   bridge) for ddid, bridge in sorted(bridges.items())]
     log_summary(entry)
     return entry
+
+
+def settle_n0_warnings(report: Dict, cal: CalibratorField) -> None:
+    """The target fields' "no n0 step" warnings answered: their per-scan constants were
+    carried across the scans and their per-baseline one removed with the calibrator's."""
+    for entry in report.get("groups", []):
+        step = entry.get("offset_step", {})
+        if entry.get("field") != cal.name and step.get("warning"):
+            step["warning"] = None
+            step["note"] = (f"no n0 step: the per-scan 2 pi eps n0 were carried across the scans "
+                            f"and the per-baseline constant removed with {cal.name}'s "
+                            "(--calibrator-field)")
