@@ -51,7 +51,8 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
               half_window=0, coherence_time=20.0, snr=0.0, max_gap=-1, jump_threshold=-1.0,
               jump_window=0, jump_action="segment", refant=None, solve_half_window=-1,
               no_elevation_scaling=False, memory_budget="auto", chunk_rows=0, report=None, scheduler=None,
-              lock_timeout=60.0, no_verdict=False, verdict_interval=60.0, caltable=None) -> Dict:
+              lock_timeout=60.0, no_verdict=False, verdict_interval=60.0, caltable=None,
+              calibrator_field=None) -> Dict:
     """Frequency phase transfer from ``ref_ms`` (reference band) to ``target_ms``.
 
     Writes one column per method into ``target_ms`` (PWC_DATA, CFPT_DATA,
@@ -106,7 +107,7 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
             memory_budget=memory_budget, chunk_rows=chunk_rows, report=report,
             workdir=workdir, export_uvfits=export_uvfits, scheduler=scheduler,
             lock_timeout=lock_timeout, caltable=caltable, no_verdict=no_verdict,
-            verdict_interval=verdict_interval))
+            verdict_interval=verdict_interval, calibrator_field=calibrator_field))
         try:
             return _calibrate_locked(opts, methods, ref_ms, target_ms, started, prepared)
         except RuntimeError as err:
@@ -154,8 +155,11 @@ def _plan_and_run(opts: CalibrateOptions, methods: List[str], ref_ms: str, targe
 
 def _run(run: RunPlan, client, started: float, prepared: PreparedInputs) -> Dict:
     """Every group pair into one OutputTransaction, committed once; then the report."""
+    from .phase_ref import check_calibrator_field, phase_reference, settle_n0_warnings
     from .pipeline import run_group
     from .report import combined_report, group_report, write_report
+
+    calibrator = check_calibrator_field(run)   # --calibrator-field, before anything is written
 
     # everything this run changes in the target set (hitops/calibrate/output.py)
     tx = OutputTransaction(run.target_ms, run.outputs, run.columns.target_data, None,
@@ -174,6 +178,8 @@ def _run(run: RunPlan, client, started: float, prepared: PreparedInputs) -> Dict
                  run.target_ms)
     try:
         results = [run_group(run, group, tx, client) for group in run.groups]
+        # the instrumental term solved on the calibrator, applied to the staged columns
+        referencing = phase_reference(run, tx, calibrator)
         if client is not None:
             release_cluster_tables(client)
     except BaseException:
@@ -194,10 +200,12 @@ def _run(run: RunPlan, client, started: float, prepared: PreparedInputs) -> Dict
     try:
         reports = [group_report(run, group, result, tx, started)
                    for group, result in zip(run.groups, results)]
-        if len(reports) == 1:
-            return write_report(run, reports[0], results[0], started, prepared, results)
-        return write_report(run, combined_report(run, reports), None, started,
-                                prepared, results)
+        report = reports[0] if len(reports) == 1 else combined_report(run, reports)
+        if referencing is not None:
+            report["phase_referencing"] = referencing
+            settle_n0_warnings(report, calibrator)
+        return write_report(run, report, results[0] if len(reports) == 1 else None, started,
+                            prepared, results)
     except BaseException as stop:
         # an interrupt or a failure after the commit: the set is no longer as it was, and
         # hitops/cli.py says what it holds

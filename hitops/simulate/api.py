@@ -51,6 +51,8 @@ class Observation:
     phase_ref: np.ndarray
     coherence_time: Optional[np.ndarray] = None   # (n_station, n_time) zenith t_c used (s), at nu0
     weather: Optional[List] = None                # per station: StationWeather or None
+    # (n_time,) int32 FIELD_ID of each integration (0 target, 1 calibrator); None: one field
+    field_id: Optional[np.ndarray] = None
 
 
 def output_paths(outdir: str | Path, prefix: str, scene: Scene, save_truth: bool) -> Dict[str, Path]:
@@ -63,11 +65,23 @@ def output_paths(outdir: str | Path, prefix: str, scene: Scene, save_truth: bool
 
 def observe(scene: Scene) -> Observation:
     """Rows, geometry and troposphere of a scene (band independent)."""
-    times, scan, on_source = geometry.time_grid(scene.start_mjd_s, scene.duration,
-                                                scene.integration, scene.scan_length,
-                                                scene.scan_gap)
+    field_id = None
+    if scene.calibrator is None:
+        times, scan, on_source = geometry.time_grid(scene.start_mjd_s, scene.duration,
+                                                    scene.integration, scene.scan_length,
+                                                    scene.scan_gap)
+    else:
+        times, scan, on_source, field_id = geometry.alternating_grid(
+            scene.start_mjd_s, scene.duration, scene.integration, scene.scan_length,
+            scene.calibrator.scan_length, scene.scan_gap)
     positions = np.array([s.itrf for s in scene.stations])
     matrices = geometry.uvw_matrices(times, scene.ra, scene.dec, positions[0])
+    if field_id is not None:
+        # the calibrator's integrations look at its own phase centre: its own (u, v, w)
+        # and elevations (and airmass for the noise and the turbulence below)
+        on_cal = field_id == 1
+        matrices[on_cal] = geometry.uvw_matrices(times[on_cal], scene.calibrator.ra,
+                                                 scene.calibrator.dec, positions[0])
     station_uvw = geometry.station_uvw(matrices, positions)
     elevation = geometry.station_elevation(matrices, positions)
     limits = np.radians([s.elevation_limit for s in scene.stations])
@@ -104,7 +118,7 @@ def observe(scene: Scene) -> Observation:
     else:
         phase_ref = np.zeros((n_station, n_time))
     return Observation(times, scan, elevation, station_uvw, time_index, ant1, ant2, uvw, phase_ref,
-                       t_c, weather)
+                       t_c, weather, field_id)
 
 
 def station_weathers(scene: Scene, times: np.ndarray) -> List:
@@ -172,7 +186,10 @@ def _write_band(scene: Scene, band_index: int, obs: Observation, path: Path) -> 
     time_range = (float(obs.times[obs.time_index].min()), float(obs.times[obs.time_index].max()))
     write_band_ms(path, layout, band, scene.correlations,
                   Field(scene.source_name, scene.ra, scene.dec),
-                  band_blocks(scene, band_index, obs), rows, time_range, scene.telescope)
+                  band_blocks(scene, band_index, obs), rows, time_range, scene.telescope,
+                  calibrator=(None if scene.calibrator is None else
+                              Field(scene.calibrator.name, scene.calibrator.ra,
+                                    scene.calibrator.dec)))
     log.info("band %s: %d rows x %d window(s) x %d channel(s), computed and written in %.1f s"
              " -> %s", band.name, obs.ant1.size, band.n_window, band.n_chan,
              _time.perf_counter() - t0, path)
@@ -186,7 +203,9 @@ def write_truth(scene: Scene, obs: Observation, path: Path) -> None:
     2 pi nu L / c (``phase_BAND`` is that at the band's nominal frequency);
     ``chan_freq_BAND`` (n_window, n_chan) the channel frequencies; a band with
     instrumental terms adds ``inst_phase_BAND`` (rad, at the band's nominal
-    frequency) and ``inst_delay_BAND`` (s), each (n_station, n_time).
+    frequency) and ``inst_delay_BAND`` (s), each (n_station, n_time).  A scene with a
+    calibrator adds ``field_id`` (n_time,), the FIELD_ID of each integration, and
+    ``fields`` (the FIELD names: target, calibrator).
     """
     arrays = {
         "stations": np.array([s.code for s in scene.stations]),
@@ -227,6 +246,9 @@ def write_truth(scene: Scene, obs: Observation, path: Path) -> None:
         inst = instrumental_series(scene, i, obs)
         if inst is not None:
             arrays[f"inst_phase_{band.name}"], arrays[f"inst_delay_{band.name}"] = inst
+    if obs.field_id is not None:
+        arrays["field_id"] = obs.field_id
+        arrays["fields"] = np.array([scene.source_name, scene.calibrator.name])
     arrays["path_m"] = obs.phase_ref * (C_LIGHT / (2.0 * np.pi * scene.coherence_freq_hz))
     with open(path, "wb") as handle:
         np.savez(handle, **arrays)
@@ -240,7 +262,7 @@ def simulate(scene, outdir, prefix: str = "sim", seed: Optional[int] = None,
     """Simulate a scene; return {band name: MS path, ['truth': npz path]}.
 
     ``scene`` is a :class:`Scene`, a YAML path, a packaged scene name
-    ('paper', 'demo', 'triband', 'ngeht') or a mapping; keyword overrides replace the scene's
+    ('paper', 'demo', 'triband', 'ngeht', 'phaseref') or a mapping; keyword overrides replace the scene's
     values (see :func:`hitops.simulate.scene.apply_overrides`).
     """
     scene = scene if isinstance(scene, Scene) else parse_scene(scene)

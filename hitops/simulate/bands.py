@@ -122,7 +122,11 @@ def window_block(scene, band_index: int, window: int, obs, rows: slice, sigma: n
         draws = np.zeros((0, chan_freq.size, n_corr, 2), np.float32)
     if inst is None:
         inst = (np.zeros((0, 0)), np.zeros((0, 0)))
-    return corrupt_channels(model_visibilities(scene, band.name, obs.uvw[rows], chan_freq),
+    model = model_visibilities(scene, band.name, obs.uvw[rows], chan_freq)
+    if obs.field_id is not None:
+        # the calibrator's rows see a point source at their own phase centre
+        model[obs.field_id[obs.time_index[rows]] == 1] = scene.calibrator.flux[band.name]
+    return corrupt_channels(model,
                             obs.ant1[rows], obs.ant2[rows], obs.time_index[rows],
                             obs.phase_ref, chan_freq / scene.coherence_freq_hz, inst[0], inst[1],
                             chan_freq - band.freq_hz, parallel, draws, sigma[rows])
@@ -154,6 +158,8 @@ def band_blocks(scene, band_index: int, obs,
             "SIGMA": sigma_col,
             "WEIGHT": 1.0 / sigma_col ** 2,
         }
+        if obs.field_id is not None:
+            per_row["FIELD_ID"] = obs.field_id[obs.time_index[rows]]
         blocks = [window_block(scene, band_index, w, obs, rows, sigma, inst, rngs[w])
                   for w in range(band.n_window)]
         yield _interleave(per_row, blocks, obs.time_index[rows], band.is_wideband)

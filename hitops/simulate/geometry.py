@@ -206,3 +206,29 @@ def time_grid(start_mjd_s: float, duration: float, integration: float,
         on_source = np.ones(n_int, bool)
         scan = np.ones(n_int, np.int32)
     return centres, scan, on_source
+
+
+def alternating_grid(start_mjd_s: float, duration: float, integration: float,
+                     target_scan: float, calibrator_scan: float, scan_gap: float = 0.0):
+    """Integration centres of a target observed in scans alternating with a calibrator's.
+
+    One cycle is a target scan of ``target_scan`` s, a gap, a calibrator scan of
+    ``calibrator_scan`` s and another gap (``scan_gap`` s each, the slews); an
+    integration belongs to a scan when it lies entirely within it.  Scans are numbered
+    from 1 in time order (target 1, calibrator 2, target 3, ...).  Returns (centres (n,),
+    scan numbers (n,), on source (n,) bool, field index (n,) int32: 0 target,
+    1 calibrator).
+    """
+    n_int = int(np.floor(duration / integration + 1e-9))
+    offsets = np.arange(n_int) * integration
+    centres = start_mjd_s + offsets + 0.5 * integration
+    cycle = target_scan + calibrator_scan + 2.0 * scan_gap
+    within = np.mod(offsets + 1e-9, cycle)
+    n_cycle = np.floor((offsets + 1e-9) / cycle).astype(np.int32)
+    cal_start = target_scan + scan_gap
+    on_target = within + integration <= target_scan + 1e-6
+    on_calibrator = (within >= cal_start - 1e-6) & (within + integration
+                                                    <= cal_start + calibrator_scan + 1e-6)
+    field_id = on_calibrator.astype(np.int32)
+    scan = 2 * n_cycle + 1 + field_id
+    return centres, scan.astype(np.int32), on_target | on_calibrator, field_id

@@ -17,7 +17,7 @@ other than SPECTRAL_WINDOW and DATA_DESCRIPTION are filled by ms_create's own
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Iterator, Mapping
+from typing import Iterator, Mapping, Optional
 
 import numpy as np
 
@@ -31,18 +31,37 @@ _TILE_BYTES = 1 << 20
 
 def write_band_ms(path: Path, layout: ArrayLayout, band: BandSpec, corr_types, field: Field,
                   blocks: Iterator[Mapping[str, np.ndarray]], n_row: int, time_range: tuple,
-                  telescope: str) -> Path:
+                  telescope: str, calibrator: Optional[Field] = None) -> Path:
     """The band's Measurement Set at ``path`` (replaced: the caller owns the name).
 
     ``blocks`` yields the main-table columns block after block in row order
     (:func:`hitops.simulate.bands.band_blocks`), ``n_row`` rows in all; a one-channel
     band comes as one block.  ``time_range`` (first, last TIME) fills the subtables.
+    ``calibrator``: a second FIELD row (FIELD_ID 1; the blocks then carry FIELD_ID).
     """
     if not band.is_wideband:
-        return create_ms(path, layout, Band(band.freq_hz, band.bandwidth_hz, tuple(corr_types)),
-                         field, next(iter(blocks)), telescope=telescope, overwrite=True)
-    return _create_wideband(Path(path), layout, band, tuple(corr_types), field, blocks, n_row,
-                            time_range, telescope)
+        create_ms(path, layout, Band(band.freq_hz, band.bandwidth_hz, tuple(corr_types)),
+                  field, next(iter(blocks)), telescope=telescope, overwrite=True)
+    else:
+        _create_wideband(Path(path), layout, band, tuple(corr_types), field, blocks, n_row,
+                         time_range, telescope)
+    if calibrator is not None:
+        _add_field(path, calibrator)
+    return path
+
+
+def _add_field(path: Path, field: Field) -> None:
+    """FIELD row 1: the calibrator, its directions in the layout of row 0."""
+    from casacore import tables as pt
+
+    with pt.table(f"{path}::FIELD", readonly=False, ack=False) as t:
+        t.addrows(1)
+        direction = np.array([[field.ra_rad, field.dec_rad]])
+        for name in ("DELAY_DIR", "PHASE_DIR", "REFERENCE_DIR"):
+            t.putcell(name, 1, direction)
+        t.putcell("NAME", 1, field.name)
+        for name in ("CODE", "TIME", "NUM_POLY", "SOURCE_ID", "FLAG_ROW"):
+            t.putcell(name, 1, t.getcell(name, 0))
 
 
 def _table_desc(n_chan: int, n_corr: int):
@@ -90,6 +109,8 @@ def _main_columns(columns: Mapping[str, np.ndarray], n_chan: int, n_corr: int) -
         "SCAN_NUMBER": np.asarray(columns["SCAN_NUMBER"], np.int32),
         "DATA_DESC_ID": np.asarray(columns["DATA_DESC_ID"], np.int32),
     }
+    if "FIELD_ID" in columns:
+        out["FIELD_ID"] = np.asarray(columns["FIELD_ID"], np.int32)
     for name in _CONSTANT_SCALARS:
         if name not in out:
             out[name] = np.zeros(n_row, bool if name == "FLAG_ROW" else np.int32)

@@ -20,10 +20,10 @@ import numpy as np
 import yaml
 
 from ..errors import SceneError
-from .scene_parts import (BandSpec, Instrumental, SourceComponent, parse_band, parse_component,
-                          parse_instrumental)
+from .scene_parts import (BandSpec, Calibrator, Instrumental, SourceComponent, parse_band,
+                          parse_calibrator, parse_component, parse_instrumental)
 
-PACKAGED_SCENES = ("paper", "demo", "triband", "ngeht", "wideband")
+PACKAGED_SCENES = ("paper", "demo", "triband", "ngeht", "wideband", "phaseref")
 #: default phase coherence length at 230 GHz (m) turning a wind speed into t_c = r0 / v
 #: (10 m/s gives 10 s, the typical EHT value at 230 GHz; see docs/simulate.md)
 DEFAULT_R0_230 = 100.0
@@ -105,6 +105,8 @@ class Scene:
     #: noise and turbulence use max(elevation, this) (deg); None: 1 deg for the noise and
     #: the station's elevation limit for the turbulence
     airmass_elevation_floor: Optional[float] = None
+    #: a phase calibrator in scans alternating with the target's (None: the target only)
+    calibrator: Optional[Calibrator] = None
 
 
 def _catalogue() -> Dict[str, Any]:
@@ -370,7 +372,7 @@ def parse_scene(scene: str | Path | dict) -> Scene:
     data, origin = load_scene_mapping(scene)
     reader = _Reader(origin)
     reader.check_keys(data, ("name", "source", "observation", "bands", "corruptions", "stations",
-                             "weather"), "")
+                             "weather", "calibrator"), "")
 
     raw_bands = data.get("bands")
     if not isinstance(raw_bands, list) or not raw_bands:
@@ -453,6 +455,11 @@ def parse_scene(scene: str | Path | dict) -> Scene:
     if len(set(codes)) != len(codes):
         reader.fail("stations", f"lists a station twice: {codes}")
 
+    calibrator = None
+    if data.get("calibrator") is not None:
+        calibrator = parse_calibrator(reader, data["calibrator"], str(source.get("name", "SOURCE")),
+                                      _angle, _per_band, names)
+        _require_target_scans(reader, scan_length, calibrator)
     return Scene(name=str(data.get("name", Path(origin).stem)),
                  source_name=str(source.get("name", "SOURCE")), ra=ra, dec=dec, flux=flux,
                  components=components, start_mjd_s=start, duration=duration,
@@ -462,7 +469,17 @@ def parse_scene(scene: str | Path | dict) -> Scene:
                  noise=bool(corr.get("noise", True)), seed=int(seed),
                  coherence_freq_hz=coherence_freq, coherence_scale=coherence_scale,
                  quantisation_efficiency=eta_q, telescope=str(obs.get("telescope", "VLBA")),
-                 stations=stations, source_file=origin, airmass_elevation_floor=airmass_floor)
+                 stations=stations, source_file=origin, airmass_elevation_floor=airmass_floor,
+                 calibrator=calibrator)
+
+
+def _require_target_scans(reader: _Reader, scan_length: Optional[float],
+                          calibrator: Optional[Calibrator]) -> None:
+    """A calibrator needs target scans to alternate with: observation.scan_length."""
+    if calibrator is not None and scan_length is None:
+        reader.fail("observation.scan_length", "is missing: with a calibrator the target is "
+                    "observed in scans of this length (s), alternating with calibrator scans of "
+                    "calibrator.scan_length, observation.scan_gap apart")
 
 
 def apply_overrides(scene: Scene, *, duration=None, integration=None, seed=None,
@@ -519,6 +536,7 @@ def apply_overrides(scene: Scene, *, duration=None, integration=None, seed=None,
     if new.integration > new.duration:
         reader.fail("observation.integration", f"({new.integration:g} s) is longer than "
                     f"observation.duration ({new.duration:g} s)")
+    _require_target_scans(reader, new.scan_length, new.calibrator)
     if new.scan_length is not None and new.scan_length < new.integration:
         reader.fail("observation.scan_length", f"({new.scan_length:g} s) is shorter than one "
                     f"integration ({new.integration:g} s)")

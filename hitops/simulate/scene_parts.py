@@ -29,6 +29,7 @@ COMPONENT_KEYS = ("shape", "flux", "offset_ra", "offset_dec", "fwhm_major", "fwh
 INSTRUMENTAL_KEYS = ("phase_deg", "delay_ns", "phase_drift_deg_per_hour",
                      "delay_drift_ns_per_hour")
 BAND_KEYS = ("name", "freq_ghz", "bandwidth_ghz", "n_chan", "chan_width_mhz", "windows_ghz")
+CALIBRATOR_KEYS = ("name", "ra", "dec", "flux", "scan_length")
 
 
 @dataclass(frozen=True)
@@ -81,6 +82,18 @@ class Instrumental:
     def series(self, elapsed: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """(phase at the nominal frequency (rad), delay (s)) on the time grid."""
         return self.phase + self.phase_rate * elapsed, self.delay + self.delay_rate * elapsed
+
+
+@dataclass(frozen=True)
+class Calibrator:
+    """A phase calibrator observed in scans alternating with the target's (docs/simulate.md,
+    "Calibrator field"): a point source at its own phase centre (FIELD_ID 1)."""
+
+    name: str
+    ra: float                # rad, J2000
+    dec: float               # rad, J2000
+    flux: Dict[str, float]   # Jy per band
+    scan_length: float       # s, each calibrator scan
 
 
 @dataclass(frozen=True)
@@ -173,3 +186,24 @@ def parse_component(reader, raw, where: str, band_names, per_band) -> SourceComp
                            reader.number(raw, "offset_dec", where, default=0.0),
                            major, minor, reader.number(raw, "position_angle", where, default=0.0),
                            shape, diameter)
+
+
+def parse_calibrator(reader, raw, target_name: str, angle, per_band, band_names) -> Calibrator:
+    """The scene's ``calibrator`` mapping; ``angle`` and ``per_band`` are scene.py's readers
+    (right ascension / declination text, {band: value} mappings)."""
+    if not isinstance(raw, dict):
+        reader.fail("calibrator", "must be a mapping {name, ra, dec, flux, scan_length}")
+    reader.check_keys(raw, CALIBRATOR_KEYS, "calibrator")
+    for key in CALIBRATOR_KEYS:
+        if raw.get(key) is None:
+            reader.fail(f"calibrator.{key}", "is missing")
+    name = str(raw["name"])
+    if name == target_name:
+        reader.fail("calibrator.name", f"'{name}' is the target's name (source.name); the two "
+                    "fields are told apart by FIELD::NAME, give the calibrator its own")
+    dec = angle(reader, raw["dec"], "calibrator.dec", "declination")
+    if abs(dec) > np.pi / 2:
+        reader.fail("calibrator.dec", "must lie within +-90 degrees")
+    return Calibrator(name, angle(reader, raw["ra"], "calibrator.ra", "right ascension"), dec,
+                      per_band(reader, raw["flux"], "calibrator.flux", band_names, 0.0),
+                      reader.number(raw, "scan_length", "calibrator", strictly_positive=True))
