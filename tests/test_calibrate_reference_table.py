@@ -26,8 +26,8 @@ import pytest
 from casacore import tables as pt
 
 from hitops.casa.runner import run_task
-from hitops.casa.tasks import fringefit, gaincal
-from solutions_scene import make_solution_pair
+from hitops.casa.tasks import gaincal
+from solutions_scene import fringe_fitted_pair, refant_sets_halfway
 
 pytestmark = pytest.mark.slow
 
@@ -38,11 +38,7 @@ COHERENCE_MIN = 0.99
 @pytest.fixture(scope="module")
 def solved(tmp_path_factory):
     """The pair and CASA fringefit's 4-s solutions of its reference band."""
-    work = tmp_path_factory.mktemp("reference_table")
-    pair = make_solution_pair(work)
-    table = work / "ref.fringe"
-    fringefit(str(pair.ref_ms), str(table), solint="4s", refant="PV,PB", minsnr=3.0)
-    return pair, table
+    return fringe_fitted_pair(tmp_path_factory.mktemp("reference_table"))
 
 
 def hitops(*args):
@@ -137,16 +133,7 @@ def test_solutions_at_every_integration_match_applycal_to_1e6(solved, tmp_path):
 def test_reference_antenna_change_reported(solved, tmp_path):
     """PV flagged for the second half: fringefit refers to PB from then on."""
     pair, _ = solved
-    ref_ms = tmp_path / "ref_pv_sets.ms"
-    shutil.copytree(pair.ref_ms, ref_ms)
-    half = pair.times[pair.times.size // 2]
-    with pt.table(str(ref_ms), readonly=False, ack=False) as t:
-        flag = t.getcol("FLAG")
-        pv = ((t.getcol("ANTENNA1") == 0) | (t.getcol("ANTENNA2") == 0)) & (t.getcol("TIME") >= half)
-        flag[pv] = True
-        t.putcol("FLAG", flag)
-    table = tmp_path / "ref.fringe"
-    fringefit(str(ref_ms), str(table), solint="4s", refant="PV,PB", minsnr=3.0)
+    ref_ms, table = refant_sets_halfway(pair, tmp_path)
     target = _target(pair, tmp_path)
     rc, out = hitops(ref_ms, target, "--reference-table", table)
     assert rc == 0, out

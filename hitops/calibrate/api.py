@@ -31,11 +31,11 @@ from ..errors import InputError
 from ..io import access
 from ..io import read as msio
 from ..options import make_options
-from ..signals import interrupts_held
 from .band_index import INDEX_COLUMNS
 from .from_table import calibrate_from_table
 from .inputs import CalibrateOptions, check_inputs, parse_methods
-from .output import FLAG_BACKUP, OutputTransaction, drop_stale_columns, release_cluster_tables
+from .output import (FLAG_BACKUP, OutputTransaction, commit_once, drop_stale_columns,
+                     release_cluster_tables)
 from .rules import PreparedInputs, prepare_inputs
 
 if TYPE_CHECKING:   # the plan's modules load dask-ms: imported where a run starts
@@ -183,18 +183,7 @@ def _run(run: RunPlan, client, started: float, prepared: PreparedInputs) -> Dict
     except BaseException:
         tx.rollback()
         raise
-    committed = False
-    try:
-        # an interrupt during the commit would leave FLAG half rewritten: it waits
-        with interrupts_held():
-            tx.commit()
-            committed = True
-    except BaseException as stop:
-        if not committed:   # the commit itself failed
-            tx.rollback()
-        else:               # an interrupt held back during the commit, delivered after it
-            stop.add_note(_committed(run, tx))
-        raise
+    commit_once(tx, lambda: _committed(run, tx))
     try:
         reports = [group_report(run, group, result, tx, started)
                    for group, result in zip(run.groups, results)]

@@ -35,11 +35,10 @@ import numpy as np
 
 from ..errors import InputError
 from ..kernels.wideband import rotate_channels
-from ..signals import interrupts_held
 from ..solutions.api import PreparedTransfer, prepare_transfer, transfer_report, write_target_table
 from ..solutions.apply import gains_at
 from .inputs import CalibrateOptions, check_inputs
-from .output import OutputTransaction
+from .output import OutputTransaction, commit_once
 from .rules import PreparedInputs, finish_report
 
 log = logging.getLogger("hitops.calibrate")
@@ -201,15 +200,10 @@ def _commit(tx: OutputTransaction, write) -> Dict:
     except BaseException:
         tx.rollback()
         raise
-    committed = False
-    try:
-        with interrupts_held():
-            tx.commit()
-            committed = True
-    except BaseException:
-        if not committed:
-            tx.rollback()
-        raise
+    commit_once(tx, lambda: (
+        f"the run had finished writing: {tx.target_ms} holds the new "
+        f"{', '.join(tx.outputs.values())} and FLAG; the report (and --caltable) did not "
+        "finish; rerun the same command with --overwrite to redo it"))
     return counts
 
 

@@ -32,7 +32,8 @@ PAPER = {
 #: Display names of the usual labels.
 METHOD_NAMES = {"raw": "raw (DATA)", "ffsc": "FF+SC (CORRECTED_DATA)",
                 "cfpt": "CFPT (CFPT_DATA)", "pwc": "PWC (PWC_DATA)",
-                "pwcnc": "PWC, no control (PWC_NC_DATA)"}
+                "pwcnc": "PWC, no control (PWC_NC_DATA)",
+                "pwcft": "PWC from the fringe-fit table (applycal)"}
 
 
 def recovery(peak: float, peak_err: float, input_peak: float,
