@@ -53,11 +53,14 @@ def _target(pair, tmp_path, name="target.ms"):
     return target
 
 
-def _coherence(ms, column):
-    """Whole-track coherence per (window, baseline): (n_chan, n_corr) arrays."""
+def _coherence(ms, column, rows=None):
+    """Whole-track coherence per (field, window, baseline): (n_chan, n_corr) arrays."""
     with pt.table(str(ms), ack=False) as t:
         data, flag = t.getcol(column), t.getcol("FLAG")
-        key = t.getcol("DATA_DESC_ID") * 10000 + t.getcol("ANTENNA1") * 100 + t.getcol("ANTENNA2")
+        key = (t.getcol("FIELD_ID") * 100000 + t.getcol("DATA_DESC_ID") * 10000
+               + t.getcol("ANTENNA1") * 100 + t.getcol("ANTENNA2"))
+    if rows is not None:
+        data, flag, key = data[rows], flag[rows], key[rows]
     out = {}
     for k in np.unique(key):
         sel = key == k
@@ -146,6 +149,49 @@ def test_reference_antenna_change_reported(solved, tmp_path):
     assert _worst(_coherence(target, "PWC_DATA")) >= COHERENCE_MIN
 
 
+def _scan_coherence(ms, column, starts):
+    """Coherence per (scan, window, baseline): {key: (n_chan, n_corr)}."""
+    with pt.table(str(ms), ack=False) as t:
+        time = t.getcol("TIME")
+        scan = np.searchsorted(np.asarray(starts), time - time.min(), side="right")
+    out = {}
+    for s in np.unique(scan):
+        for k, c in _coherence(ms, column, scan == s).items():
+            out[(int(s), k)] = c
+    return out
+
+
+def test_n0_step_per_antenna_and_scan(tmp_path):
+    """Two fields in alternating 100-s scans: each antenna's count restarts at every scan,
+    so the track is coherent per scan but not across scans until the integers per antenna
+    and scan are solved against a point source (--offset-model point)."""
+    from solutions_scene import make_solution_pair
+    from hitops.casa.tasks import fringefit
+
+    starts = [110.0 * k for k in range(6)]
+    scans = [("M87" if k % 2 == 0 else "3C273", t0, t0 + 100.0) for k, t0 in enumerate(starts)]
+    pair = make_solution_pair(tmp_path, seed=5, scans=scans)
+    table = tmp_path / "ref.fringe"
+    fringefit(str(pair.ref_ms), str(table), solint="4s", refant="PV,PB", minsnr=3.0)
+    target = pair.target_ms
+    rc, out = hitops(pair.ref_ms, target, "--reference-table", table, "--output-column", "PWC_NO_N0")
+    assert rc == 0, out
+    assert _worst(_scan_coherence(target, "PWC_NO_N0", starts)) >= COHERENCE_MIN
+    assert _worst(_coherence(target, "PWC_NO_N0")) < 0.9          # across scans
+    caltable = tmp_path / "target.fringe"
+    rc, out = hitops(pair.ref_ms, target, "--reference-table", table, "--offset-model", "point",
+                     "--caltable", caltable)
+    assert rc == 0, out
+    assert _worst(_coherence(target, "PWC_DATA")) >= COHERENCE_MIN   # whole track, per field
+    report = json.loads(Path(f"{target}.hitops-calibrate.json").read_text())
+    solves = report["offsets"]["solves"]
+    assert {(s["field"], s["receptor"]) for s in solves} == {(0, 0), (0, 1), (1, 0), (1, 1)}
+    assert any(k for s in solves for k in s["k"].values())
+    # the table carries the integers too: applycal of it equals the column
+    diff, _ = _applycal_difference(target, caltable, "PWC_DATA")
+    assert (diff < 0.01).mean() >= 0.99
+
+
 # ---- bad input: one line, non-zero exit, nothing written -------------------------------------
 
 def _snapshot(*paths):
@@ -204,7 +250,8 @@ def test_refused_tables(solved, tmp_path):
 
 @pytest.mark.parametrize("extra, culprit", [
     (["--method", "cwu"], "--method cwu with --reference-table"),
-    (["--offset-model", "point"], "--offset-model with --reference-table"),
+    (["--method", "pwc", "--offset-model", "point", "--offset-reference-column", "DATA"],
+     "both set the n0 offset step"),
     (["--tracker", "antenna"], "--tracker antenna with --reference-table"),
     (["--ratio", "2.6"], "--ratio with --reference-table"),
 ])

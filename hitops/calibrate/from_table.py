@@ -36,7 +36,7 @@ import numpy as np
 from ..errors import InputError
 from ..kernels.wideband import rotate_channels
 from ..solutions.api import PreparedTransfer, prepare_transfer, transfer_report, write_target_table
-from ..solutions.apply import gains_at
+from ..solutions.apply import all_fields, gains_at
 from .inputs import CalibrateOptions, check_inputs
 from .output import OutputTransaction, commit_once
 from .rules import PreparedInputs, finish_report
@@ -59,11 +59,6 @@ def refuse_options(opts: CalibrateOptions, methods: List[str]) -> None:
         raise InputError(f"--method cwu with {table}: on the table's wrap counts CWU equals PWC "
                          "(rewrapping cancels the target's unwrap); use --method pwc "
                          "(or pwc,cfpt to compare with the uncounted transfer)")
-    if opts.offset_model or opts.offset_reference_column:
-        step = ("--offset-model" if opts.offset_model else "--offset-reference-column")
-        raise InputError(f"{step} with {table}: the n0 offset step is not implemented on table "
-                         "solutions (each antenna keeps its own integer per segment, which closes); "
-                         f"drop {step}, or calibrate from REF_MS's visibilities with --tracker antenna")
     given = [(bool(opts.ref_model_column), "--ref-model-column"), (opts.ratio is not None, "--ratio"),
              (bool(opts.average_channels), "--average-channels"), (bool(opts.scheduler), "--scheduler"),
              (opts.tracker != "count", f"--tracker {opts.tracker}")]
@@ -114,31 +109,39 @@ class ChunkOutput:
 
 def _window_rows(prepared: PreparedTransfer, layout: "TargetLayout", ddid: np.ndarray,
                  field: np.ndarray):
-    """(window, receptors, rows) of every transferred window and data description in the chunk."""
-    for window in prepared.targets:
+    """(index, window, receptors, rows) of every transferred window and data description
+    in the chunk."""
+    for j, window in enumerate(prepared.targets):
         for d in np.flatnonzero(layout.spw_of_ddid == window.spw):
             rows = np.flatnonzero((ddid == d) & (field == window.field))
             if rows.size:
-                yield window, layout.receptors_of_ddid[d], rows
+                yield j, window, layout.receptors_of_ddid[d], rows
 
 
 def correct_chunk(transfers: Dict[str, PreparedTransfer], layout: TargetLayout, cols: Dict) -> ChunkOutput:
-    """The target rows of one chunk corrected by each method's transferred antenna terms."""
+    """The target rows of one chunk corrected by each method's transferred antenna terms.
+
+    Every field's solutions of a window are one series, as applycal interpolates them
+    with its default gainfield (hitops/solutions/apply.py); a window without any stays 0.
+    """
     data = cols["data"]
     n_row, _, n_corr = data.shape
-    a1, a2 = cols["ANTENNA1"], cols["ANTENNA2"]
+    a1, a2, ddid = cols["ANTENNA1"], cols["ANTENNA2"], cols["DATA_DESC_ID"]
     out = {m: np.zeros(data.shape, np.complex64) for m in transfers}
-    calibrated = np.zeros((n_row, n_corr), bool)
+    calibrated = np.ones((n_row, n_corr), bool)
     for method, prepared in transfers.items():
         done = np.zeros((n_row, n_corr), bool)
-        for window, receptors, rows in _window_rows(prepared, layout, cols["DATA_DESC_ID"],
-                                                    cols["FIELD_ID"]):
+        merged = all_fields(prepared.targets)
+        for d in np.unique(ddid):
+            window = merged.get(int(layout.spw_of_ddid[d]))
+            if window is None:
+                continue
+            rows = np.flatnonzero(ddid == d)
             utimes, it = np.unique(cols["TIME"][rows], return_inverse=True)
             gains = gains_at(window, utimes)
-            n_rec = gains.phase.shape[2]
-            rec = np.minimum(receptors, n_rec - 1)   # a T Jones source: one receptor for both
-            p, q = a1[rows][:, None], a2[rows][:, None]
-            ti = it[:, None]
+            # a T Jones source: one receptor for both hands
+            rec = np.minimum(layout.receptors_of_ddid[d], gains.phase.shape[2] - 1)
+            p, q, ti = a1[rows][:, None], a2[rows][:, None], it.ravel()[:, None]
             phase = gains.phase[ti, p, rec[:, 0]] - gains.phase[ti, q, rec[:, 1]]
             delay = gains.delay_s[ti, p, rec[:, 0]] - gains.delay_s[ti, q, rec[:, 1]]
             ok = gains.ok[ti, p, rec[:, 0]] & gains.ok[ti, q, rec[:, 1]]
@@ -146,29 +149,71 @@ def correct_chunk(transfers: Dict[str, PreparedTransfer], layout: TargetLayout, 
             offset = layout.chan_freq[window.spw] - gains.centre_hz
             out[method][rows] = rotate_channels(data[rows], phasor, np.where(ok, delay, 0.0), offset)
             done[rows] = ok
-        calibrated = done if method == next(iter(transfers)) else calibrated & done
+        calibrated &= done
     return ChunkOutput(out, ~calibrated)
 
 
-def _chunk_columns(t, columns, start: int, n: int) -> Dict:
+def _chunk_columns(t, columns, start: int, n: int, offset_column=None) -> Dict:
     cols = {name: t.getcol(name, start, n) for name in
             ("TIME", "ANTENNA1", "ANTENNA2", "DATA_DESC_ID", "FIELD_ID", "FLAG_ROW")}
     cols["data"] = t.getcol(columns.target_data, start, n)
     cols["flag"] = t.getcol(columns.flag, start, n)
+    if offset_column:
+        cols["offset"] = t.getcol(offset_column, start, n)
     return cols
+
+
+def _chunks(target_ms: str, columns, chunk_rows: int, offset_column=None):
+    """(start, n, columns) of every chunk of the target set, read with python-casacore."""
+    from casacore import tables as pt
+
+    with pt.table(target_ms, ack=False) as t:
+        n_total = t.nrows()
+    for start in range(0, n_total, chunk_rows):
+        n = min(chunk_rows, n_total - start)
+        with pt.table(target_ms, ack=False) as t:
+            yield start, n, _chunk_columns(t, columns, start, n, offset_column)
+
+
+def offset_step(prepared: PreparedTransfer, layout: TargetLayout, columns, chunk_rows: int,
+                opts: CalibrateOptions, target_ms: str):
+    """The n0 step (hitops/calibrate/table_offsets.py): a first pass over the target set,
+    one lattice solve per field and receptor; the transfer with the integers taken out."""
+    from .table_offsets import accumulate, apply_offsets, solve, solve_windows
+
+    offset_column = None if columns.offset_is_model and not columns.model else columns.offset
+    solve_on = set(solve_windows(prepared).values())
+    sums: Dict = {}
+    for _, _, cols in _chunks(target_ms, columns, chunk_rows, offset_column):
+        result = correct_chunk({"pwc": prepared}, layout, cols)
+        bad = cols["flag"] | cols["FLAG_ROW"][:, None, None] | result.uncalibrated[:, None, :]
+        for j, _, receptors, rows in _window_rows(prepared, layout, cols["DATA_DESC_ID"],
+                                                  cols["FIELD_ID"]):
+            if j in solve_on:
+                model = np.angle(cols["offset"][rows]) if offset_column else 0.0
+                accumulate(sums, prepared, j, rows, cols, result.columns["pwc"][rows], ~bad[rows],
+                           model, receptors)
+    offsets = solve(prepared, sums, opts.max_offset_wraps, _antenna_names(target_ms),
+                    layout.chan_freq)
+    for entry in offsets.solves:
+        moved = {name: k for name, k in entry["k"].items() if k}
+        log.info("n0 step (field %d, receptor %d, %s, mean cos mismatch %.3f): %s",
+                 entry["field"], entry["receptor"], entry["method"], entry["mean_cos_mismatch"],
+                 ", ".join(f"{n} {k:+d}" for n, k in moved.items()) or "no integer moved")
+    return apply_offsets(prepared, offsets), offsets
+
+
+def _antenna_names(ms: str):
+    from casacore import tables as pt
+
+    with pt.table(f"{ms}::ANTENNA", ack=False) as t:
+        return [str(n) for n in t.getcol("NAME")]
 
 
 def _write_outputs(tx: OutputTransaction, transfers, layout, columns, chunk_rows: int) -> Dict:
     """Every chunk of the target set corrected and staged; the sample counts."""
-    from casacore import tables as pt
-
     counts = {"n_samples": 0, "flagged_before": 0, "not_calibrated": 0}
-    with pt.table(tx.target_ms, ack=False) as t:
-        n_total = t.nrows()
-    for start in range(0, n_total, chunk_rows):
-        n = min(chunk_rows, n_total - start)
-        with pt.table(tx.target_ms, ack=False) as t:
-            cols = _chunk_columns(t, columns, start, n)
+    for start, n, cols in _chunks(tx.target_ms, columns, chunk_rows):
         result = correct_chunk(transfers, layout, cols)
         before = cols["flag"] | cols["FLAG_ROW"][:, None, None]
         new_flag = before | result.uncalibrated[:, None, :]
@@ -235,12 +280,18 @@ def calibrate_from_table(opts: CalibrateOptions, methods: List[str], ref_ms: str
                                      wrap_counting=WRAP_COUNTING[m], antenna_map=opts.antenna_map)
                  for m in methods}
     chunk_rows = _chunk_rows(opts, target_ms, columns.target_data)
+    offsets = None
+    if columns.offset and "pwc" in transfers:   # --offset-model / --offset-reference-column
+        transfers["pwc"], offsets = offset_step(transfers["pwc"], layout, columns, chunk_rows,
+                                                opts, target_ms)
     tx = OutputTransaction(target_ms, outputs, columns.target_data, None, chunk_rows,
                            direct_writes=True)
     tx.check_space()
     tx.create_columns()
     counts = _commit(tx, lambda: _write_outputs(tx, transfers, layout, columns, chunk_rows))
     report = _report(opts, methods, ref_ms, target_ms, outputs, transfers, counts, started)
+    if offsets is not None:
+        report["offsets"] = {"compared_with": columns.offset, "solves": offsets.solves}
     log.info("%d of %d target samples not calibrated by the table (no unflagged solution on "
              "either side), %d flagged before", counts["not_calibrated"], counts["n_samples"],
              counts["flagged_before"])

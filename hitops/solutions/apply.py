@@ -14,7 +14,13 @@ checks it with the real applycal).  CASA's rules, from its source
   (t - t0)/(t1 - t0); the phase is the argument of that mean;
 * the delay is interpolated linearly in time;
 * before the first and after the last solution, the nearest one carried with its rate;
-* channel k then gets phase + 2*pi*delay*(nu_k - nu_c).
+* channel k then gets phase + 2*pi*delay*(nu_k - nu_c);
+* with applycal's default ``gainfield=''`` the solutions of every field of a window form
+  one time series: a row next to a scan boundary is interpolated between the last
+  solution of its field's scan and the first of the next scan, whichever field that
+  observed (:func:`all_fields`).  Measured on two fields in alternating scans: 3 % of the
+  samples differed by more than 0.01 rad from applycal when each field was interpolated
+  alone.
 
 The parameters are used as the table stores them (float32), so a table solved at every
 integration reproduces the column to float32 rounding.  A sample whose bracketing
@@ -93,6 +99,28 @@ def as_stored(window: TargetWindow):
     delay = (window.delay_s * 1e9).astype(np.float32).astype(np.float64) * 1e-9
     rate = window.rate.astype(np.float32).astype(np.float64)
     return phase, delay, rate
+
+
+def all_fields(windows) -> dict:
+    """{spectral window: one TargetWindow holding every field's solutions in time order}."""
+    import dataclasses
+
+    merged = {}
+    for spw in sorted({w.spw for w in windows}):
+        parts = [w for w in windows if w.spw == spw]
+        if len(parts) == 1:
+            merged[spw] = parts[0]
+            continue
+        times = np.concatenate([w.times for w in parts])
+        order = np.argsort(times, kind="stable")
+
+        def cat(name):
+            return np.concatenate([getattr(w, name) for w in parts])[order]
+
+        merged[spw] = dataclasses.replace(parts[0], field=-1, times=times[order], scan=cat("scan"),
+                                          phase=cat("phase"), delay_s=cat("delay_s"),
+                                          rate=cat("rate"), valid=cat("valid"), refant=cat("refant"))
+    return merged
 
 
 def gains_at(window: TargetWindow, times: np.ndarray) -> AntennaGains:
