@@ -253,6 +253,7 @@ def test_refused_tables(solved, tmp_path):
     (["--method", "pwc", "--offset-model", "point", "--offset-reference-column", "DATA"],
      "both set the n0 offset step"),
     (["--tracker", "antenna"], "--tracker antenna with --reference-table"),
+    (["--method", "cfpt", "--offset-model", "point"], "add pwc to --method"),
     (["--ratio", "2.6"], "--ratio with --reference-table"),
 ])
 def test_refused_combinations(solved, tmp_path, extra, culprit):

@@ -81,15 +81,17 @@ def solve_channels(n_nodes: int, edge_a, edge_b, edge_sums, edge_counts, ratios:
     over the edge's samples of channel k; ``edge_counts``: (n_edges, n_chan) samples;
     ``ratios``: R_k = nu_k / nu_ref of the channels.
     """
-    a = np.asarray(edge_a, np.int64)
-    b = np.asarray(edge_b, np.int64)
-    z = np.asarray(edge_sums, np.complex128)
+    counts = np.asarray(edge_counts)
+    used = counts.sum(axis=1) > 0          # an edge without samples says nothing
+    a = np.asarray(edge_a, np.int64)[used]
+    b = np.asarray(edge_b, np.int64)[used]
+    z = np.asarray(edge_sums, np.complex128)[used]
     ratios = np.asarray(ratios, np.float64)
     gauges = list(dict.fromkeys(int(g) for g in gauge_nodes))
     # a component without a preferred gauge: its node with the most samples
     weight = np.zeros(n_nodes)
-    np.add.at(weight, a, np.asarray(edge_counts).sum(axis=1))
-    np.add.at(weight, b, np.asarray(edge_counts).sum(axis=1))
+    np.add.at(weight, a, counts[used].sum(axis=1))
+    np.add.at(weight, b, counts[used].sum(axis=1))
     j = _tree_start(n_nodes, a, b, z, ratios, max_k, gauges + list(np.argsort(-weight)))
     fixed = np.zeros(n_nodes, bool)
     fixed[gauges] = True
@@ -109,5 +111,5 @@ def solve_channels(n_nodes: int, edge_a, edge_b, edge_sums, edge_counts, ratios:
                 changed = True
         if not changed:
             break
-    return ChannelSolution(j, _score(a, b, z, ratios, j), int(np.asarray(edge_counts).sum()),
+    return ChannelSolution(j, _score(a, b, z, ratios, j), int(counts.sum()),
                            "channel tree + descent")

@@ -17,8 +17,11 @@ Methods: ``pwc`` counts the wraps (theta = R_k * u, u the unwrapped solution pha
 is the paper's PWC per channel); ``cfpt`` scales the wrapped solution phase (R_k * phi, what
 a row-by-row transfer such as AIPS SNCOR 'XFER' does), for comparison; ``cwu`` is refused:
 rewrapping cancels the target band's unwrap, so with the same reference wrap count it
-is ``pwc`` (GUIDE section 1).  The output column, FLAG and the staging follow the
-visibility path (:class:`~hitops.calibrate.output.OutputTransaction`: whole or not at all).
+is ``pwc`` (GUIDE section 1).  With ``--offset-model`` or ``--offset-reference-column``,
+``pwc`` first solves each antenna's integer per segment (the n0 step,
+:mod:`hitops.calibrate.table_offsets`) in a pass over the target set.  The output column,
+FLAG and the staging follow the visibility path
+(:class:`~hitops.calibrate.output.OutputTransaction`: whole or not at all).
 """
 
 from __future__ import annotations
@@ -59,6 +62,10 @@ def refuse_options(opts: CalibrateOptions, methods: List[str]) -> None:
         raise InputError(f"--method cwu with {table}: on the table's wrap counts CWU equals PWC "
                          "(rewrapping cancels the target's unwrap); use --method pwc "
                          "(or pwc,cfpt to compare with the uncounted transfer)")
+    step = "--offset-model" if opts.offset_model else "--offset-reference-column"
+    if (opts.offset_model or opts.offset_reference_column) and "pwc" not in methods:
+        raise InputError(f"{step} with {table} and --method {','.join(methods)}: the n0 step "
+                         "solves the integers of the counted transfer; add pwc to --method")
     given = [(bool(opts.ref_model_column), "--ref-model-column"), (opts.ratio is not None, "--ratio"),
              (bool(opts.average_channels), "--average-channels"), (bool(opts.scheduler), "--scheduler"),
              (opts.tracker != "count", f"--tracker {opts.tracker}")]
