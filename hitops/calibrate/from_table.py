@@ -245,6 +245,13 @@ def _chunk_rows(opts: CalibrateOptions, target_ms: str, target_column: str) -> i
     return max(1, CHUNK_VISIBILITIES // int(np.prod(cell.shape)))
 
 
+def _committed(tx: OutputTransaction) -> str:
+    """What the target set holds when the run stops after its commit."""
+    return (f"the run had finished writing: {tx.target_ms} holds the new "
+            f"{', '.join(tx.outputs.values())} and FLAG; the report (and --caltable) did not "
+            "finish; rerun the same command with --overwrite to redo it")
+
+
 def _commit(tx: OutputTransaction, write) -> Dict:
     """Stage, then commit once; a failure or an interrupt before the end rolls back."""
     try:
@@ -252,10 +259,7 @@ def _commit(tx: OutputTransaction, write) -> Dict:
     except BaseException:
         tx.rollback()
         raise
-    commit_once(tx, lambda: (
-        f"the run had finished writing: {tx.target_ms} holds the new "
-        f"{', '.join(tx.outputs.values())} and FLAG; the report (and --caltable) did not "
-        "finish; rerun the same command with --overwrite to redo it"))
+    commit_once(tx, lambda: _committed(tx))
     return counts
 
 
@@ -296,6 +300,17 @@ def calibrate_from_table(opts: CalibrateOptions, methods: List[str], ref_ms: str
     tx.check_space()
     tx.create_columns()
     counts = _commit(tx, lambda: _write_outputs(tx, transfers, layout, columns, chunk_rows))
+    try:
+        return _finish(opts, methods, ref_ms, target_ms, outputs, transfers, counts, offsets,
+                       columns, started, prepared)
+    except BaseException as stop:
+        stop.add_note(_committed(tx))
+        raise
+
+
+def _finish(opts, methods, ref_ms, target_ms, outputs, transfers, counts, offsets, columns,
+            started, prepared) -> Dict:
+    """After the commit: the report, --caltable, --export-uvfits."""
     report = _report(opts, methods, ref_ms, target_ms, outputs, transfers, counts, started)
     if offsets is not None:
         report["offsets"] = {"compared_with": columns.offset, "solves": offsets.solves}
