@@ -168,5 +168,36 @@ def make_solution_pair(workdir: Path, stations: Sequence[str] = ("PV", "PB", "AP
     return Pair(ref_ms, target_ms, times, path)
 
 
+def fringe_fitted_pair(workdir: Path) -> Tuple[Pair, Path]:
+    """The default pair and CASA fringefit's 4-s solutions of its reference band:
+    (pair, table); fringefit needs at least two integrations per solution."""
+    from hitops.casa.tasks import fringefit
+
+    pair = make_solution_pair(workdir)
+    table = Path(workdir) / "ref.fringe"
+    fringefit(str(pair.ref_ms), str(table), solint="4s", refant="PV,PB", minsnr=3.0)
+    return pair, table
+
+
+def refant_sets_halfway(pair: Pair, workdir: Path) -> Tuple[Path, Path]:
+    """A copy of the pair's REF_MS with PV (antenna 0) flagged for the second half, and
+    CASA fringefit's 4-s table of it, which refers to PB from then on: (ref_ms, table)."""
+    from casacore import tables as pt
+
+    from hitops.casa.tasks import fringefit
+
+    ref_ms = Path(workdir) / "ref_pv_sets.ms"
+    shutil.copytree(pair.ref_ms, ref_ms)
+    half = pair.times[pair.times.size // 2]
+    with pt.table(str(ref_ms), readonly=False, ack=False) as t:
+        flag = t.getcol("FLAG")
+        pv = ((t.getcol("ANTENNA1") == 0) | (t.getcol("ANTENNA2") == 0)) & (t.getcol("TIME") >= half)
+        flag[pv] = True
+        t.putcol("FLAG", flag)
+    table = Path(workdir) / "ref.fringe"
+    fringefit(str(ref_ms), str(table), solint="4s", refant="PV,PB", minsnr=3.0)
+    return ref_ms, table
+
+
 if __name__ == "__main__":   # lay_out's own process
     _lay_out_here(**json.loads(sys.argv[1]))

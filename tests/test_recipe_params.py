@@ -86,16 +86,16 @@ def test_parameter_files_change_only_for_the_steps_that_use_a_value(tmp_path, ca
         return write_recipe_params(str(rec.path), str(tmp_path), _values(rec, **changes))["changed"]
 
     assert write() == rec.parameter_steps()      # first run: every file but its own written
-    assert "params" not in rec.parameter_steps() and len(rec.parameter_steps()) == 9
-    assert "parameters written for all 9 steps" in capsys.readouterr().out
+    assert "params" not in rec.parameter_steps() and len(rec.parameter_steps()) == 13
+    assert "parameters written for all 13 steps" in capsys.readouterr().out
     mtimes = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "params").iterdir()}
     assert write() == []                         # nothing changed: nothing rewritten
     assert mtimes == {p.name: p.stat().st_mtime_ns for p in (tmp_path / "params").iterdir()}
     assert write(fringefit_solint="60s") == ["fringefit"]
     assert capsys.readouterr().out.splitlines()[-1] == "parameters changed for: fringefit"
     assert write(fringefit_solint="60s", plots="coherence") == ["diagnose"]
-    assert write(image_size=512) == ["fringefit", "diagnose", "images"]  # back to defaults too
-    assert write(seed=11) == ["simulate", "images"]
+    assert write(image_size=512) == ["images_table", "fringefit", "diagnose", "images"]  # back to defaults too
+    assert write(seed=11) == ["simulate", "images_table", "images"]
     assert write(seed=11, threads=1, dir="elsewhere") == []   # these change no result
     stored = json.loads((tmp_path / "params" / "simulate.json").read_text())
     assert stored["inputs"]["seed"] == 11 and stored["inputs"]["scene"] == "demo"

@@ -26,7 +26,8 @@ from hitops.solutions import transfer_table
 from hitops.solutions.read import read_solutions
 from hitops.solutions.transfer import transfer_window, unwrap_window
 from hitops.solutions.write import write_fringe_table
-from solutions_scene import REF_CENTRES_HZ, TARGET_CENTRES_HZ, make_solution_pair
+from solutions_scene import (REF_CENTRES_HZ, TARGET_CENTRES_HZ, fringe_fitted_pair,
+                             make_solution_pair, refant_sets_halfway)
 
 pytestmark = pytest.mark.slow
 
@@ -36,12 +37,8 @@ COHERENCE_MIN = 0.99
 @pytest.fixture(scope="module")
 def solved(tmp_path_factory):
     """The pair and CASA fringefit's 4-s solutions on its reference band."""
-    work = tmp_path_factory.mktemp("solutions")
-    pair = make_solution_pair(work)
-    table = work / "ref.fringe"
     # 4-s solutions at 1-s integrations (fringefit needs >= 2 integrations per interval)
-    fringefit(str(pair.ref_ms), str(table), solint="4s", refant="PV,PB", minsnr=3.0)
-    return pair, table
+    return fringe_fitted_pair(tmp_path_factory.mktemp("solutions"))
 
 
 def _coherence(ms, scan_starts=None):
@@ -147,16 +144,7 @@ def test_gaincal_phase_table_transfers(solved, tmp_path, gaintype):
 def test_reference_antenna_change_during_the_track(solved, tmp_path):
     """PV's data flagged for the second half: fringefit refers to PB from then on."""
     pair, _ = solved
-    ref_ms = tmp_path / "ref_pv_sets.ms"
-    shutil.copytree(pair.ref_ms, ref_ms)
-    half = pair.times[pair.times.size // 2]
-    with pt.table(str(ref_ms), readonly=False, ack=False) as t:
-        flag = t.getcol("FLAG")
-        pv = ((t.getcol("ANTENNA1") == 0) | (t.getcol("ANTENNA2") == 0)) & (t.getcol("TIME") >= half)
-        flag[pv] = True
-        t.putcol("FLAG", flag)
-    table = tmp_path / "ref.fringe"
-    fringefit(str(ref_ms), str(table), solint="4s", refant="PV,PB", minsnr=3.0)
+    ref_ms, table = refant_sets_halfway(pair, tmp_path)
     with pt.table(str(table), ack=False) as t:
         assert set(t.getcol("ANTENNA2").tolist()) == {0, 1}
     report = transfer_table(table, ref_ms, pair.target_ms, tmp_path / "target.fringe")

@@ -31,10 +31,11 @@ from ..errors import InputError
 from ..io import access
 from ..io import read as msio
 from ..options import make_options
-from ..signals import interrupts_held
 from .band_index import INDEX_COLUMNS
+from .from_table import calibrate_from_table
 from .inputs import CalibrateOptions, check_inputs, parse_methods
-from .output import FLAG_BACKUP, OutputTransaction, drop_stale_columns, release_cluster_tables
+from .output import (FLAG_BACKUP, OutputTransaction, commit_once, drop_stale_columns,
+                     release_cluster_tables)
 from .rules import PreparedInputs, prepare_inputs
 
 if TYPE_CHECKING:   # the plan's modules load dask-ms: imported where a run starts
@@ -47,7 +48,7 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
               ref_model_column=None, offset_reference_column=None, offset_model=None,
               max_offset_wraps=50, offset_ambiguity_deg=2.0, ratio=None, antenna_map=None, output_column=None,
               overwrite=False, average_channels=False, time_tolerance=None, tracker="count",
-              workdir=None, export_uvfits=None,
+              workdir=None, export_uvfits=None, reference_table=None,
               half_window=0, coherence_time=20.0, snr=0.0, max_gap=-1, jump_threshold=-1.0,
               jump_window=0, jump_action="segment", refant=None, solve_half_window=-1,
               no_elevation_scaling=False, memory_budget="auto", chunk_rows=0, report=None, scheduler=None,
@@ -64,6 +65,7 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
     ``tracker`` picks the reference wrap tracker: ``count`` (the paper's
     step > pi rule), ``smooth`` or ``antenna`` (:mod:`hitops.tracking`,
     docs/tracking.md); the options after it tune the robust trackers.
+    ``reference_table``: antenna phases from a table solved on ``ref_ms`` (from_table.py).
     """
     started = time.perf_counter()
     # ---- 1. inputs, all checked before anything is written
@@ -71,7 +73,8 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
     # the output files checked, UVFITS / FITS-IDI inputs converted once into Measurement
     # Sets in --workdir, before anything is written (hitops/calibrate/rules.py)
     prepared = prepare_inputs(ref_ms, target_ms, workdir, export_uvfits, overwrite,
-                              caltable=caltable, tracker=tracker)
+                              caltable=caltable, tracker=tracker,
+                              reference_table=reference_table)
     ref_ms, target_ms = prepared.ref_ms, prepared.target_ms
     ref_ms = msio.check_ms(ref_ms, "reference-band Measurement Set")
     target_ms = msio.check_ms(target_ms, "target-band Measurement Set")
@@ -107,9 +110,11 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
             memory_budget=memory_budget, chunk_rows=chunk_rows, report=report,
             workdir=workdir, export_uvfits=export_uvfits, scheduler=scheduler,
             lock_timeout=lock_timeout, caltable=caltable, no_verdict=no_verdict,
-            verdict_interval=verdict_interval, calibrator_field=calibrator_field))
+            verdict_interval=verdict_interval, calibrator_field=calibrator_field,
+            reference_table=reference_table))
+        run = calibrate_from_table if opts.reference_table else _calibrate_locked
         try:
-            return _calibrate_locked(opts, methods, ref_ms, target_ms, started, prepared)
+            return run(opts, methods, ref_ms, target_ms, started, prepared)
         except RuntimeError as err:
             # casacore's messages do not always say which table failed: find the damage
             access.raise_if_damaged(err, [(ref_ms, [ref_column, "FLAG"] + INDEX_COLUMNS),
@@ -185,18 +190,7 @@ def _run(run: RunPlan, client, started: float, prepared: PreparedInputs) -> Dict
     except BaseException:
         tx.rollback()
         raise
-    committed = False
-    try:
-        # an interrupt during the commit would leave FLAG half rewritten: it waits
-        with interrupts_held():
-            tx.commit()
-            committed = True
-    except BaseException as stop:
-        if not committed:   # the commit itself failed
-            tx.rollback()
-        else:               # an interrupt held back during the commit, delivered after it
-            stop.add_note(_committed(run, tx))
-        raise
+    commit_once(tx, lambda: _committed(run, tx))
     try:
         reports = [group_report(run, group, result, tx, started)
                    for group, result in zip(run.groups, results)]

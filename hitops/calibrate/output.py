@@ -249,6 +249,28 @@ class OutputTransaction:
                 "remove them by hand (casacore table.removecols)") from err
 
 
+def commit_once(tx: OutputTransaction, note) -> None:
+    """Commit ``tx`` with interrupts held until it is done.
+
+    A commit that failed rolls back; an interrupt held back during the commit and
+    delivered after it gets ``note()``: what the set holds now (the caller's words).
+    """
+    from ..signals import interrupts_held
+
+    committed = False
+    try:
+        # an interrupt during the commit would leave FLAG half rewritten: it waits
+        with interrupts_held():
+            tx.commit()
+            committed = True
+    except BaseException as stop:
+        if not committed:   # the commit itself failed
+            tx.rollback()
+        else:               # an interrupt held back during the commit, delivered after it
+            stop.add_note(note())
+        raise
+
+
 def release_cluster_tables(client) -> None:
     """Let a cluster's scheduler and workers close their handles of the tables.
 

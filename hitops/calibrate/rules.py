@@ -62,8 +62,10 @@ def check_output_file(path, overwrite: bool, option: str) -> None:
                          "writable path")
 
 
-def _check_caltable(caltable: str, overwrite: bool, tracker: Optional[str]) -> None:
-    if tracker is not None and tracker != "antenna":
+def _check_caltable(caltable: str, overwrite: bool, tracker: Optional[str],
+                    reference_table: Optional[str] = None) -> None:
+    # with --reference-table the table holds the transferred solutions, per antenna already
+    if not reference_table and tracker is not None and tracker != "antenna":
         raise InputError(f"--caltable '{caltable}' needs --tracker antenna: a calibration "
                          "table holds one phase per antenna, and only the antenna tracker "
                          f"solves per antenna (--tracker {tracker} works per baseline)")
@@ -76,7 +78,8 @@ def _check_caltable(caltable: str, overwrite: bool, tracker: Optional[str]) -> N
 def prepare_inputs(ref, target, workdir: Optional[str] = None,
                    export_uvfits: Optional[str] = None, overwrite: bool = False,
                    caltable: Optional[str] = None,
-                   tracker: Optional[str] = None) -> PreparedInputs:
+                   tracker: Optional[str] = None,
+                   reference_table: Optional[str] = None) -> PreparedInputs:
     """calibrate's first step: check the output files, convert the inputs that are no sets.
 
     The --export-uvfits and --caltable paths are checked before any conversion
@@ -84,8 +87,8 @@ def prepare_inputs(ref, target, workdir: Optional[str] = None,
     """
     check_output_file(export_uvfits, overwrite, "--export-uvfits")
     if caltable:
-        _check_caltable(caltable, overwrite, tracker)
-    for given in (ref, target):
+        _check_caltable(caltable, overwrite, tracker, reference_table)
+    for given in (ref, target) + ((reference_table,) if reference_table else ()):
         for option, out in (("--export-uvfits", export_uvfits), ("--caltable", caltable)):
             if out and Path(given).exists() and \
                     os.path.realpath(given) == os.path.realpath(out):

@@ -33,7 +33,8 @@ PAPER = {
 METHOD_NAMES = {"raw": "raw (DATA)", "ffsc": "FF+SC (CORRECTED_DATA)",
                 "cfpt": "CFPT (CFPT_DATA)", "pwc": "PWC (PWC_DATA)",
                 "pwcnc": "PWC, no control (PWC_NC_DATA)",
-                "pwcwin": "PWC, one ratio per window (PWC_WIN_DATA)"}
+                "pwcwin": "PWC, one ratio per window (PWC_WIN_DATA)",
+                "pwcft": "PWC from the fringe-fit table (applycal)"}
 
 
 def recovery(peak: float, peak_err: float, input_peak: float,

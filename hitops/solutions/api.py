@@ -16,7 +16,7 @@ from typing import Dict, Optional, Tuple
 
 import numpy as np
 
-from ..io.match import pair_antennas
+from ..io.match import pair_antennas, parse_antenna_map
 from ..io.stations import read_stations
 from .errors import TableMismatchError, TransferOptionError
 from .read import SolutionTable, WindowSolutions, _ms_time_range, read_solutions
@@ -47,7 +47,7 @@ class RefantChange:
 
 @dataclass(frozen=True)
 class TransferReport:
-    table: str
+    table: Optional[str]          # the target table written, None when none was
     reference_table: str
     kind: str
     wrap_counting: bool
@@ -163,6 +163,92 @@ def _refant_changes(table: SolutionTable, unwrapped: Tuple[UnwrappedWindow, ...]
     return tuple(changes)
 
 
+@dataclass(frozen=True)
+class PreparedTransfer:
+    """Every check passed and every window transferred; nothing written yet.
+
+    ``targets``: one :class:`TargetWindow` per (reference field, target window), indexed
+    by TARGET_MS's ANTENNA rows; what the target table holds and what ``hitops
+    calibrate --reference-table`` applies to the target's column.
+    """
+
+    table: SolutionTable
+    target_ms: str
+    wrap_counting: bool
+    unwrapped: Tuple[UnwrappedWindow, ...]
+    targets: Tuple[TargetWindow, ...]
+    target_centres_hz: Tuple[float, ...]
+    n_ant_target: int
+
+
+def prepare_transfer(ref_table, ref_ms, target_ms, *, wrap_counting: bool = True,
+                     ref_spw: Optional[int] = None, max_gap_s: float = 60.0,
+                     antenna_map=None) -> PreparedTransfer:
+    """Read, check, count and transfer: :func:`transfer_table` without the writing.
+
+    ``antenna_map``: REF=TARGET station names for stations named differently in the two
+    bands (``"JC=SM"`` or a mapping; :func:`hitops.io.match.parse_antenna_map`).
+    """
+    if not max_gap_s > 0:
+        raise TransferOptionError(f"max_gap_s must be > 0 seconds, not {max_gap_s}")
+    target_ms = str(target_ms).rstrip("/")
+    table = read_solutions(ref_table, ref_ms)
+    _check_overlap(table, target_ms)
+    windows, target_fields, ant1, ant2 = _target_windows(target_ms)
+    ref_stations, tgt_stations = read_stations(str(ref_ms), "REF_MS"), read_stations(target_ms, "TARGET_MS")
+    ref_to_tgt = pair_antennas(ref_stations, tgt_stations, parse_antenna_map(antenna_map),
+                               ant1, ant2)
+    by_field = _reference_windows(table, ref_spw)
+    common = [name for name in by_field if name in target_fields]
+    if not common:
+        raise TableMismatchError(f"no field of reference table '{table.path}' "
+                                 f"({', '.join(by_field)}) is in {target_ms} ({', '.join(target_fields)})")
+    unwrapped = tuple(unwrap_window(by_field[name], max_gap_s, wrap_counting, table.has_rates)
+                      for name in common)
+    if wrap_counting:
+        for u in unwrapped:
+            check_interval(u, table.antenna_names, table.path)
+    targets = tuple(_on_target_antennas(transfer_window(u, spw, target_fields.index(name), centre,
+                                                        table.has_rates),
+                                        ref_to_tgt, tgt_stations.n_ant)
+                    for name, u in zip(common, unwrapped) for spw, centre in windows)
+    return PreparedTransfer(table, target_ms, wrap_counting, unwrapped, targets,
+                            tuple(c for _, c in windows), tgt_stations.n_ant)
+
+
+def transfer_report(prepared: PreparedTransfer, out_table: Optional[str], n_rows: int) -> TransferReport:
+    """The report of a prepared transfer (``out_table`` None: no table written), logged."""
+    table, unwrapped = prepared.table, prepared.unwrapped
+    report = TransferReport(
+        table=str(out_table) if out_table else None, reference_table=table.path, kind=table.kind,
+        wrap_counting=prepared.wrap_counting,
+        reference_freq_hz=tuple(u.source.ref_freq_hz for u in unwrapped),
+        target_centres_hz=prepared.target_centres_hz, n_rows=n_rows,
+        n_segments=int(sum(u.new_segment.sum() for u in unwrapped)),
+        common_refant=tuple(_first_refant(table, u) for u in unwrapped),
+        antennas=_summaries(table, unwrapped), refant_changes=_refant_changes(table, unwrapped))
+    log.info("transferred %s (%s, phase at %s GHz)%s: %d reference antenna change(s)",
+             table.path, table.kind, ", ".join(f"{f / 1e9:.4f}" for f in report.reference_freq_hz),
+             f" to {out_table} ({n_rows} rows)" if out_table else "", len(report.refant_changes))
+    for change in report.refant_changes:
+        log.info("reference antenna %s -> %s at %.1f s (spectral window %d, field %d): %s",
+                 change.from_antenna, change.to_antenna, change.time, change.spw, change.field,
+                 "re-referred to the window's first reference antenna" if change.bridged
+                 else "no antenna solved on both sides: not re-referred")
+    for ant in report.antennas:
+        log.info("station %s: %d solutions, %d flagged, %d wraps, largest bridged residual %.2f rad",
+                 ant.name, ant.n_solutions, ant.n_flagged, ant.n_wraps, ant.max_residual_rad)
+    return report
+
+
+def write_target_table(prepared: PreparedTransfer, out_table, overwrite: bool = False) -> int:
+    """The prepared transfer as the target-band Fringe Jones table; its number of rows."""
+    from .write import write_fringe_table
+
+    return write_fringe_table(out_table, prepared.target_ms, prepared.targets,
+                              prepared.n_ant_target, overwrite)
+
+
 def transfer_table(ref_table, ref_ms, target_ms, out_table, *, wrap_counting: bool = True,
                    ref_spw: Optional[int] = None, max_gap_s: float = 60.0,
                    overwrite: bool = False) -> TransferReport:
@@ -176,48 +262,7 @@ def transfer_table(ref_table, ref_ms, target_ms, out_table, *, wrap_counting: bo
     with the most solutions).  ``max_gap_s``: a longer gap between solutions (or a new
     scan) restarts the rate prediction.  Nothing is written when any check fails.
     """
-    from .write import write_fringe_table
-
-    if not max_gap_s > 0:
-        raise TransferOptionError(f"max_gap_s must be > 0 seconds, not {max_gap_s}")
-    target_ms = str(target_ms).rstrip("/")
-    table = read_solutions(ref_table, ref_ms)
-    _check_overlap(table, target_ms)
-    windows, target_fields, ant1, ant2 = _target_windows(target_ms)
-    ref_stations, tgt_stations = read_stations(str(ref_ms), "REF_MS"), read_stations(target_ms, "TARGET_MS")
-    ref_to_tgt = pair_antennas(ref_stations, tgt_stations, {}, ant1, ant2)
-    by_field = _reference_windows(table, ref_spw)
-    common = [name for name in by_field if name in target_fields]
-    if not common:
-        raise TableMismatchError(f"no field of reference table '{table.path}' "
-                                 f"({', '.join(by_field)}) is in {target_ms} ({', '.join(target_fields)})")
-    unwrapped = tuple(unwrap_window(by_field[name], max_gap_s, wrap_counting, table.has_rates)
-                      for name in common)
-    if wrap_counting:
-        for u in unwrapped:
-            check_interval(u, table.antenna_names, table.path)
-    targets = [_on_target_antennas(transfer_window(u, spw, target_fields.index(name), centre,
-                                                   table.has_rates),
-                                   ref_to_tgt, tgt_stations.n_ant)
-               for name, u in zip(common, unwrapped) for spw, centre in windows]
-    n_rows = write_fringe_table(out_table, target_ms, targets, tgt_stations.n_ant, overwrite)
-    report = TransferReport(
-        table=str(out_table), reference_table=table.path, kind=table.kind,
-        wrap_counting=wrap_counting,
-        reference_freq_hz=tuple(u.source.ref_freq_hz for u in unwrapped),
-        target_centres_hz=tuple(c for _, c in windows), n_rows=n_rows,
-        n_segments=int(sum(u.new_segment.sum() for u in unwrapped)),
-        common_refant=tuple(_first_refant(table, u) for u in unwrapped),
-        antennas=_summaries(table, unwrapped), refant_changes=_refant_changes(table, unwrapped))
-    log.info("transferred %s (%s, phase at %s GHz) to %s: %d rows, %d reference antenna change(s)",
-             table.path, table.kind, ", ".join(f"{f / 1e9:.4f}" for f in report.reference_freq_hz),
-             out_table, n_rows, len(report.refant_changes))
-    for change in report.refant_changes:
-        log.info("reference antenna %s -> %s at %.1f s (spectral window %d, field %d): %s",
-                 change.from_antenna, change.to_antenna, change.time, change.spw, change.field,
-                 "re-referred to the window's first reference antenna" if change.bridged
-                 else "no antenna solved on both sides: not re-referred")
-    for ant in report.antennas:
-        log.info("station %s: %d solutions, %d flagged, %d wraps, largest bridged residual %.2f rad",
-                 ant.name, ant.n_solutions, ant.n_flagged, ant.n_wraps, ant.max_residual_rad)
-    return report
+    prepared = prepare_transfer(ref_table, ref_ms, target_ms, wrap_counting=wrap_counting,
+                                ref_spw=ref_spw, max_gap_s=max_gap_s)
+    n_rows = write_target_table(prepared, out_table, overwrite)
+    return transfer_report(prepared, out_table, n_rows)
