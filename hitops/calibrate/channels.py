@@ -50,6 +50,19 @@ class ChannelPlan:
         """R_k of every target channel."""
         return self.tgt_chan_freq * (self.ratio / self.tgt_centre)
 
+    @property
+    def across_channels(self) -> bool:
+        """The target window has several channels: the n0 step runs across them
+        (hitops/calibrate/n0/), and the target's own reduction serves CWU alone."""
+        return self.tgt_chan_freq.size > 1
+
+    def offset_window(self, eps: float):
+        """The n0 step's :class:`hitops.calibrate.n0.baseline.WindowRatios` (``eps``: the
+        group's, R_0's fractional part), or None with one target channel."""
+        from .n0.baseline import WindowRatios
+
+        return WindowRatios(self.ratios, self.ratio, eps) if self.across_channels else None
+
     def as_report(self) -> dict:
         ratios = self.ratios
         return {"reference_frequency_hz": self.ref_freq, "target_centre_hz": self.tgt_centre,

@@ -36,6 +36,7 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from ..kernels import fpt
+from ..kernels.channel_offsets import channel_offset_sums
 from ..kernels.segments import SegmentSums, segment_row_sums
 from ..tracking.base import ChunkTracking, WrapTracker
 from ..tracking.count import Carry
@@ -138,6 +139,9 @@ class GroupPipeline:
         self._cache: Dict[int, ChunkData] = {}
         # what to read: the tracker's context does not depend on its state
         self._reader = self.new_tracker()
+        # the n0 step across the target window's channels (None: on its centre's phase)
+        self.window = (None if group.channels is None
+                       else group.channels.offset_window(group.eps))
         log.info("%d chunk(s) of <= %d target rows; %d baseline groups; scheduler %s",
                  group.n_chunks, run.chunk_rows, len(self.baseline_groups),
                  run.opts.scheduler or "threads")
@@ -281,7 +285,7 @@ class GroupPipeline:
         tracker = self.new_tracker()
         tgt_carry = Carry.empty(match.n_bl, n_corr)
         result = PassResult(samples=SampleCounts(), tracker=tracker,
-                            sums=OffsetSums.empty(match.n_bl, n_corr, n_scan))
+                            sums=OffsetSums.empty(match.n_bl, n_corr, n_scan, self.window))
         for k, chunk, next_read in self.chunks(keep_reads):
             stage = time.perf_counter()
             tracked = tracker.track_chunk(chunk.t0, chunk.t1, chunk.reference)
@@ -292,6 +296,8 @@ class GroupPipeline:
             out, parts = self.transfer(chunk, tracked, offsets, tgt_carry, sum_in_groups,
                                        offset_k)
             _add_parts(result, tracker, tgt_carry, parts)
+            if self.window is not None and offsets is None and off_col:
+                self._sum_channels(result, chunk, tracked.segment_keys, out)
             tracker.finish_chunk(chunk.t1)
             tgt_carry.last_scan = int(match.scan_of_time[chunk.t1 - 1])
             if kept is not None:
@@ -314,6 +320,20 @@ class GroupPipeline:
         _add_segment_sums(result.sums, segment_row_sums(
             chunk.tgt_grid, seg_keys, chunk.tgt_vis, phasor_rows[method], calibrated,
             chunk.off_vis, chunk.off_ok), baselines=None)
+
+    def _sum_channels(self, result: PassResult, chunk: ChunkData, seg_keys,
+                      out: RowOutputs) -> None:
+        """The n0 step's sums per target channel, per segment (segmented trackers) or scan."""
+        method = fpt.PWC if fpt.PWC in self.codes else fpt.CWU
+        keys = seg_keys
+        if keys is None:
+            scan = self.group.match.scan_of_time[chunk.t0:chunk.t1]
+            keys = np.broadcast_to(scan[None, None, :],
+                                   (self.group.match.n_bl, self.group.n_corr, scan.size))
+        result.sums.add_channel_sums(*channel_offset_sums(
+            chunk.tgt_grid, keys, chunk.tgt_data, chunk.tgt_flag, chunk.tgt_flag_row,
+            out.phasor_rows[method], out.delay_rows[method], self.group.channels.chan_offset,
+            chunk.off_data), segmented=seg_keys is not None)
 
     def write_kept(self, kept: Dict[int, KeptChunk], segment_k: Dict[tuple, int]) -> None:
         """The writing pass from the first pass's kept output, shifted by the step's k."""
@@ -377,9 +397,15 @@ def run_group(run: RunPlan, group: GroupPlan, tx: OutputTransaction, client) -> 
     if columns.offset and not step:
         log.warning("%s applies to pwc and cwu only; ignored for cfpt",
                     "--offset-model" if columns.offset_is_model else "--offset-reference-column")
-    elif step and group.eps == 0.0:
+    elif step and group.eps == 0.0 and pipeline.window is None:
         log.info("integer R: PWC has no n0 offset; the offset step is skipped")
         step = False
+    elif step and group.eps == 0.0:
+        # R_j = R_0 + (nu_j - nu_0)/nu_ref is not an integer away from the window centre:
+        # a wrong count leaves a phase slope across the window, which the step can see
+        log.info("integer R at the target window's centre: the n0 step runs across the "
+                 "window's channels (R_j %.8g .. %.8g)", pipeline.window.ratios.min(),
+                 pipeline.window.ratios.max())
     if not step:
         return GroupResult.of(pipeline.run_pass(), OffsetSolution(), group.n_chunks)
     # with a tracker whose n0 step is per segment the first pass's output is kept when it

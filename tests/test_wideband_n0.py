@@ -1,0 +1,150 @@
+"""The n0 step across a target window's channels (issue 26), on pairs laid out by casatools.simulator.
+
+The pairs (tests/solutions_scene.py's layout): 4 stations, 10 min at 1 s, reference
+one window of 16 x 125 MHz, target two windows of 16 x 125 MHz at 228 and 230 GHz
+(R_0 = 114/43 and 115/43 against 86 GHz: the lattice 2*pi*eps*k repeats every 43);
+every channel carries exp(2*pi*i*nu_k*(L_p - L_q)/c) of a per-station excess
+path.  Here the stations' paths differ by up to 13 cm at the start (38 turns of the
+86-GHz phase), so PWC, counting from n'(t0) = 0, is off by n0 = up to 38 turns.  One
+channel cannot tell n0 from n0 - 43 at R = 230/86 (the same 2*pi*eps*n0); the
+window's channels can, because a wrong k leaves a phase slope 2*pi*(nu_j - nu_0)*k/nu_ref
+across it.  The truth is the path: after FPT and the n0 step with a point model, every
+channel of every baseline must have phase 0.  The plausible wrong implementation, the
+step on the window centre's phase alone (what calibrate did before), fails the same check.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hitops.calibrate import calibrate
+from hitops.calibrate.channels import ChannelPlan
+
+from solutions_scene import C_LIGHT, excess_path, lay_out, write_path_phases
+
+pytestmark = pytest.mark.slow
+
+STATIONS = ("PV", "PB", "AP", "GL")
+#: per-station excess path at the start, metres: baselines up to 38 turns at 86 GHz
+START_PATH_M = np.array([0.0, 0.091, -0.043, 0.022])
+#: target windows' centres: both ratios to 86 GHz are multiples of 1/43
+TARGET_CENTRES_HZ = (228.0e9, 230.0e9)
+
+
+def _pair(root, ref_centre_hz: float):
+    from casacore import tables as pt
+
+    root.mkdir(parents=True, exist_ok=True)
+    ref_ms, target_ms = root / "ref.ms", root / "target.ms"
+    scans = (("M87", 0.0, 600.0),)
+    lay_out(ref_ms, (ref_centre_hz,), scans, "2023/04/10/03:00:00", STATIONS)
+    lay_out(target_ms, TARGET_CENTRES_HZ, scans, "2023/04/10/03:00:00", STATIONS)
+    with pt.table(str(ref_ms), ack=False) as t:
+        times = np.unique(t.getcol("TIME"))
+    path = excess_path(times, len(STATIONS), seed=3, scale_m=0.004) + START_PATH_M
+    write_path_phases(ref_ms, times, path)
+    write_path_phases(target_ms, times, path)
+    return ref_ms, target_ms, path
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    """Reference at 86 GHz: R_0 = 227.1/86 and 229.1/86."""
+    return _pair(tmp_path_factory.mktemp("n0-wide"), 86.0e9)
+
+
+@pytest.fixture(scope="module")
+def integer_pair(tmp_path_factory):
+    """Reference at 76.67 GHz: R_0 = 3 exactly for the 230-GHz window."""
+    return _pair(tmp_path_factory.mktemp("n0-integer"), 230.0e9 / 3)
+
+
+def _copy(ms, directory):
+    import shutil
+
+    directory.mkdir(parents=True, exist_ok=True)
+    out = directory / ms.name
+    shutil.copytree(ms, out)
+    return out
+
+
+def channel_phases(ms, column="PWC_DATA"):
+    """{(ant1, ant2, window): (n_chan, n_corr) phase of the whole-track vector mean} and the
+    smallest coherence of any channel."""
+    from casacore import tables as pt
+
+    with pt.table(str(ms), ack=False) as t:
+        data, flag = t.getcol(column), t.getcol("FLAG")
+        a1, a2, ddid = t.getcol("ANTENNA1"), t.getcol("ANTENNA2"), t.getcol("DATA_DESC_ID")
+    phases, coherence = {}, 1.0
+    for key in sorted(set(zip(a1, a2, ddid))):
+        rows = (a1 == key[0]) & (a2 == key[1]) & (ddid == key[2])
+        ok = ~flag[rows]
+        unit = np.where(ok, data[rows] / np.where(ok, np.abs(data[rows]), 1), 0)
+        mean = unit.sum(axis=0) / np.maximum(ok.sum(axis=0), 1)
+        phases[key] = np.angle(mean)
+        coherence = min(coherence, float(np.abs(mean).min()))
+    return phases, coherence
+
+
+def worst_phase(ms) -> float:
+    phases, coherence = channel_phases(ms)
+    assert coherence >= 0.999
+    return max(float(np.abs(p).max()) for p in phases.values())
+
+
+def centre_channel_only(monkeypatch):
+    """The wrong implementation: the n0 step on the window centre's phase alone."""
+    monkeypatch.setattr(ChannelPlan, "across_channels", property(lambda self: False))
+
+
+def test_the_paths_need_more_than_half_a_lattice_period(pair):
+    # the premise: some baseline starts more than 21 turns of the 86-GHz phase away
+    _, _, path = pair
+    turns = 86.0e9 * (path[0][:, None] - path[0][None, :]) / C_LIGHT
+    assert np.abs(turns).max() > 30
+
+
+@pytest.mark.parametrize("tracker", ["count", "antenna"])
+def test_the_step_across_the_channels_finds_the_true_offset(pair, tmp_path, monkeypatch,
+                                                            tracker):
+    ref_ms, target_ms, _ = pair
+    target = _copy(target_ms, tmp_path / "all")
+    report = calibrate(str(ref_ms), str(target), method="pwc", tracker=tracker,
+                       offset_model="point", no_verdict=True)
+    assert worst_phase(target) < 1e-3          # every channel of every baseline at phase 0
+    entries = [e for e in report["groups"][0]["offset_step"]["series"] if e.get("samples")]
+    assert max(abs(e["k"]) for e in entries) > 21     # beyond one channel's lattice period
+    # the centre channel alone chooses k - 43 where |k| > 21: right at the window centre,
+    # radians off at its edges
+    wrong = _copy(target_ms, tmp_path / "centre")
+    with monkeypatch.context() as m:
+        centre_channel_only(m)
+        calibrate(str(ref_ms), str(wrong), method="pwc", tracker=tracker,
+                  offset_model="point", no_verdict=True)
+    phases, _ = channel_phases(wrong)
+    assert max(float(np.abs(p).max()) for p in phases.values()) > 1.0
+    at_centre = [np.angle(np.exp(1j * p[7]) + np.exp(1j * p[8])) for p in phases.values()]
+    assert np.abs(at_centre).max() < 1e-3
+
+
+def test_integer_ratio_at_the_centre_still_needs_the_step_across_the_window(integer_pair,
+                                                                           tmp_path,
+                                                                           monkeypatch):
+    # R_0 = 3 for the second target window: the centre channel carries no n0 offset, but
+    # channel j carries 2*pi*(R_j - 3)*n0, a slope of n0*B/nu_ref turns across the window
+    ref_ms, target_ms, _ = integer_pair
+    target = _copy(target_ms, tmp_path / "all")
+    report = calibrate(str(ref_ms), str(target), method="pwc", tracker="count",
+                       offset_model="point", no_verdict=True)
+    assert report["groups"][1]["channels"]["target_centre_hz"] == 230.0e9
+    assert worst_phase(target) < 1e-3
+    skipped = _copy(target_ms, tmp_path / "skipped")
+    with monkeypatch.context() as m:
+        centre_channel_only(m)         # the step skipped as "integer R" on window 1
+        calibrate(str(ref_ms), str(skipped), method="pwc", tracker="count",
+                  offset_model="point", no_verdict=True)
+    phases, _ = channel_phases(skipped)
+    window1 = [p for key, p in phases.items() if key[2] == 1]
+    assert max(float(np.abs(p).max()) for p in window1) > 0.3
