@@ -16,13 +16,12 @@ For each time chunk of the plan, in time order:
 4. write the outputs and new flags through the run's
    :class:`hitops.calibrate.output.OutputTransaction`.
 
-With the n0 offset step a first pass (steps 1-3) sums the calibrated phase
-against the offset reference per scan or segment; the integers are solved
-(:mod:`hitops.calibrate.n0.step`) and the writing pass follows.  With a
-segmented tracker (smooth, antenna) the first pass keeps its output when it fits in a fifth of the
-memory budget, and the writing pass only shifts it by 2 pi eps k per segment
-(:func:`hitops.calibrate.n0.step.offset_shifted_rows`) instead of tracking and
-transferring again.
+With the n0 offset step a first pass (steps 1-3) sums the calibrated phase against the offset
+reference per scan or segment (per target channel across a window); the integers are solved
+(:mod:`hitops.calibrate.n0.step`) and the writing pass follows.  With a segmented tracker (smooth,
+antenna) the first pass keeps its output when it fits in a fifth of the memory budget, and the
+writing pass only shifts it by 2 pi eps k per segment
+(:func:`hitops.calibrate.n0.step.offset_shifted_rows`) instead of tracking and transferring again.
 """
 
 from __future__ import annotations
@@ -36,13 +35,13 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from ..kernels import fpt
-from ..kernels.channel_offsets import channel_offset_sums
 from ..kernels.segments import SegmentSums, segment_row_sums
 from ..tracking.base import ChunkTracking, WrapTracker
 from ..tracking.count import Carry
 from ..tracking.factory import new_tracker
 from .chunk_read import ChunkData, read_chunk, read_target
-from .n0.step import OffsetSolution, OffsetSums, offset_shifted_rows, solve_offsets
+from .n0.step import (OffsetSolution, OffsetSums, channel_sums, offset_shifted_rows,
+                      offset_step_needed, solve_offsets)
 from .output import OutputTransaction
 from .plan import GroupPlan, RunPlan
 from .transfer import (SampleCounts, TransferInputs, TransferResult, group_rows, plan_groups,
@@ -139,9 +138,6 @@ class GroupPipeline:
         self._cache: Dict[int, ChunkData] = {}
         # what to read: the tracker's context does not depend on its state
         self._reader = self.new_tracker()
-        # the n0 step across the target window's channels (None: on its centre's phase)
-        self.window = (None if group.channels is None
-                       else group.channels.offset_window(group.eps))
         log.info("%d chunk(s) of <= %d target rows; %d baseline groups; scheduler %s",
                  group.n_chunks, run.chunk_rows, len(self.baseline_groups),
                  run.opts.scheduler or "threads")
@@ -280,12 +276,12 @@ class GroupPipeline:
         their integers (a per-channel transfer's delays need them); ``segment_k``:
         per-segment integers (segmented trackers); ``kept``: a dict that collects the output
         instead of writing (a first pass whose writing pass only shifts)."""
-        match, n_corr, n_scan = self.group.match, self.group.n_corr, self.group.match.scans.size
+        match, n_corr = self.group.match, self.group.n_corr
         off_col = self.run.columns.offset
         tracker = self.new_tracker()
         tgt_carry = Carry.empty(match.n_bl, n_corr)
         result = PassResult(samples=SampleCounts(), tracker=tracker,
-                            sums=OffsetSums.empty(match.n_bl, n_corr, n_scan, self.window))
+                            sums=OffsetSums.for_group(self.group))
         for k, chunk, next_read in self.chunks(keep_reads):
             stage = time.perf_counter()
             tracked = tracker.track_chunk(chunk.t0, chunk.t1, chunk.reference)
@@ -296,8 +292,8 @@ class GroupPipeline:
             out, parts = self.transfer(chunk, tracked, offsets, tgt_carry, sum_in_groups,
                                        offset_k)
             _add_parts(result, tracker, tgt_carry, parts)
-            if self.window is not None and offsets is None and off_col:
-                self._sum_channels(result, chunk, tracked.segment_keys, out)
+            if result.sums.window is not None and offsets is None and off_col:
+                channel_sums(result.sums, self.group, chunk, tracked.segment_keys, out)
             tracker.finish_chunk(chunk.t1)
             tgt_carry.last_scan = int(match.scan_of_time[chunk.t1 - 1])
             if kept is not None:
@@ -320,20 +316,6 @@ class GroupPipeline:
         _add_segment_sums(result.sums, segment_row_sums(
             chunk.tgt_grid, seg_keys, chunk.tgt_vis, phasor_rows[method], calibrated,
             chunk.off_vis, chunk.off_ok), baselines=None)
-
-    def _sum_channels(self, result: PassResult, chunk: ChunkData, seg_keys,
-                      out: RowOutputs) -> None:
-        """The n0 step's sums per target channel, per segment (segmented trackers) or scan."""
-        method = fpt.PWC if fpt.PWC in self.codes else fpt.CWU
-        keys = seg_keys
-        if keys is None:
-            scan = self.group.match.scan_of_time[chunk.t0:chunk.t1]
-            keys = np.broadcast_to(scan[None, None, :],
-                                   (self.group.match.n_bl, self.group.n_corr, scan.size))
-        result.sums.add_channel_sums(*channel_offset_sums(
-            chunk.tgt_grid, keys, chunk.tgt_data, chunk.tgt_flag, chunk.tgt_flag_row,
-            out.phasor_rows[method], out.delay_rows[method], self.group.channels.chan_offset,
-            chunk.off_data), segmented=seg_keys is not None)
 
     def write_kept(self, kept: Dict[int, KeptChunk], segment_k: Dict[tuple, int]) -> None:
         """The writing pass from the first pass's kept output, shifted by the step's k."""
@@ -397,15 +379,8 @@ def run_group(run: RunPlan, group: GroupPlan, tx: OutputTransaction, client) -> 
     if columns.offset and not step:
         log.warning("%s applies to pwc and cwu only; ignored for cfpt",
                     "--offset-model" if columns.offset_is_model else "--offset-reference-column")
-    elif step and group.eps == 0.0 and pipeline.window is None:
-        log.info("integer R: PWC has no n0 offset; the offset step is skipped")
+    elif step and not offset_step_needed(group):
         step = False
-    elif step and group.eps == 0.0:
-        # R_j = R_0 + (nu_j - nu_0)/nu_ref is not an integer away from the window centre:
-        # a wrong count leaves a phase slope across the window, which the step can see
-        log.info("integer R at the target window's centre: the n0 step runs across the "
-                 "window's channels (R_j %.8g .. %.8g)", pipeline.window.ratios.min(),
-                 pipeline.window.ratios.max())
     if not step:
         return GroupResult.of(pipeline.run_pass(), OffsetSolution(), group.n_chunks)
     # with a tracker whose n0 step is per segment the first pass's output is kept when it

@@ -24,6 +24,8 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
+from ...kernels import fpt
+from ...kernels.channel_offsets import channel_offset_sums
 from ...kernels.segments import shifted_rows
 from ...tracking.base import WrapTracker
 from ...tracking.state import SEGMENT_KEY, apply_segment_offsets
@@ -77,6 +79,13 @@ class OffsetSums:
     window: Optional[WindowRatios] = None
 
     @classmethod
+    def for_group(cls, group: GroupPlan) -> "OffsetSums":
+        """Empty sums for ``group``: across its target window's channels when it has several."""
+        channels = group.channels
+        return cls.empty(group.match.n_bl, group.n_corr, group.match.scans.size,
+                         None if channels is None else channels.offset_window(group.eps))
+
+    @classmethod
     def empty(cls, n_bl: int, n_corr: int, n_scan: int,
               window: Optional[WindowRatios] = None) -> "OffsetSums":
         chan = () if window is None else (window.ratios.size,)
@@ -94,6 +103,38 @@ class OffsetSums:
             else:
                 self.scan_sums[b, c, key] += z
                 self.scan_counts[b, c, key] += n
+
+
+def offset_step_needed(group: GroupPlan) -> bool:
+    """False when PWC carries no n0 offset: an integer R on one target channel.  Across a
+    window R_j = R_0 + (nu_j - nu_0)/nu_ref is not an integer off the centre, so a wrong
+    count leaves a phase slope across the window, which the step can see."""
+    if group.eps != 0.0:
+        return True
+    window = OffsetSums.for_group(group).window
+    if window is None:
+        log.info("integer R: PWC has no n0 offset; the offset step is skipped")
+        return False
+    log.info("integer R at the target window's centre: the n0 step runs across the window's "
+             "channels (R_j %.8g .. %.8g)", window.ratios.min(), window.ratios.max())
+    return True
+
+
+def channel_sums(sums: OffsetSums, group: GroupPlan, chunk, segment_keys, out) -> None:
+    """Add one chunk's per-channel sums of the n0 step to ``sums`` (a first pass across a
+    window's channels): per segment (``segment_keys`` (n_bl, n_corr, n_time), segmented
+    trackers) or per scan.  ``chunk``: the :class:`hitops.calibrate.chunk_read.ChunkData`;
+    ``out``: its transfer in row order (the pipeline's RowOutputs: PWC's, else CWU's,
+    phasors and delays)."""
+    method = fpt.PWC if fpt.PWC in out.phasor_rows else fpt.CWU
+    keys = segment_keys
+    if keys is None:
+        scan = group.match.scan_of_time[chunk.t0:chunk.t1]
+        keys = np.broadcast_to(scan[None, None, :], (group.match.n_bl, group.n_corr, scan.size))
+    sums.add_channel_sums(*channel_offset_sums(
+        chunk.tgt_grid, keys, chunk.tgt_data, chunk.tgt_flag, chunk.tgt_flag_row,
+        out.phasor_rows[method], out.delay_rows[method], group.channels.chan_offset,
+        chunk.off_data), segmented=segment_keys is not None)
 
 
 def solve_offsets(run: RunPlan, group: GroupPlan, tracker: WrapTracker,
