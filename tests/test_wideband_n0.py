@@ -20,10 +20,10 @@ import pytest
 
 from hitops.calibrate import calibrate
 from hitops.calibrate.channels import ChannelPlan
+from hitops.calibrate.n0.baseline import WindowRatios, choose_channel_offset, choose_offset
+from hitops.calibrate.n0.lattice import solve_lattice
 
 from solutions_scene import C_LIGHT, excess_path, lay_out, write_path_phases
-
-pytestmark = pytest.mark.slow
 
 STATIONS = ("PV", "PB", "AP", "GL")
 #: per-station excess path at the start, metres: baselines up to 38 turns at 86 GHz
@@ -99,6 +99,7 @@ def centre_channel_only(monkeypatch):
     monkeypatch.setattr(ChannelPlan, "across_channels", property(lambda self: False))
 
 
+@pytest.mark.slow
 def test_the_paths_need_more_than_half_a_lattice_period(pair):
     # the premise: some baseline starts more than 21 turns of the 86-GHz phase away
     _, _, path = pair
@@ -106,6 +107,7 @@ def test_the_paths_need_more_than_half_a_lattice_period(pair):
     assert np.abs(turns).max() > 30
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("tracker", ["count", "antenna"])
 def test_the_step_across_the_channels_finds_the_true_offset(pair, tmp_path, monkeypatch,
                                                             tracker):
@@ -129,6 +131,7 @@ def test_the_step_across_the_channels_finds_the_true_offset(pair, tmp_path, monk
     assert np.abs(at_centre).max() < 1e-3
 
 
+@pytest.mark.slow
 def test_integer_ratio_at_the_centre_still_needs_the_step_across_the_window(integer_pair,
                                                                            tmp_path,
                                                                            monkeypatch):
@@ -148,3 +151,72 @@ def test_integer_ratio_at_the_centre_still_needs_the_step_across_the_window(inte
     phases, _ = channel_phases(skipped)
     window1 = [p for key, p in phases.items() if key[2] == 1]
     assert max(float(np.abs(p).max()) for p in window1) > 0.3
+
+
+# ---------------------------------------------------------------- the choice itself, pure
+REF_HZ = 86.0e9
+WINDOW_HZ = 230.0e9 + (np.arange(16) - 7.5) * 125e6       # R_0 = 115/43
+
+
+def window_ratios(freqs=WINDOW_HZ) -> WindowRatios:
+    centre = float(np.mean(freqs)) / REF_HZ
+    return WindowRatios(np.asarray(freqs) / REF_HZ, centre, centre - np.floor(centre))
+
+
+def sums_for(window: WindowRatios, n0: int, error_deg: float = 0.0, samples: int = 100):
+    """z_j of a series whose count is n0 turns off, the reference good to error_deg."""
+    turns = window.ratios * n0
+    return samples * np.exp(2j * np.pi * (turns - np.floor(turns)) + 1j * np.deg2rad(error_deg))
+
+
+@pytest.mark.parametrize("n0", [-38, -22, 0, 5, 21, 30, 50])
+def test_the_channels_choose_the_true_offset_where_the_centre_cannot(n0):
+    window = window_ratios()
+    z = sums_for(window, n0, error_deg=1.5)
+    choice = choose_channel_offset(z, 1600, window, max_k=50, ambiguity_deg=2.0)
+    assert choice.k == n0 and not choice.ambiguous
+    assert choice.runner_up_residual_deg - choice.residual_deg > 5
+    # one channel at the centre: k and k +- 43 are the same offset; the smaller |k| wins
+    centre = complex(np.exp(2j * np.pi * window.eps * n0 + 1j * np.deg2rad(1.5)))
+    single = choose_offset(centre, 1, window.eps, max_k=50, ambiguity_deg=2.0)
+    assert single.k == (n0 if abs(n0) <= 21 else n0 - 43 * np.sign(n0))
+
+
+def test_one_channel_scores_as_the_centre_lattice():
+    # a one-channel window reads the same residual as the old rule
+    window = WindowRatios(np.array([227.1e9 / REF_HZ]), 227.1e9 / REF_HZ,
+                          227.1e9 / REF_HZ - 2)
+    z = np.array([np.exp(1j * 0.3)])
+    across = choose_channel_offset(z, 1, window, max_k=50, ambiguity_deg=2.0)
+    centre = choose_offset(complex(z[0]), 1, window.eps, max_k=50, ambiguity_deg=2.0)
+    assert across.k == centre.k
+    assert across.residual_deg == pytest.approx(centre.residual_deg, abs=1e-6)
+
+
+def test_integer_ratio_at_the_centre_is_told_apart_by_the_edges():
+    freqs = 230.0e9 + (np.arange(16) - 7.5) * 125e6
+    window = WindowRatios(freqs / (230.0e9 / 3), 3.0, 0.0)
+    choice = choose_channel_offset(sums_for(window, 7), 1600, window, 50, 2.0)
+    assert choice.k == 7 and choice.offset_deg == 0.0
+    assert choice.runner_up_residual_deg == pytest.approx(2.7055, abs=1e-3)   # k +- 1
+
+
+def test_the_antenna_lattice_across_channels_finds_every_antenna():
+    # 6 antennas, every baseline; per-antenna counts off by up to 40 turns
+    window = window_ratios()
+    truth = np.array([0, 40, -31, 23, -44, 12])
+    a, b = np.triu_indices(truth.size, 1)
+    errors = 2.0 * np.sin(np.arange(a.size))                  # the reference's, degrees
+    z = np.array([sums_for(window, int(truth[p] - truth[q]), e)
+                  for p, q, e in zip(a, b, errors)])
+    solution = solve_lattice(truth.size, a, b, z, np.full(a.size, 1600), window.eps, 50,
+                             gauge_order=[0], window=window)
+    assert solution.k.tolist() == truth.tolist()
+    # the same series at the window centre alone: the lattice folds k by 43
+    centre = WindowRatios(np.array([window.centre]), window.centre, window.eps)
+    z_centre = np.array([sums_for(centre, int(truth[p] - truth[q]), e)[0]
+                         for p, q, e in zip(a, b, errors)])
+    folded = solve_lattice(truth.size, a, b, z_centre, np.full(a.size, 100), window.eps, 50,
+                           gauge_order=[0])
+    assert folded.k.tolist() != truth.tolist()
+    assert np.all((folded.k - truth) % 43 == 0)
