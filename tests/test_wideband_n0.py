@@ -108,7 +108,7 @@ def test_the_paths_need_more_than_half_a_lattice_period(pair):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("tracker", ["count", "antenna"])
+@pytest.mark.parametrize("tracker", ["count", "smooth", "antenna"])
 def test_the_step_across_the_channels_finds_the_true_offset(pair, tmp_path, monkeypatch,
                                                             tracker):
     ref_ms, target_ms, _ = pair

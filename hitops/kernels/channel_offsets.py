@@ -25,62 +25,65 @@ import numpy as np
 from .fpt import TWO_PI, usable
 
 
-@numba.njit(cache=True, nogil=True)
-def _runs(tgt_grid, keys, data, flag, flag_row, phasor, delay, chan_offset, off_data,
-          point_model, fill):
-    """Per-channel sums over runs of equal key in time; sweep 0 counts the runs."""
+def _series_of_cells(tgt_grid, keys, phasor, flag_row):
+    """Which sum each calibrated (baseline, correlation, time) cell adds to.
+
+    Returns (cell_series (n_bl, n_corr, n_time) int64, -1 for none; index (m, 3) int64
+    baseline, correlation, key of each sum, sorted)."""
     n_bl, n_corr, n_time = keys.shape
+    rows = np.broadcast_to(tgt_grid[:, None, :], keys.shape)
+    has_row = rows >= 0
+    safe = np.where(has_row, rows, 0)
+    calibrated = (has_row & (keys >= 0) & ~flag_row[safe]
+                  & (phasor[safe, np.arange(n_corr)[None, :, None]] != 0))
+    cells = np.flatnonzero(calibrated.ravel())
+    key = keys.ravel()[cells]
+    series = cells // n_time                    # baseline * n_corr + correlation
+    key_values, key_index = np.unique(key, return_inverse=True)
+    ids, inverse = np.unique(series * key_values.size + key_index.ravel(), return_inverse=True)
+    cell_series = np.full(keys.size, -1, np.int64)
+    cell_series[cells] = inverse.ravel()
+    pair = ids // key_values.size
+    index = np.stack([pair // n_corr, pair % n_corr, key_values[ids % key_values.size]], axis=1)
+    return cell_series.reshape(keys.shape), index.astype(np.int64)
+
+
+@numba.njit(cache=True, nogil=True)
+def _accumulate(tgt_grid, cell_series, n_series, data, flag, phasor, delay, chan_offset,
+                off_data, point_model):
+    """sums (n_series, n_chan) of exp(i (Phi_ref - Phi_out)) and their counts."""
+    n_bl, n_corr, n_time = cell_series.shape
     n_chan = data.shape[1]
-    n_runs = 0
-    r = -1
-    index = np.zeros((0, 3), np.int64)
-    sums = np.zeros((0, n_chan), np.complex128)
-    counts = np.zeros((0, n_chan), np.int64)
-    for sweep in range(2 if fill else 1):
-        if sweep == 1:
-            index = np.zeros((n_runs, 3), np.int64)
-            sums = np.zeros((n_runs, n_chan), np.complex128)
-            counts = np.zeros((n_runs, n_chan), np.int64)
-        for b in range(n_bl):
+    sums = np.zeros((n_series, n_chan), np.complex128)
+    counts = np.zeros((n_series, n_chan), np.int64)
+    for b in range(n_bl):
+        for t in range(n_time):
+            row = tgt_grid[b, t]
             for c in range(n_corr):
-                cur = -1
-                for t in range(n_time):
-                    row = tgt_grid[b, t]
-                    key = keys[b, c, t]
-                    p = complex(phasor[row, c]) if row >= 0 else 0j
-                    if row < 0 or key < 0 or p == 0j or flag_row[row]:
+                s = cell_series[b, c, t]
+                if s < 0:
+                    continue
+                p = complex(phasor[row, c])
+                tau = delay[row, c]
+                for k in range(n_chan):
+                    v = data[row, k, c]
+                    if flag[row, k, c] or not usable(v):
                         continue
-                    if key != cur:
-                        cur = key
-                        if sweep == 0:
-                            n_runs += 1
+                    turn = -TWO_PI * chan_offset[k] * tau
+                    out = v * p * complex(math.cos(turn), math.sin(turn))
+                    if point_model:
+                        u = out.conjugate()
+                    else:
+                        o = off_data[row, k, c]
+                        if not usable(o):
                             continue
-                        r += 1
-                        index[r, 0] = b
-                        index[r, 1] = c
-                        index[r, 2] = key
-                    elif sweep == 0:
+                        u = o * out.conjugate()
+                    mag = abs(u)
+                    if mag == 0.0 or not math.isfinite(mag):
                         continue
-                    tau = delay[row, c]
-                    for k in range(n_chan):
-                        v = data[row, k, c]
-                        if flag[row, k, c] or not usable(v):
-                            continue
-                        out = v * p * complex(math.cos(-TWO_PI * chan_offset[k] * tau),
-                                              math.sin(-TWO_PI * chan_offset[k] * tau))
-                        if point_model:
-                            u = out.conjugate()
-                        else:
-                            o = off_data[row, k, c]
-                            if not usable(o):
-                                continue
-                            u = o * out.conjugate()
-                        mag = abs(u)
-                        if mag == 0.0 or not math.isfinite(mag):
-                            continue
-                        sums[r, k] += u / mag
-                        counts[r, k] += 1
-    return index, sums, counts
+                    sums[s, k] += u / mag
+                    counts[s, k] += 1
+    return sums, counts
 
 
 def channel_offset_sums(tgt_grid, keys, data, flag, flag_row, phasor, delay, chan_offset,
@@ -96,20 +99,13 @@ def channel_offset_sums(tgt_grid, keys, data, flag, flag_row, phasor, delay, cha
     Returns (index (m, 3) int64 sorted, sums (m, n_chan) complex128, counts (m, n_chan)
     int64).
     """
+    tgt_grid = np.ascontiguousarray(tgt_grid, np.int64)
+    cell_series, index = _series_of_cells(tgt_grid, np.asarray(keys, np.int64),
+                                          np.asarray(phasor), np.asarray(flag_row, bool))
     point = off_data is None
-    args = (np.ascontiguousarray(tgt_grid, np.int64), np.ascontiguousarray(keys, np.int64),
-            np.ascontiguousarray(data), np.ascontiguousarray(flag),
-            np.ascontiguousarray(flag_row), np.ascontiguousarray(phasor),
-            np.ascontiguousarray(delay, np.float64),
-            np.ascontiguousarray(chan_offset, np.float64),
-            np.ascontiguousarray(data if point else off_data), point)
-    index, sums, counts = _runs(*args, True)
-    if index.shape[0] == 0:
-        return index, sums, counts
-    uniq, inverse = np.unique(index, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
-    merged = np.zeros((uniq.shape[0], sums.shape[1]), np.complex128)
-    merged_counts = np.zeros((uniq.shape[0], sums.shape[1]), np.int64)
-    np.add.at(merged, inverse, sums)
-    np.add.at(merged_counts, inverse, counts)
-    return uniq.astype(np.int64), merged, merged_counts
+    sums, counts = _accumulate(
+        tgt_grid, cell_series, index.shape[0], np.ascontiguousarray(data),
+        np.ascontiguousarray(flag), np.ascontiguousarray(phasor),
+        np.ascontiguousarray(delay, np.float64), np.ascontiguousarray(chan_offset, np.float64),
+        np.ascontiguousarray(data if point else off_data), point)
+    return index, sums, counts
