@@ -9,8 +9,10 @@ put back: channel k then gets exp(-i*R_0*psi) * exp(-2*pi*i*(nu_k - nu_0)*psi /
 
 The reference band's channels are reduced to one phase per row at nu_ref (its
 window's centre) by a delay fit across them
-(:func:`hitops.kernels.wideband.reference_phasors`), the target's (for CWU and the
-n0 step) to nu_0 the same way.  With ``--average-channels``, or one channel on
+(:func:`hitops.kernels.wideband.reference_phasors`), the target's to nu_0 the same
+way when CWU needs its phase (or a one-channel n0 step); PWC and CFPT take the rows'
+validity alone, and the n0 step runs across the target's channels
+(hitops/calibrate/n0/, :meth:`ChannelPlan.offset_window`).  With ``--average-channels``, or one channel on
 each side, there is no :class:`ChannelPlan` and the single-ratio path runs as it
 always has.
 """

@@ -3,7 +3,8 @@
 :func:`read_chunk` reads the chunk's target rows and its reference rows
 (plus the tracker's context on either side), reduces channels to one visibility
 per row (averaged, or with one ratio per channel referred by a delay fit to the
-window's centre: hitops/calibrate/channels.py), and returns
+window's centre: hitops/calibrate/channels.py; a per-channel target whose phase no
+method needs gives its rows' validity alone), and returns
 a :class:`ChunkData`: per-row visibilities and validity, the row grids
 ``tgt_grid`` / ``ref_grid`` ((n_bl, n_time) row index or -1) and, for the
 trackers that ask for it (smooth, antenna), the reference band gridded over the

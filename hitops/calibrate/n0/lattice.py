@@ -33,6 +33,10 @@ exhaustive (the global optimum); otherwise coordinate descent from two starts
 (a maximum spanning tree of the edges grown from the gauge, and the rounded
 leading eigenvector of the Hermitian edge matrix, the continuous phase
 synchronisation) and the better end point is kept.  The kernels are numba.
+
+Across a target window's channels (``window``, issue 26) an edge holds one sum per
+channel, candidate j rotates channel c by 2 pi R_c j, and S sums over the channels:
+every |j| <= max_k is then its own candidate (k and k + 43 differ across the window).
 """
 
 from __future__ import annotations
