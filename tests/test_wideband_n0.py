@@ -11,6 +11,9 @@ window's channels can, because a wrong k leaves a phase slope 2*pi*(nu_j - nu_0)
 across it.  The truth is the path: after FPT and the n0 step with a point model, every
 channel of every baseline must have phase 0.  The plausible wrong implementation, the
 step on the window centre's phase alone (what calibrate did before), fails the same check.
+
+Last section: PWC and CFPT on a multi-channel target take the rows' validity instead
+of the target's delay-fit reduction, and write the same bytes as with it.
 """
 
 from __future__ import annotations
@@ -220,3 +223,51 @@ def test_the_antenna_lattice_across_channels_finds_every_antenna():
                            gauge_order=[0])
     assert folded.k.tolist() != truth.tolist()
     assert np.all((folded.k - truth) % 43 == 0)
+
+
+# ------------------------------------------- PWC and CFPT without the target's reduction
+def test_row_validity_is_the_reductions_validity():
+    from hitops.calibrate.channels import reduce_rows
+    from hitops.kernels.wideband import row_validity
+
+    rng = np.random.default_rng(2)
+    shape = (400, 16, 4)
+    data = np.exp(1j * rng.uniform(-np.pi, np.pi, shape)).astype(np.complex64)
+    data[rng.random(shape) < 0.2] = 0
+    data[rng.random(shape) < 0.1] = np.nan
+    flag = rng.random(shape) < 0.5
+    flag[:40] = True                                    # rows with every channel flagged
+    flag_row = rng.random(400) < 0.1
+    _, reduced_ok = reduce_rows(data, ~flag & ~flag_row[:, None, None], WINDOW_HZ, 230.0e9)
+    valid = row_validity(data, flag, flag_row)
+    assert np.array_equal(valid, reduced_ok)
+    assert 0.2 < valid.mean() < 0.95
+
+
+@pytest.mark.slow
+def test_pwc_and_cfpt_write_the_same_bytes_without_the_target_reduction(pair, tmp_path,
+                                                                       monkeypatch):
+    from casacore import tables as pt
+
+    import hitops.calibrate.chunk_read as chunk_read
+
+    ref_ms, target_ms, _ = pair
+    columns = {}
+    for name in ("validity", "reduced"):
+        target = _copy(target_ms, tmp_path / name)
+        with pt.table(str(target), readonly=False, ack=False) as t:
+            flag = t.getcol("FLAG")
+            rng = np.random.default_rng(5)
+            flag |= rng.random(flag.shape) < 0.3
+            flag[rng.random(flag.shape[0]) < 0.05] = True
+            t.putcol("FLAG", flag)
+        with monkeypatch.context() as m:
+            if name == "reduced":       # what calibrate did before: the delay fit, always
+                m.setattr(chunk_read, "target_rows",
+                          lambda data, flag, flag_row, channels, phase_needed:
+                          chunk_read.reduce(data, flag, flag_row, channels, "tgt"))
+            calibrate(str(ref_ms), str(target), method="pwc,cfpt", tracker="antenna",
+                      chunk_rows=2000, no_verdict=True)
+        with pt.table(str(target), ack=False) as t:
+            columns[name] = [t.getcol(c).tobytes() for c in ("PWC_DATA", "CFPT_DATA", "FLAG")]
+    assert columns["validity"] == columns["reduced"]
