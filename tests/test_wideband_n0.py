@@ -1,4 +1,4 @@
-"""The n0 step across a target window's channels (issue 26), on pairs laid out by casatools.simulator.
+"""The n0 step across a target window's channels (issue 26), on casatools.simulator layouts.
 
 The pairs (tests/solutions_scene.py's layout): 4 stations, 10 min at 1 s, reference
 one window of 16 x 125 MHz, target two windows of 16 x 125 MHz at 228 and 230 GHz

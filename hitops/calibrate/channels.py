@@ -12,9 +12,9 @@ window's centre) by a delay fit across them
 (:func:`hitops.kernels.wideband.reference_phasors`), the target's to nu_0 the same
 way when CWU needs its phase (or a one-channel n0 step); PWC and CFPT take the rows'
 validity alone, and the n0 step runs across the target's channels
-(hitops/calibrate/n0/, :meth:`ChannelPlan.offset_window`).  With ``--average-channels``, or one channel on
-each side, there is no :class:`ChannelPlan` and the single-ratio path runs as it
-always has.
+(hitops/calibrate/n0/, :meth:`ChannelPlan.offset_window`).  With ``--average-channels``,
+or one channel on each side, there is no :class:`ChannelPlan` and the single-ratio path
+runs as it always has.
 """
 
 from __future__ import annotations
