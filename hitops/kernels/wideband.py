@@ -148,20 +148,12 @@ def row_validity(data, flag, flag_row):
     return out
 
 
-@numba.njit(cache=True, nogil=True)
 def gather_ok(rows, ok):
     """(n_bl, n_corr, n_time) validity of the cells from a row validity ``ok`` (n_row,
     n_corr) and the row grid ``rows`` (n_bl, n_time), -1 for none."""
-    n_bl, n_time = rows.shape
-    n_corr = ok.shape[1]
-    valid = np.zeros((n_bl, n_corr, n_time), dtype=np.bool_)
-    for b in range(n_bl):
-        for t in range(n_time):
-            row = rows[b, t]
-            if row >= 0:
-                for c in range(n_corr):
-                    valid[b, c, t] = ok[row, c]
-    return valid
+    has_row = rows >= 0
+    cells = ok[np.where(has_row, rows, 0)] & has_row[:, :, None]     # (n_bl, n_time, n_corr)
+    return np.ascontiguousarray(cells.transpose(0, 2, 1))
 
 
 @numba.njit(cache=True, nogil=True)
