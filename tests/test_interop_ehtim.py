@@ -239,3 +239,86 @@ def _closures_zero(ms):
             if p < q < r and (tt, q, r) in vis and (tt, r, p) in vis:
                 worst = max(worst, abs(np.angle(v * vis[(tt, q, r)] * vis[(tt, r, p)])))
     assert math.degrees(worst) < 0.01
+
+
+# ------------------------------------------------------------- several IFs
+# eht-imaging 1.3.2's load_uvfits (ehtim/io/load.py, load_obs_uvfits) reads CRVAL4/CDELT4/NAXIS4
+# and NAXIS5 but no FQ table.  It averages the IFs and channels it is given coherently into one
+# visibility per row (weighted by the file's weights), puts that average at rf = the AN table's
+# FREQ (our first IF's first channel) for u and v, and reports bw = n_if * n_chan * CDELT4.
+# With several IFs *and* several channels its default (IF=all, channel=all) stops with an
+# IndexError (it indexes DATA with the two lists together, which numpy broadcasts); one IF at a
+# time (IF=[i]: that IF's channels averaged) or one channel (channel=[k]) loads.  The truth comes
+# from the path written into a casatools.simulator layout (tests/solutions_scene.py).
+
+
+@pytest.fixture(scope="module")
+def wideband_export(tmp_path_factory):
+    """The wideband pair's target exported raw (two IFs of 16 channels) and after PWC."""
+    from casacore import tables as pt
+
+    from hitops.io.uvfits import export_uvfits
+    from solutions_scene import make_solution_pair
+
+    work = tmp_path_factory.mktemp("ehtim-ifs")
+    pair = make_solution_pair(work)
+    raw = work / "raw.uvfits"
+    export_uvfits(pair.target_ms, raw)
+    pwc = work / "pwc.uvfits"
+    calibrate(str(pair.ref_ms), str(pair.target_ms), method="pwc", tracker="antenna",
+              offset_model="point", export_uvfits=str(pwc), no_verdict=True)
+    with pt.table(f"{pair.target_ms}::SPECTRAL_WINDOW", ack=False) as t:
+        chan_freq = t.getcol("CHAN_FREQ")                    # (n_if, n_chan)
+    hours = (pair.times - 86400.0 * np.floor(pair.times[0] / 86400.0)) / 3600.0
+    return raw, pwc, chan_freq, (hours, pair.path_m)
+
+
+def _truth(obs, paths, freq):
+    """The written visibility exp(2 pi i nu (L_p - L_q) / c) of every ehtim row at ``freq``
+    (scalar, or (n,) averaged coherently)."""
+    hours, path_m = paths
+    names = list(obs.tarr["site"])
+    # ehtim's times come from float32 day fractions (ms): the nearest 1-s integration
+    it = np.clip(np.searchsorted(hours, obs.data["time"]), 1, hours.size - 1)
+    it = np.where(np.abs(hours[it - 1] - obs.data["time"]) < np.abs(hours[it] - obs.data["time"]),
+                  it - 1, it)
+    assert np.abs(hours[it] - obs.data["time"]).max() * 3600 < 0.1
+    p = np.array([names.index(a) for a in obs.data["t1"]])
+    q = np.array([names.index(b) for b in obs.data["t2"]])
+    delta = path_m[it, p] - path_m[it, q]
+    freq = np.atleast_1d(np.asarray(freq, np.float64))
+    return np.exp(2j * np.pi * np.outer(delta, freq) / 299792458.0).mean(axis=1)
+
+
+def test_ehtim_reads_every_if_and_channel_of_a_multi_if_export(wideband_export):
+    raw, _, chan_freq, paths = wideband_export
+    n_if, n_chan = chan_freq.shape
+    assert (n_if, n_chan) == (2, 16)
+    worst = 0.0
+    for i in range(n_if):
+        for k in (0, 7, 15):
+            obs = eh.obsdata.load_uvfits(str(raw), polrep="circ", IF=[i], channel=[k])
+            assert len(obs.data) == 6 * 1200
+            truth = _truth(obs, paths, chan_freq[i, k])
+            for field in ("rrvis", "llvis"):
+                worst = max(worst, float(np.abs(np.angle(obs.data[field] * np.conj(truth))).max()))
+    assert worst < 1e-4          # each IF's channel k is that window's channel k
+
+
+def test_ehtim_averages_one_if_at_a_time_coherently(wideband_export):
+    raw, pwc, chan_freq, paths = wideband_export
+    with pytest.raises(IndexError):           # the default, every IF and channel at once
+        eh.obsdata.load_uvfits(str(raw), polrep="circ")
+    for i in range(chan_freq.shape[0]):
+        obs = eh.obsdata.load_uvfits(str(raw), polrep="circ", IF=[i])
+        assert obs.rf == pytest.approx(chan_freq[0, 0], rel=1e-12)     # IF 1's first channel
+        assert obs.bw == pytest.approx(2 * 16 * 125e6, rel=1e-12)
+        truth = _truth(obs, paths, chan_freq[i])        # the mean over the IF's 16 channels
+        assert np.abs(obs.data["rrvis"] - truth).max() < 1e-5
+        assert np.abs(truth).min() < 0.99               # raw: the window decorrelates
+        # after PWC every channel is flat, so the average keeps the amplitude
+        calibrated = eh.obsdata.load_uvfits(str(pwc), polrep="circ", IF=[i])
+        for field in ("rrvis", "llvis"):
+            vis = calibrated.data[field]
+            assert np.abs(vis).min() >= 0.999
+            assert np.abs(np.angle(vis)).max() < 1e-2

@@ -78,14 +78,7 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
     ref_ms, target_ms = prepared.ref_ms, prepared.target_ms
     ref_ms = msio.check_ms(ref_ms, "reference-band Measurement Set")
     target_ms = msio.check_ms(target_ms, "target-band Measurement Set")
-    if os.path.realpath(ref_ms) == os.path.realpath(target_ms):
-        raise InputError(f"REF_MS and TARGET_MS are the same set ({ref_ms}); give the "
-                         "reference-band and the target-band Measurement Sets")
-    if not float(lock_timeout) >= 0:
-        raise InputError(f"--lock-timeout {lock_timeout} must be >= 0 seconds")
-    if not float(verdict_interval) > 0:
-        raise InputError(f"--verdict-interval {verdict_interval} must be a positive number of "
-                         "seconds (e.g. 60)")
+    _check_run_scalars(ref_ms, target_ms, lock_timeout, verdict_interval)
     access.require_subtables(ref_ms, "reference-band Measurement Set")
     access.require_subtables(target_ms, "target-band Measurement Set")
     access.require_writable(target_ms, "target-band Measurement Set")
@@ -125,6 +118,18 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
             # that CASA (its own casacore) or another process can change the set next
             # without this process holding a stale column list
             gc.collect()
+
+
+def _check_run_scalars(ref_ms: str, target_ms: str, lock_timeout, verdict_interval) -> None:
+    """Two different sets, a usable lock timeout and verdict interval: one line each."""
+    if os.path.realpath(ref_ms) == os.path.realpath(target_ms):
+        raise InputError(f"REF_MS and TARGET_MS are the same set ({ref_ms}); give the "
+                         "reference-band and the target-band Measurement Sets")
+    if not float(lock_timeout) >= 0:
+        raise InputError(f"--lock-timeout {lock_timeout} must be >= 0 seconds")
+    if not float(verdict_interval) > 0:
+        raise InputError(f"--verdict-interval {verdict_interval} must be a positive number of "
+                         "seconds (e.g. 60)")
 
 
 def _calibrate_locked(opts: CalibrateOptions, methods: List[str], ref_ms: str, target_ms: str,

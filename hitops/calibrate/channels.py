@@ -9,10 +9,12 @@ put back: channel k then gets exp(-i*R_0*psi) * exp(-2*pi*i*(nu_k - nu_0)*psi /
 
 The reference band's channels are reduced to one phase per row at nu_ref (its
 window's centre) by a delay fit across them
-(:func:`hitops.kernels.wideband.reference_phasors`), the target's (for CWU and the
-n0 step) to nu_0 the same way.  With ``--average-channels``, or one channel on
-each side, there is no :class:`ChannelPlan` and the single-ratio path runs as it
-always has.
+(:func:`hitops.kernels.wideband.reference_phasors`), the target's to nu_0 the same
+way when CWU needs its phase (or a one-channel n0 step); PWC and CFPT take the rows'
+validity alone, and the n0 step runs across the target's channels
+(hitops/calibrate/n0/, :meth:`ChannelPlan.offset_window`).  With ``--average-channels``,
+or one channel on each side, there is no :class:`ChannelPlan` and the single-ratio path
+runs as it always has.
 """
 
 from __future__ import annotations
@@ -49,6 +51,19 @@ class ChannelPlan:
     def ratios(self) -> np.ndarray:
         """R_k of every target channel."""
         return self.tgt_chan_freq * (self.ratio / self.tgt_centre)
+
+    @property
+    def across_channels(self) -> bool:
+        """The target window has several channels: the n0 step runs across them
+        (hitops/calibrate/n0/), and the target's own reduction serves CWU alone."""
+        return self.tgt_chan_freq.size > 1
+
+    def offset_window(self, eps: float):
+        """The n0 step's :class:`hitops.calibrate.n0.baseline.WindowRatios` (``eps``: the
+        group's, R_0's fractional part), or None with one target channel."""
+        from .n0.baseline import WindowRatios
+
+        return WindowRatios(self.ratios, self.ratio, eps) if self.across_channels else None
 
     def as_report(self) -> dict:
         ratios = self.ratios

@@ -3,7 +3,8 @@
 :func:`read_chunk` reads the chunk's target rows and its reference rows
 (plus the tracker's context on either side), reduces channels to one visibility
 per row (averaged, or with one ratio per channel referred by a delay fit to the
-window's centre: hitops/calibrate/channels.py), and returns
+window's centre: hitops/calibrate/channels.py; a per-channel target whose phase no
+method needs gives its rows' validity alone), and returns
 a :class:`ChunkData`: per-row visibilities and validity, the row grids
 ``tgt_grid`` / ``ref_grid`` ((n_bl, n_time) row index or -1) and, for the
 trackers that ask for it (smooth, antenna), the reference band gridded over the
@@ -18,6 +19,7 @@ from typing import Optional, Tuple
 import numpy as np
 
 from ..io import read as msio
+from ..kernels import wideband
 from ..tracking.base import ReferenceGrid
 from ..tracking.grid import gather_grid
 from .band_index import ROW_COLUMNS
@@ -41,12 +43,15 @@ class ChunkData:
     ref_vis: np.ndarray             # (n_ref_row, n_corr_ref) reference, inside [t0, t1)
     ref_ok: np.ndarray
     ref_swapped: np.ndarray
-    off_vis: Optional[np.ndarray]   # what the n0 step compares with (None without it)
-    off_ok: Optional[np.ndarray]
+    off_vis: Optional[np.ndarray]   # what the n0 step compares with (None without it, and
+    off_ok: Optional[np.ndarray]    # when the step runs across the target's channels)
     tgt_grid: np.ndarray            # (n_bl, t1 - t0) index into the target rows, or -1
     ref_grid: np.ndarray
     reference: Optional[ReferenceGrid]   # the reference band over the tracker's extended
                                          # times, gridded (None: the tracker needs no grid)
+    # the n0 step across the target's channels: the offset reference column as stored
+    # (n_row, n_chan, n_corr); None for --offset-model point or without that step
+    off_data: Optional[np.ndarray] = None
 
 
 def average(data: np.ndarray, flag: np.ndarray, flag_row: np.ndarray):
@@ -76,6 +81,17 @@ def reduce(data: np.ndarray, flag: np.ndarray, flag_row: np.ndarray,
     if band == "ref":
         return reduce_rows(data, good, channels.ref_chan_freq, channels.ref_freq)
     return reduce_rows(data, good, channels.tgt_chan_freq, channels.tgt_centre)
+
+
+def target_rows(data: np.ndarray, flag: np.ndarray, flag_row: np.ndarray,
+                channels: Optional[ChannelPlan], phase_needed: bool):
+    """The target's (n_row, n_corr) visibility and validity: :func:`reduce`, or with a
+    per-channel transfer that needs no target phase (PWC, CFPT; the n0 step across the
+    channels reads them itself) the validity alone and None: the delay fit's work and
+    memory are saved, and the output does not change."""
+    if channels is None or phase_needed:
+        return reduce(data, flag, flag_row, channels, "tgt")
+    return None, wideband.row_validity(data, flag, flag_row)
 
 
 def _keep(rows: ChunkRows, keep: np.ndarray, flag_row: bool) -> ChunkRows:
@@ -155,7 +171,11 @@ def read_chunk(run: RunPlan, group: GroupPlan, k: int, extent: Tuple[int, int],
     if columns.flag != "FLAG":   # --overwrite: the flags before hitops's first run
         tgt["FLAG"] = tgt.pop(columns.flag)
     channels = group.channels
-    tvis, tok = reduce(tgt[columns.target_data], tgt["FLAG"], t_idx.flag_row, channels, "tgt")
+    across = channels is not None and channels.across_channels
+    # the target's phase at the window centre: CWU's own count, and an n0 step on one channel
+    phase_needed = "cwu" in run.methods or (bool(columns.offset) and not across)
+    tvis, tok = target_rows(tgt[columns.target_data], tgt["FLAG"], t_idx.flag_row, channels,
+                            phase_needed)
     ref_data = ref[columns.ref_data]
     if columns.ref_model and channels is not None:
         # the model divides out channel by channel, before the channels are reduced
@@ -175,8 +195,12 @@ def read_chunk(run: RunPlan, group: GroupPlan, k: int, extent: Tuple[int, int],
         inner = (r_idx.time >= t0) & (r_idx.time < t1)
         rvis, rok = rvis[inner], rok[inner]
         r_idx = _keep(r_idx, inner, flag_row=False)
-    ovis = ook = None
-    if columns.offset and columns.offset_is_model and columns.model is None:
+    ovis = ook = off_data = None
+    if columns.offset and across:
+        # the n0 step across the channels compares channel by channel (a point model: none)
+        if not (columns.offset_is_model and columns.model is None):
+            off_data = tgt[columns.offset]
+    elif columns.offset and columns.offset_is_model and columns.model is None:
         ovis = np.ones(tvis.shape, np.complex64)          # --offset-model point
         ook = np.ones(tvis.shape, bool)
     elif columns.offset:
@@ -187,4 +211,4 @@ def read_chunk(run: RunPlan, group: GroupPlan, k: int, extent: Tuple[int, int],
                      ref_vis=rvis, ref_ok=rok, ref_swapped=r_idx.swapped, off_vis=ovis,
                      off_ok=ook, tgt_grid=_grid(match.n_bl, n_t, t_idx.bl, t_idx.time - t0),
                      ref_grid=_grid(match.n_bl, n_t, r_idx.bl, r_idx.time - t0),
-                     reference=reference)
+                     reference=reference, off_data=off_data)

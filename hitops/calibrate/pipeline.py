@@ -16,13 +16,12 @@ For each time chunk of the plan, in time order:
 4. write the outputs and new flags through the run's
    :class:`hitops.calibrate.output.OutputTransaction`.
 
-With the n0 offset step a first pass (steps 1-3) sums the calibrated phase
-against the offset reference per scan or segment; the integers are solved
-(:mod:`hitops.calibrate.n0.step`) and the writing pass follows.  With a
-segmented tracker (smooth, antenna) the first pass keeps its output when it fits in a fifth of the
-memory budget, and the writing pass only shifts it by 2 pi eps k per segment
-(:func:`hitops.calibrate.n0.step.offset_shifted_rows`) instead of tracking and
-transferring again.
+With the n0 offset step a first pass (steps 1-3) sums the calibrated phase against the offset
+reference per scan or segment (per target channel across a window); the integers are solved
+(:mod:`hitops.calibrate.n0.step`) and the writing pass follows.  With a segmented tracker (smooth,
+antenna) the first pass keeps its output when it fits in a fifth of the memory budget, and the
+writing pass only shifts it by 2 pi eps k per segment
+(:func:`hitops.calibrate.n0.step.offset_shifted_rows`) instead of tracking and transferring again.
 """
 
 from __future__ import annotations
@@ -41,7 +40,8 @@ from ..tracking.base import ChunkTracking, WrapTracker
 from ..tracking.count import Carry
 from ..tracking.factory import new_tracker
 from .chunk_read import ChunkData, read_chunk, read_target
-from .n0.step import OffsetSolution, OffsetSums, offset_shifted_rows, solve_offsets
+from .n0.step import (OffsetSolution, OffsetSums, channel_sums, offset_shifted_rows,
+                      offset_step_needed, solve_offsets)
 from .output import OutputTransaction
 from .plan import GroupPlan, RunPlan
 from .transfer import (SampleCounts, TransferInputs, TransferResult, group_rows, plan_groups,
@@ -282,7 +282,7 @@ class GroupPipeline:
         tracker = self.new_tracker()
         tgt_carry = Carry.empty(match.n_bl, n_corr)
         result = PassResult(samples=SampleCounts(), tracker=tracker,
-                            sums=OffsetSums.empty(match.n_bl, n_corr, scans.n_scan))
+                            sums=OffsetSums.for_group(self.group))
         for k, chunk, next_read in self.chunks(keep_reads):
             stage = time.perf_counter()
             tracked = tracker.track_chunk(chunk.t0, chunk.t1, chunk.reference)
@@ -290,9 +290,10 @@ class GroupPipeline:
             # a kept first pass sums the offsets here, from the rows (the groups then need
             # neither the target phases nor the reference/model column)
             sum_in_groups = offsets is None and kept is None
-            out, parts = self.transfer(chunk, tracked, offsets, tgt_carry, sum_in_groups,
-                                       offset_k)
+            out, parts = self.transfer(chunk, tracked, offsets, tgt_carry, sum_in_groups, offset_k)
             _add_parts(result, tracker, tgt_carry, parts)
+            if result.sums.window is not None and offsets is None and off_col:
+                channel_sums(result.sums, self.group, chunk, tracked.segment_keys, out)
             tracker.finish_chunk(chunk.t1)
             tgt_carry.last_scan = int(scans.scan_of_time[chunk.t1 - 1])
             if kept is not None:
@@ -378,8 +379,7 @@ def run_group(run: RunPlan, group: GroupPlan, tx: OutputTransaction, client) -> 
     if columns.offset and not step:
         log.warning("%s applies to pwc and cwu only; ignored for cfpt",
                     "--offset-model" if columns.offset_is_model else "--offset-reference-column")
-    elif step and group.eps == 0.0:
-        log.info("integer R: PWC has no n0 offset; the offset step is skipped")
+    elif step and not offset_step_needed(group):
         step = False
     if not step:
         return GroupResult.of(pipeline.run_pass(), OffsetSolution(), group.n_chunks)

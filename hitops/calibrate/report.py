@@ -180,7 +180,9 @@ def write_report(run: RunPlan, report: Dict, result: Optional[GroupResult],
 def no_offset_step_warning(run: RunPlan, group: GroupPlan, solution) -> Optional[str]:
     """The warning of a run that wrote PWC/CWU without the n0 step (None otherwise)."""
     written = [run.outputs[m] for m in ("pwc", "cwu") if m in run.outputs]
-    if not written or group.eps == 0.0 or solution.ran:
+    # integer R leaves no n0 offset on one channel; across a window it leaves a slope
+    across = group.channels is not None and group.channels.across_channels
+    if not written or solution.ran or (group.eps == 0.0 and not across):
         return None
     per = ("antenna (closure phases are right, the phases themselves are not)"
            if run.opts.tracker == "antenna" else "baseline")

@@ -30,7 +30,8 @@ class GroupRows:
     """The rows one baseline group's task reads, and its row grids.
 
     tgt_rows, ref_rows (n_bl, n_time): index into the row arrays, or -1; tgt_vis,
-    tgt_ok (n_tgt, n_corr); ref_vis, ref_ok (n_ref, n_corr_ref); ref_swapped
+    tgt_ok (n_tgt, n_corr) (tgt_vis None: a per-channel read that needed only the rows'
+    validity, hitops/calibrate/chunk_read.py); ref_vis, ref_ok (n_ref, n_corr_ref); ref_swapped
     (n_ref,); off_vis, off_ok (n_tgt, n_corr): the n0 step's offset reference (or
     model) when the task sums the step, else None.
     """
@@ -138,7 +139,8 @@ def transfer_group(inputs: TransferInputs) -> TransferResult:
         tgt_phase, tgt_valid = fpt.gather_phase(tgt_rows, rows.tgt_vis, rows.tgt_ok,
                                                 np.zeros(rows.tgt_vis.shape[0], bool), identity)
     else:  # PWC and CFPT do not need the target phase itself
-        tgt_valid = fpt.gather_valid(tgt_rows, rows.tgt_vis, rows.tgt_ok)
+        tgt_valid = (wideband.gather_ok(tgt_rows, rows.tgt_ok) if rows.tgt_vis is None
+                     else fpt.gather_valid(tgt_rows, rows.tgt_vis, rows.tgt_ok))
         tgt_phase = np.zeros((1, 1, 1))
     reference = inputs.reference.resolve(ref_phase, ref_valid, scan_of_time)
     tgt_wraps, tgt_carry = np.zeros((1, 1, 1), np.int64), inputs.tgt_carry

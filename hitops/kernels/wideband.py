@@ -128,6 +128,35 @@ def reference_phasors(vis, ok, chan_freq, ref_freq, delay):
 
 
 @numba.njit(cache=True, nogil=True)
+def row_validity(data, flag, flag_row):
+    """(n_row, n_corr) bool: some channel of the row is unflagged and usable.
+
+    What the target band's reduction would call valid (:func:`reference_phasors`, whose
+    mean is non-zero unless the usable channels cancel exactly), without reducing: PWC
+    and CFPT need only this of the target.
+    """
+    n_row, n_chan, n_corr = data.shape
+    out = np.zeros((n_row, n_corr), dtype=np.bool_)
+    for r in range(n_row):
+        if flag_row[r]:
+            continue
+        for c in range(n_corr):
+            for k in range(n_chan):
+                if not flag[r, k, c] and usable(data[r, k, c]):
+                    out[r, c] = True
+                    break
+    return out
+
+
+def gather_ok(rows, ok):
+    """(n_bl, n_corr, n_time) validity of the cells from a row validity ``ok`` (n_row,
+    n_corr) and the row grid ``rows`` (n_bl, n_time), -1 for none."""
+    has_row = rows >= 0
+    cells = ok[np.where(has_row, rows, 0)] & has_row[:, :, None]     # (n_bl, n_time, n_corr)
+    return np.ascontiguousarray(cells.transpose(0, 2, 1))
+
+
+@numba.njit(cache=True, nogil=True)
 def plain_average(vis, ok):
     """The vector average of the usable channels (what ``--average-channels`` does).
 

@@ -14,6 +14,11 @@ One module per job:
   lattice solve over every baseline (and both parallel hands, :mod:`.hands`);
 * :mod:`.lattice`: the integer lattice solver itself, pure.
 
+Across a target window's channels (issue 26) every sum is one per channel and a
+candidate k is scored by Re(sum_j z_j exp(-2 pi i R_j k)) (a
+:class:`~.baseline.WindowRatios`): the channels tell k from k + 43, which one
+channel cannot (docs/wideband.md, "The n0 step across the channels").
+
 The first pass's per-segment sums and the shift are numba kernels in
 :mod:`hitops.kernels.segments`.
 """

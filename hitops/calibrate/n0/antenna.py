@@ -21,7 +21,7 @@ from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 import numpy as np
 
 from ...tracking.state import PAIR_KEY, SEGMENT_KEY
-from .baseline import canonical_k, choose_offset
+from .baseline import WindowRatios, canonical_k, choose_channel_offset, choose_offset
 from .hands import HandPhases, hand_ties, parallel_hand_pair, phase_sync
 from .lattice import LatticeSolution, solve_lattice
 
@@ -35,8 +35,9 @@ class Edge(NamedTuple):
     key: int             # the segment key of the first pass's sums
     node_a: int          # the node of ant1's segment
     node_b: int          # the node of ant2's segment
-    z: complex           # sum of exp(i (Phi_model - Phi_out)) over its samples
-    n: int               # its samples
+    z: complex           # sum of exp(i (Phi_model - Phi_out)) over its samples; across a
+                         # window's channels, (n_chan,) one sum per channel
+    n: int               # its samples (over all channels)
 
 
 @dataclass
@@ -93,16 +94,45 @@ class _Problem:
     refants: List[int]
     segment_key: int
     pair: Optional[Tuple[int, int]]     # the parallel hands solved together, or None
+    window: Optional[WindowRatios] = None   # the n0 step across a window's channels
 
     @property
     def two_pi_eps(self) -> float:
         return 2 * math.pi * self.eps
 
+    def lift(self, k):
+        """exp(i 2 pi eps k), or per channel exp(i 2 pi R_j k) (k scalar or (n,))."""
+        if self.window is None:
+            return np.exp(1j * self.two_pi_eps * k)
+        return self.window.turns(k)
+
+    def shift(self, d):
+        """exp(-i 2 pi eps d), or per channel exp(-i 2 pi R_j d): an edge's sum after d."""
+        if self.window is None:
+            return np.exp(-1j * self.two_pi_eps * d)
+        return np.conj(self.window.turns(d))
+
+    def total(self, z) -> complex:
+        """An edge sum as one number: itself, or summed over the channels."""
+        return complex(z) if self.window is None else complex(np.sum(z))
+
+    def choose(self, w, n: int, k: int):
+        """Candidate ``k`` described against the sum ``w`` (:func:`choose_offset`, or across
+        the channels :func:`choose_channel_offset`)."""
+        if self.window is None:
+            return choose_offset(w, n, self.eps, self.max_k, self.ambiguity_deg, k=k)
+        return choose_channel_offset(w, n, self.window, self.max_k, self.ambiguity_deg, k=k)
+
+    def canonical(self, k: int) -> int:
+        """The smallest equivalent |k| on one channel; across channels k itself."""
+        return canonical_k(k, self.eps, self.max_k) if self.window is None else int(k)
+
 
 def antenna_offsets(seg_sums, antenna_corrs, ant1, ant2, antenna_names, baseline_names,
                     corr_names, scans, eps: float, max_k: int, ambiguity_deg: float,
                     refants=(), segment_key: int = int(SEGMENT_KEY),
-                    hands: Optional[HandPhases] = None) -> AntennaOffsets:
+                    hands: Optional[HandPhases] = None,
+                    window: Optional[WindowRatios] = None) -> AntennaOffsets:
     """The n0 step of the antenna tracker: integers per antenna and segment on the lattice.
 
     ``seg_sums``: {(baseline, correlation, key): (z, n)} with z the sum of
@@ -118,6 +148,9 @@ def antenna_offsets(seg_sums, antenna_corrs, ant1, ant2, antenna_names, baseline
     alone), the second hand's edges are rotated by the antenna-based phase difference
     between the hands measured over the whole track (instrumental R-L phases), and one
     lattice solve per scan uses the samples of both hands: twice the data per integer.
+
+    ``window``: the sums are per target channel ((n_chan,) arrays) and the integers are
+    chosen across them (k and k + 43 differ across a wide window; docs/wideband.md).
     """
     groups = _sums_by_solve(seg_sums, antenna_corrs, segment_key)
     problem = _Problem(ant1=ant1, ant2=ant2, antenna_names=antenna_names,
@@ -125,7 +158,7 @@ def antenna_offsets(seg_sums, antenna_corrs, ant1, ant2, antenna_names, baseline
                        eps=eps, max_k=max_k, ambiguity_deg=ambiguity_deg,
                        refants=[int(r) for r in refants], segment_key=segment_key,
                        pair=parallel_hand_pair(corr_names, antenna_corrs)
-                       if hands is not None else None)
+                       if hands is not None else None, window=window)
     tie = _hand_links(problem.pair, hands)
     units = [_unit_graph(unit, groups, tie, problem)
              for unit in _solve_units(groups, problem.pair, {key[0] for key in tie})]
@@ -183,7 +216,8 @@ def _unit_graph(unit, groups, tie, problem: _Problem) -> SolveUnit:
             seg = key % problem.segment_key
             va = nodes.setdefault((c, int(problem.ant1[b]), seg // PAIR_KEY), len(nodes))
             vb = nodes.setdefault((c, int(problem.ant2[b]), seg % PAIR_KEY), len(nodes))
-            edges.append(Edge(c, s, b, key, va, vb, complex(zz), nn))
+            edges.append(Edge(c, s, b, key, va, vb, complex(zz) if problem.window is None
+                              else np.asarray(zz, np.complex128), nn))
     group = np.full(len(nodes), -1, np.int64)
     offset = np.zeros(len(nodes), np.int64)
     pair = problem.pair
@@ -228,10 +262,10 @@ def _hand_rotation(units: List[SolveUnit], problem: _Problem) -> np.ndarray:
                   if e.corr == second_hand else None)
             if z1 is None:
                 continue
-            z2 = e.z * np.exp(-1j * problem.two_pi_eps * (offset[e.node_a] - offset[e.node_b]))
+            z2 = e.z * problem.shift(offset[e.node_a] - offset[e.node_b])
             p, q = int(problem.ant1[e.baseline]), int(problem.ant2[e.baseline])
-            h[p, q] += z1 * np.conj(z2)
-            h[q, p] += np.conj(z1) * z2
+            h[p, q] += problem.total(z1 * np.conj(z2))
+            h[q, p] += problem.total(np.conj(z1) * z2)
     return phase_sync(h)
 
 
@@ -239,11 +273,11 @@ def _solve_unit(unit: SolveUnit, rot: np.ndarray, problem: _Problem,
                 result: AntennaOffsets) -> None:
     """One lattice solve, its integers per node, and its report entries added to ``result``."""
     group, offset, edges = unit.group, unit.offset, unit.edges
-    two_pi_eps, ant1, ant2 = problem.two_pi_eps, problem.ant1, problem.ant2
+    ant1, ant2 = problem.ant1, problem.ant2
     n_groups = int(group.max()) + 1 if group.size else 0
     ga = np.array([group[e.node_a] for e in edges], np.int64)
     gb = np.array([group[e.node_b] for e in edges], np.int64)
-    zrot = np.array([e.z * np.exp(-1j * two_pi_eps * (offset[e.node_a] - offset[e.node_b]))
+    zrot = np.array([e.z * problem.shift(offset[e.node_a] - offset[e.node_b])
                      * ((rot[int(ant1[e.baseline])] * np.conj(rot[int(ant2[e.baseline])]))
                         if unit.joint and e.corr == problem.pair[1] else 1.0)
                      for e in edges], np.complex128)
@@ -254,10 +288,10 @@ def _solve_unit(unit: SolveUnit, rot: np.ndarray, problem: _Problem,
             if p == r and int(group[unit.nodes[(c, p, sp)]]) not in gauge_order:
                 gauge_order.append(int(group[unit.nodes[(c, p, sp)]]))
     sol = solve_lattice(n_groups, ga, gb, zrot, n, problem.eps, problem.max_k,
-                        gauge_order=gauge_order)
-    k_node = np.array([canonical_k(int(sol.k[group[v]] + offset[v]), problem.eps, problem.max_k)
+                        gauge_order=gauge_order, window=problem.window)
+    k_node = np.array([problem.canonical(int(sol.k[group[v]] + offset[v]))
                        for v in range(len(unit.nodes))], np.int64)
-    node_ph = np.exp(1j * two_pi_eps * k_node)
+    node_ph = problem.lift(k_node)
     hands_label = "+".join(problem.corr_names[c] for c in unit.corrs)
     _series_entries(unit, k_node, node_ph, problem, result)
     _antenna_entries(unit, sol, k_node, hands_label, problem, result)
@@ -270,7 +304,7 @@ def _series_entries(unit: SolveUnit, k_node, node_ph, problem: _Problem,
     for e in unit.edges:
         d = int(k_node[e.node_a] - k_node[e.node_b])
         result.segment_k[(e.baseline, e.corr, e.key)] = d
-        after = e.z * np.conj(node_ph[e.node_a]) * node_ph[e.node_b]
+        after = problem.total(e.z * np.conj(node_ph[e.node_a]) * node_ph[e.node_b])
         result.series.append({
             "baseline": problem.baseline_names[e.baseline], "correlation": problem.corr_names[e.corr],
             "scan": int(problem.scans[unit.scan]), "segment": int(e.key % problem.segment_key),
@@ -289,9 +323,9 @@ def _antenna_entries(unit: SolveUnit, sol: LatticeSolution, k_node, hands_label:
     for v, (c, p, seg) in enumerate(sorted(unit.nodes, key=unit.nodes.get)):
         g = int(group[v])
         # the group's sum over both hands, in this node's frame
-        w = complex(sol.node_sum[g]) * np.exp(1j * problem.two_pi_eps * offset[v])
-        choice = choose_offset(w, int(sol.node_count[g]), problem.eps, problem.max_k,
-                               problem.ambiguity_deg, k=int(k_node[v]))
+        w = (complex(sol.node_sum[g]) if problem.window is None else sol.node_sum[g]) \
+            * problem.lift(offset[v])
+        choice = problem.choose(w, int(sol.node_count[g]), k=int(k_node[v]))
         entry = {"antenna": problem.antenna_names[p], "correlation": problem.corr_names[c],
                  "scan": int(problem.scans[unit.scan]), "segment": int(seg),
                  "reference": g in gauges,
@@ -322,8 +356,8 @@ def _solve_entries(unit: SolveUnit, sol: LatticeSolution, ga, n, node_ph, hands_
         for c in unit.corrs:
             cidx = [i for i in idx if edges[i].corr == c]
             samples = int(sum(n[i] for i in cidx))
-            after = [edges[i].z * np.conj(node_ph[edges[i].node_a]) * node_ph[edges[i].node_b]
-                     for i in cidx]
+            after = [problem.total(edges[i].z * np.conj(node_ph[edges[i].node_a])
+                                   * node_ph[edges[i].node_b]) for i in cidx]
             mism = np.array([math.degrees(math.atan2(a.imag, a.real)) for a in after])
             worst = int(np.argmax(np.abs(mism))) if cidx else None
             result.solves.append({

@@ -94,3 +94,65 @@ def canonical_k(k: int, eps: float, max_k: int) -> int:
         m += 1
     return int(k)
 
+
+
+def channel_candidates(max_k: int) -> np.ndarray:
+    """|k| <= max_k, smallest |k| first (0, -1, 1, ...): ties go to the smallest |k|."""
+    ks = np.arange(-int(max_k), int(max_k) + 1, dtype=np.int64)
+    return ks[np.argsort(np.abs(ks), kind="stable")]
+
+
+@dataclass(frozen=True)
+class WindowRatios:
+    """A target window's ratios for the n0 step across its channels: ``ratios`` (n_chan,)
+    R_j = nu_j / nu_ref, ``centre`` R_0 at the window centre nu_0 (where the output's
+    phasor refers), ``eps`` R_0's fractional part (the group's eps)."""
+
+    ratios: np.ndarray
+    centre: float
+    eps: float
+
+    def turns(self, k) -> np.ndarray:
+        """exp(2*pi*i*R_j*k) per channel (k scalar: (n_chan,); k (n,): (n, n_chan)), from the
+        fractional turns of R_j*k only (exact for |k| up to ~1e6)."""
+        t = np.multiply.outer(np.asarray(k, np.float64), self.ratios)
+        return np.exp(2j * math.pi * (t - np.floor(t)))
+
+
+def choose_channel_offset(z_chan, count: int, window: WindowRatios, max_k: int,
+                          ambiguity_deg: float, k: int | None = None) -> OffsetChoice | None:
+    """:func:`choose_offset` over a window's channels: k in [-max_k, max_k] maximising
+    Re(sum_j z_j exp(-2*pi*i*R_j*k)) (:func:`hitops.kernels.wideband.channel_offset_scores`).
+
+    ``z_chan`` (n_chan,) the per-channel sums, ``count`` their samples over all channels.
+    A score s reads as the residual arccos(s) (one channel: |measured - offset|, as
+    :func:`choose_offset`); ``measured_deg`` is the offset at the window centre (the sums
+    with the chosen k's slope across the window taken out), ``offset_deg`` 2*pi*eps*k.
+    ``ambiguous``: the runner-up (any other k: across channels k and k + 43 differ) within
+    ``ambiguity_deg`` of the best.  ``k``: describe that candidate instead of choosing.
+    None when there are no samples.
+    """
+    from ...kernels.wideband import channel_offset_scores
+
+    z_chan = np.asarray(z_chan, np.complex128)
+    if count <= 0 or not np.any(z_chan != 0):
+        return None
+    ks = channel_candidates(max_k)
+    if k is not None and int(k) not in ks:
+        ks = np.append(ks, np.int64(k))
+    scores = channel_offset_scores(z_chan, window.ratios, ks)
+    residual = np.degrees(np.arccos(np.clip(scores, -1.0, 1.0)))
+    best = int(np.argmax(scores)) if k is None else int(np.flatnonzero(ks == int(k))[0])
+    others = np.flatnonzero(np.arange(ks.size) != best)
+    runner = int(others[np.argmax(scores[others])]) if others.size else None
+    best_k = int(ks[best])
+    slope = (window.ratios - window.centre) * best_k
+    aligned = complex(np.sum(z_chan * np.exp(-2j * math.pi * (slope - np.floor(slope)))))
+    return OffsetChoice(
+        k=best_k, offset_deg=math.degrees(_wrap(2 * math.pi * window.eps * best_k)),
+        measured_deg=math.degrees(math.atan2(aligned.imag, aligned.real)),
+        residual_deg=float(residual[best]),
+        runner_up_k=None if runner is None else int(ks[runner]),
+        runner_up_residual_deg=None if runner is None else float(residual[runner]),
+        coherence=float(abs(aligned) / count), samples=int(count),
+        ambiguous=bool(runner is not None and residual[runner] - residual[best] < ambiguity_deg))

@@ -33,6 +33,10 @@ exhaustive (the global optimum); otherwise coordinate descent from two starts
 (a maximum spanning tree of the edges grown from the gauge, and the rounded
 leading eigenvector of the Hermitian edge matrix, the continuous phase
 synchronisation) and the better end point is kept.  The kernels are numba.
+
+Across a target window's channels (``window``, issue 26) an edge holds one sum per
+channel, candidate j rotates channel c by 2 pi R_c j, and S sums over the channels:
+every |j| <= max_k is then its own candidate (k and k + 43 differ across the window).
 """
 
 from __future__ import annotations
@@ -43,6 +47,8 @@ from typing import Optional, Sequence
 
 import numba
 import numpy as np
+
+from .baseline import WindowRatios, channel_candidates
 
 TWO_PI = 2.0 * math.pi
 #: free-node candidate combinations searched exhaustively (43^3 = 79 507 for eps = 29/43)
@@ -75,32 +81,49 @@ def candidates(eps: float, max_k: int):
     return ks[keep], np.exp(1j * phase[keep])
 
 
+# The kernels below take the edge sums z (n_edges, n_chan) and the candidates' phasors
+# (n_candidates, n_chan): one column for the lattice of one channel (2*pi*eps*k), one per
+# target channel for the n0 step across a window (2*pi*R_j*k, hitops/calibrate/n0/baseline.py);
+# a score is summed over the channels.
+
+
 @numba.njit(cache=True, nogil=True)
 def _score(a, b, z, phasor, u):
     s = 0.0
-    for e in range(a.size):
-        s += (z[e] * np.conj(phasor[u[a[e]]]) * phasor[u[b[e]]]).real
+    for e in range(a.shape[0]):
+        for ch in range(z.shape[1]):
+            s += (z[e, ch] * np.conj(phasor[u[a[e]], ch]) * phasor[u[b[e]], ch]).real
     return s
 
 
 @numba.njit(cache=True, nogil=True)
 def _node_sum(v, a, b, z, phasor, u):
-    w = 0j
-    for e in range(a.size):
-        if a[e] == v:
-            w += z[e] * phasor[u[b[e]]]
-        elif b[e] == v:
-            w += np.conj(z[e]) * phasor[u[a[e]]]
+    w = np.zeros(z.shape[1], np.complex128)
+    for e in range(a.shape[0]):
+        for ch in range(z.shape[1]):
+            if a[e] == v:
+                w[ch] += z[e, ch] * phasor[u[b[e]], ch]
+            elif b[e] == v:
+                w[ch] += np.conj(z[e, ch]) * phasor[u[a[e]], ch]
     return w
+
+
+@numba.njit(cache=True, nogil=True)
+def _fit(w, phasor, i):
+    """Re(sum over channels of conj(P_i) w): how well candidate i explains the node sum w."""
+    s = 0.0
+    for ch in range(w.shape[0]):
+        s += (np.conj(phasor[i, ch]) * w[ch]).real
+    return s
 
 
 @numba.njit(cache=True, nogil=True)
 def _best_candidate(w, phasor):
     """Index of the candidate maximising Re(conj(P) w); ties to the earlier (smaller |k|)."""
     best = 0
-    best_s = (np.conj(phasor[0]) * w).real
-    for i in range(1, phasor.size):
-        s = (np.conj(phasor[i]) * w).real
+    best_s = _fit(w, phasor, 0)
+    for i in range(1, phasor.shape[0]):
+        s = _fit(w, phasor, i)
         if s > best_s + 1e-12 * (1.0 + abs(best_s)):
             best_s = s
             best = i
@@ -118,13 +141,13 @@ def _descent(a, b, z, phasor, u0, fixed, max_sweeps):
             if fixed[v]:
                 continue
             w = _node_sum(v, a, b, z, phasor, u)
-            if w == 0:
+            if not np.any(w != 0):
                 continue
             best = _best_candidate(w, phasor)
             if best != u[v]:
                 # move only on a strict gain (no cycling between equal points)
-                old = (np.conj(phasor[u[v]]) * w).real
-                new = (np.conj(phasor[best]) * w).real
+                old = _fit(w, phasor, u[v])
+                new = _fit(w, phasor, best)
                 if new > old + 1e-12 * (1.0 + abs(old)):
                     u[v] = best
                     changed = True
@@ -137,7 +160,7 @@ def _descent(a, b, z, phasor, u0, fixed, max_sweeps):
 def _exhaustive(a, b, z, phasor, u0, free):
     """Every combination of candidates on the ``free`` nodes; the best (first on ties)."""
     u = u0.copy()
-    m = phasor.size
+    m = phasor.shape[0]
     f = free.size
     digits = np.zeros(f, np.int64)
     for i in range(f):
@@ -202,7 +225,7 @@ def _tree_start(n_nodes, a, b, z, phasor, gauges):
     u = np.zeros(n_nodes, np.int64)
     done = np.zeros(n_nodes, bool)
     done[gauges] = True
-    order = np.argsort(-np.abs(z), kind="stable")
+    order = np.argsort(-np.abs(z).sum(axis=1), kind="stable")
     progress = True
     while progress:
         progress = False
@@ -223,12 +246,15 @@ def _tree_start(n_nodes, a, b, z, phasor, gauges):
 
 def _eigen_start(n_nodes, a, b, z, phasor, comp, gauges):
     """Leading eigenvector of H (H_ab = z_e / 2 + conj for the transpose), per component
-    phase-referenced to its gauge and rounded to the nearest lattice point."""
+    phase-referenced to its gauge and rounded to the nearest lattice point.  Across a
+    window's channels the relaxation uses the middle channel: its candidates nearest the
+    eigenvector's phase (the smallest |k| among equals) start the descent."""
+    mid = z.shape[1] // 2
     h = np.zeros((n_nodes, n_nodes), np.complex128)
     for e in range(a.size):
         # S = Re(sum_e z_e conj(x_a) x_b) = x^H H x with H Hermitian
-        h[a[e], b[e]] += 0.5 * z[e]
-        h[b[e], a[e]] += 0.5 * np.conj(z[e])
+        h[a[e], b[e]] += 0.5 * z[e, mid]
+        h[b[e], a[e]] += 0.5 * np.conj(z[e, mid])
     u = np.zeros(n_nodes, np.int64)
     for c, g in enumerate(gauges):
         nodes = np.flatnonzero(comp == c)
@@ -242,11 +268,14 @@ def _eigen_start(n_nodes, a, b, z, phasor, comp, gauges):
         x = x * np.conj(ref) / abs(ref)
         for i, v in enumerate(nodes):
             if x[i] != 0:
-                u[v] = _best_candidate(x[i] / abs(x[i]), phasor)
+                w = np.zeros(z.shape[1], np.complex128)
+                w[mid] = x[i] / abs(x[i])
+                u[v] = _best_candidate(w, phasor)
     return u
 
 
-def _descent_with_gauge_moves(a, b, z, ks, phasor, u0, fixed, comp, gauges, eps, max_sweeps):
+def _descent_with_gauge_moves(a, b, z, ks, phasor, u0, fixed, comp, gauges, eps, max_sweeps,
+                              per_channel: bool):
     """Coordinate descent in which a gauge may move too.
 
     Moving the gauge alone is the same as moving every other node of its component the
@@ -254,7 +283,8 @@ def _descent_with_gauge_moves(a, b, z, ks, phasor, u0, fixed, comp, gauges, eps,
     sits off its lattice point would otherwise hold the whole component on the wrong
     side.  When the gauge's best point is not its own, every other node of the
     component is shifted by minus that integer (if each shifted value is a candidate)
-    and the descent goes on; the gauge stays at 0.
+    and the descent goes on; the gauge stays at 0.  ``per_channel``: the candidates are
+    every integer (a window's channels tell them all apart), found by value.
     """
     phase = np.angle(phasor)
     u = u0.copy()
@@ -263,19 +293,22 @@ def _descent_with_gauge_moves(a, b, z, ks, phasor, u0, fixed, comp, gauges, eps,
         moved = False
         for c, g in enumerate(gauges):
             w = _node_sum(int(g), a, b, z, phasor, u)
-            if w == 0:
+            if not np.any(w != 0):
                 continue
             best = _best_candidate(w, phasor)
-            if best == u[g] or not ((np.conj(phasor[best]) * w).real
-                                    > (np.conj(phasor[u[g]]) * w).real * (1 + 1e-12) + 1e-12):
+            if best == u[g] or not (_fit(w, phasor, best)
+                                    > _fit(w, phasor, u[g]) * (1 + 1e-12) + 1e-12):
                 continue
             shift = int(ks[best] - ks[u[g]])
             members = np.flatnonzero((comp == c) & (np.arange(u.size) != g))
             new = u.copy()
             ok = True
             for v in members:
-                target = float(_wrap(TWO_PI * eps * (ks[u[v]] - shift)))
-                hit = np.flatnonzero(np.abs(_wrap(phase - target)) < 1e-7)
+                if per_channel:
+                    hit = np.flatnonzero(ks == ks[u[v]] - shift)
+                else:
+                    target = float(_wrap(TWO_PI * eps * (ks[u[v]] - shift)))
+                    hit = np.flatnonzero(np.abs(_wrap(phase[:, 0] - target)) < 1e-7)
                 if not hit.size:
                     ok = False
                     break
@@ -289,9 +322,9 @@ def _descent_with_gauge_moves(a, b, z, ks, phasor, u0, fixed, comp, gauges, eps,
 
 
 def node_sums(a, b, z, phasor_of_node):
-    """W_v of every node for node phasors ``phasor_of_node`` (exp(i 2 pi eps j_v))."""
-    n = phasor_of_node.size
-    w = np.zeros(n, np.complex128)
+    """W_v of every node for node phasors ``phasor_of_node`` (exp(i 2 pi eps j_v); per
+    channel: (n_nodes, n_chan) with ``z`` (n_edges, n_chan))."""
+    w = np.zeros(phasor_of_node.shape, np.complex128)
     np.add.at(w, a, z * phasor_of_node[b])
     np.add.at(w, b, np.conj(z) * phasor_of_node[a])
     return w
@@ -299,14 +332,18 @@ def node_sums(a, b, z, phasor_of_node):
 
 def solve_lattice(n_nodes: int, edge_a, edge_b, edge_sum, edge_count, eps: float, max_k: int,
                   gauge_order: Optional[Sequence[int]] = None,
-                  exhaustive_limit: int = EXHAUSTIVE_LIMIT, max_sweeps: int = 200) -> LatticeSolution:
+                  exhaustive_limit: int = EXHAUSTIVE_LIMIT, max_sweeps: int = 200,
+                  window: Optional[WindowRatios] = None) -> LatticeSolution:
     """Integers j (|j| <= max_k) per node maximising sum_e Re(z_e exp(-i 2 pi eps (j_a - j_b))).
 
     ``edge_a``/``edge_b``: node indices of each edge (baseline p-q: a = p's segment,
     b = q's); ``edge_sum``: z_e = sum of exp(i (Phi_model - Phi_out)) over its
     samples; ``edge_count``: its samples.  ``gauge_order``: nodes preferred as the
     gauge (k = 0) of their component (the reference antenna's); otherwise the node
-    with the most samples.  Pure: no input is changed.
+    with the most samples.  ``window``: the n0 step across a target window's channels;
+    ``edge_sum`` is then (n_edges, n_chan), the score sum_e sum_j Re(z_ej exp(-i 2 pi R_j
+    (j_a - j_b))), and every |j| <= max_k is a candidate of its own (the channels tell k
+    from k + 43).  Pure: no input is changed.
     """
     a = np.asarray(edge_a, np.int64)
     b = np.asarray(edge_b, np.int64)
@@ -314,8 +351,15 @@ def solve_lattice(n_nodes: int, edge_a, edge_b, edge_sum, edge_count, eps: float
     cnt = np.asarray(edge_count, np.int64)
     if np.any(a == b):
         raise ValueError("an edge joins a node to itself")
-    use = (cnt > 0) & (z != 0)
-    a, b, z_used = a[use], b[use], z[use]
+    if window is None:
+        ks, phasor = candidates(eps, max_k)
+        z_cols, phasor_cols = z[:, None], phasor[:, None]
+    else:
+        ks = channel_candidates(max_k)
+        phasor = phasor_cols = window.turns(ks)
+        z_cols = z
+    use = (cnt > 0) & np.any(z_cols != 0, axis=1)
+    a, b, z_used = a[use], b[use], z_cols[use]
     node_count = np.zeros(n_nodes, np.int64)
     np.add.at(node_count, np.asarray(edge_a, np.int64), cnt)
     np.add.at(node_count, np.asarray(edge_b, np.int64), cnt)
@@ -328,7 +372,6 @@ def solve_lattice(n_nodes: int, edge_a, edge_b, edge_sum, edge_count, eps: float
         ranked = sorted(nodes.tolist(), key=lambda v: (preferred.get(v, len(preferred)),
                                                         -node_count[v], v))
         gauges[c] = ranked[0]
-    ks, phasor = candidates(eps, max_k)
     fixed = np.zeros(n_nodes, bool)
     fixed[gauges] = True
     free = np.flatnonzero(~fixed)
@@ -337,15 +380,15 @@ def solve_lattice(n_nodes: int, edge_a, edge_b, edge_sum, edge_count, eps: float
         u = np.zeros(n_nodes, np.int64)
         method = "trivial"
     elif float(ks.size) ** free.size <= exhaustive_limit:
-        u = _exhaustive(a, b, z_used, phasor, np.zeros(n_nodes, np.int64), free)
+        u = _exhaustive(a, b, z_used, phasor_cols, np.zeros(n_nodes, np.int64), free)
         method = "exhaustive"
     else:
         best = None
-        for start in (_tree_start(n_nodes, a, b, z_used, phasor, gauges),
-                      _eigen_start(n_nodes, a, b, z_used, phasor, comp, gauges)):
-            cand = _descent_with_gauge_moves(a, b, z_used, ks, phasor, start, fixed, comp,
-                                             gauges, eps, max_sweeps)
-            s = _score(a, b, z_used, phasor, cand)
+        for start in (_tree_start(n_nodes, a, b, z_used, phasor_cols, gauges),
+                      _eigen_start(n_nodes, a, b, z_used, phasor_cols, comp, gauges)):
+            cand = _descent_with_gauge_moves(a, b, z_used, ks, phasor_cols, start, fixed, comp,
+                                             gauges, eps, max_sweeps, window is not None)
+            s = _score(a, b, z_used, phasor_cols, cand)
             if best is None or s > best[0] + 1e-12 * (1.0 + abs(best[0])):
                 best = (s, cand)
         u = best[1]

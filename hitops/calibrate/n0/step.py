@@ -24,12 +24,14 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
+from ...kernels import fpt
+from ...kernels.channel_offsets import channel_offset_sums
 from ...kernels.segments import shifted_rows
 from ...tracking.base import WrapTracker
 from ...tracking.state import SEGMENT_KEY, apply_segment_offsets
 from ..plan import GroupPlan, RunPlan
 from .antenna import antenna_offsets
-from .baseline import choose_offset
+from .baseline import WindowRatios, choose_channel_offset, choose_offset
 from .hands import HandPhases
 
 log = logging.getLogger("hitops.calibrate")
@@ -65,16 +67,74 @@ class OffsetSums:
     """What the first pass sums for the step: exp(i (Phi_ref - Phi_out)) over calibrated
     samples per (baseline, correlation, scan), ``scan_sums`` (complex128) and
     ``scan_counts`` (int64) (n_bl, n_corr, n_scan), and per segment,
-    ``segment_sums`` {(baseline, correlation, segment key): [z, n]} (segmented trackers)."""
+    ``segment_sums`` {(baseline, correlation, segment key): [z, n]} (segmented trackers).
+
+    ``window``: the step runs across a target window's channels; every z is then an
+    (n_chan,) array, one sum per channel (``scan_sums`` (n_bl, n_corr, n_scan, n_chan)),
+    and n counts the samples of all channels."""
 
     scan_sums: np.ndarray
     scan_counts: np.ndarray
     segment_sums: Dict[tuple, list] = field(default_factory=dict)
+    window: Optional[WindowRatios] = None
 
     @classmethod
-    def empty(cls, n_bl: int, n_corr: int, n_scan: int) -> "OffsetSums":
-        return cls(np.zeros((n_bl, n_corr, n_scan), dtype=np.complex128),
-                   np.zeros((n_bl, n_corr, n_scan), dtype=np.int64))
+    def for_group(cls, group: GroupPlan) -> "OffsetSums":
+        """Empty sums for ``group``: across its target window's channels when it has several."""
+        channels = group.channels
+        return cls.empty(group.match.n_bl, group.n_corr, group.grid.scans.n_scan,
+                         None if channels is None else channels.offset_window(group.eps))
+
+    @classmethod
+    def empty(cls, n_bl: int, n_corr: int, n_scan: int,
+              window: Optional[WindowRatios] = None) -> "OffsetSums":
+        chan = () if window is None else (window.ratios.size,)
+        return cls(np.zeros((n_bl, n_corr, n_scan) + chan, dtype=np.complex128),
+                   np.zeros((n_bl, n_corr, n_scan), dtype=np.int64), window=window)
+
+    def add_channel_sums(self, index, sums, counts, segmented: bool) -> None:
+        """Add :func:`hitops.kernels.channel_offsets.channel_offset_sums`' result: keyed by
+        tracking segment (``segmented``) or by scan index."""
+        for (b, c, key), z, n in zip(index.tolist(), sums, counts.sum(axis=1).tolist()):
+            if segmented:
+                entry = self.segment_sums.setdefault((b, c, key), [0j, 0])
+                entry[0] = entry[0] + z
+                entry[1] += n
+            else:
+                self.scan_sums[b, c, key] += z
+                self.scan_counts[b, c, key] += n
+
+
+def offset_step_needed(group: GroupPlan) -> bool:
+    """False when PWC carries no n0 offset: an integer R on one target channel.  Across a
+    window R_j = R_0 + (nu_j - nu_0)/nu_ref is not an integer off the centre, so a wrong
+    count leaves a phase slope across the window, which the step can see."""
+    if group.eps != 0.0:
+        return True
+    window = OffsetSums.for_group(group).window
+    if window is None:
+        log.info("integer R: PWC has no n0 offset; the offset step is skipped")
+        return False
+    log.info("integer R at the target window's centre: the n0 step runs across the window's "
+             "channels (R_j %.8g .. %.8g)", window.ratios.min(), window.ratios.max())
+    return True
+
+
+def channel_sums(sums: OffsetSums, group: GroupPlan, chunk, segment_keys, out) -> None:
+    """Add one chunk's per-channel sums of the n0 step to ``sums`` (a first pass across a
+    window's channels): per segment (``segment_keys`` (n_bl, n_corr, n_time), segmented
+    trackers) or per scan.  ``chunk``: the :class:`hitops.calibrate.chunk_read.ChunkData`;
+    ``out``: its transfer in row order (the pipeline's RowOutputs: PWC's, else CWU's,
+    phasors and delays)."""
+    method = fpt.PWC if fpt.PWC in out.phasor_rows else fpt.CWU
+    keys = segment_keys
+    if keys is None:
+        scan = group.grid.scans.scan_of_time[chunk.t0:chunk.t1]
+        keys = np.broadcast_to(scan[None, None, :], (group.match.n_bl, group.n_corr, scan.size))
+    sums.add_channel_sums(*channel_offset_sums(
+        chunk.tgt_grid, keys, chunk.tgt_data, chunk.tgt_flag, chunk.tgt_flag_row,
+        out.phasor_rows[method], out.delay_rows[method], group.channels.chan_offset,
+        chunk.off_data), segmented=segment_keys is not None)
 
 
 def solve_offsets(run: RunPlan, group: GroupPlan, tracker: WrapTracker,
@@ -86,7 +146,7 @@ def solve_offsets(run: RunPlan, group: GroupPlan, tracker: WrapTracker,
     shape = (match.n_bl, group.n_corr, group.grid.scans.n_scan)
     solution = OffsetSolution(offsets=np.zeros(shape), offset_k=np.zeros(shape, np.int64))
     if not tracker.segmented:
-        _per_scan(solution, group, sums.scan_sums, sums.scan_counts, max_k, ambiguity)
+        _per_scan(solution, group, sums, max_k, ambiguity)
     else:
         # segmented trackers: the n0 step per segment (every scan starts one; long gaps and
         # jumps start more); k is added to the segment's wrap count
@@ -94,8 +154,8 @@ def solve_offsets(run: RunPlan, group: GroupPlan, tracker: WrapTracker,
         solution.segment_k = {}
         if tracker.name == "antenna":
             segment_sums = _antenna_lattice(solution, group, segment_sums, tracker, max_k,
-                                            ambiguity)
-        _per_segment(solution, group, segment_sums, max_k, ambiguity)
+                                            ambiguity, sums.window)
+        _per_segment(solution, group, segment_sums, max_k, ambiguity, sums.window)
     chosen = [e for e in solution.series if e.get("samples") and e.get("solve") != "antenna"]
     if chosen or solution.solves is None:
         log.info("offset step: n0 chosen per baseline for %d series (|k| <= %d); %d "
@@ -110,7 +170,7 @@ def solve_offsets(run: RunPlan, group: GroupPlan, tracker: WrapTracker,
 
 
 def _antenna_lattice(solution: OffsetSolution, group: GroupPlan, sums, tracker: WrapTracker,
-                     max_k: int, ambiguity: float):
+                     max_k: int, ambiguity: float, window: Optional[WindowRatios]):
     """Integers per antenna and segment for the parallel hands; returns the other sums."""
     match, scans = group.match, group.grid.scans
     antenna_corrs = {c for c, name in enumerate(match.corr_names)
@@ -121,7 +181,8 @@ def _antenna_lattice(solution: OffsetSolution, group: GroupPlan, sums, tracker: 
     found = antenna_offsets(
         sums, antenna_corrs, match.ant1, match.ant2, list(group.antenna_names),
         match.baseline_names, match.corr_names, scans.scan_numbers, group.eps, max_k, ambiguity,
-        refants=group.tracking.refants, segment_key=int(SEGMENT_KEY), hands=hands)
+        refants=group.tracking.refants, segment_key=int(SEGMENT_KEY), hands=hands,
+        window=window)
     solution.segment_k.update(found.segment_k)
     solution.series.extend(found.series)
     solution.antennas, solution.solves = found.antennas, found.solves
@@ -145,11 +206,18 @@ def _entry(choice, base: dict, segment: bool) -> dict:
     return entry
 
 
+def _choose(z, n, eps: float, max_k: int, ambiguity: float, window: Optional[WindowRatios]):
+    """One series' k: on the window centre's lattice, or across the window's channels."""
+    if window is None:
+        return choose_offset(complex(z), int(n), eps, max_k, ambiguity)
+    return choose_channel_offset(z, int(n), window, max_k, ambiguity)
+
+
 def _per_segment(solution: OffsetSolution, group: GroupPlan, sums, max_k: int,
-                 ambiguity: float) -> None:
+                 ambiguity: float, window: Optional[WindowRatios]) -> None:
     match, scan_numbers = group.match, group.grid.scans.scan_numbers
     for (b, c, key), (z, n) in sorted(sums.items()):
-        choice = choose_offset(complex(z), int(n), group.eps, max_k, ambiguity)
+        choice = _choose(z, n, group.eps, max_k, ambiguity, window)
         base = {"baseline": match.baseline_names[b], "correlation": match.corr_names[c],
                 "scan": int(scan_numbers[key // SEGMENT_KEY]), "segment": int(key % SEGMENT_KEY)}
         if choice is not None:
@@ -157,14 +225,14 @@ def _per_segment(solution: OffsetSolution, group: GroupPlan, sums, max_k: int,
         solution.series.append(_entry(choice, base, segment=True))
 
 
-def _per_scan(solution: OffsetSolution, group: GroupPlan, sums, counts, max_k: int,
+def _per_scan(solution: OffsetSolution, group: GroupPlan, sums: OffsetSums, max_k: int,
               ambiguity: float) -> None:
     match, scans = group.match, group.grid.scans
     for b in range(match.n_bl):
         for c in range(group.n_corr):
             for s in range(scans.n_scan):
-                choice = choose_offset(complex(sums[b, c, s]), int(counts[b, c, s]), group.eps,
-                                       max_k, ambiguity)
+                choice = _choose(sums.scan_sums[b, c, s], sums.scan_counts[b, c, s], group.eps,
+                                 max_k, ambiguity, sums.window)
                 base = {"baseline": match.baseline_names[b], "correlation": match.corr_names[c],
                         "scan": int(scans.scan_numbers[s])}
                 if choice is not None:
