@@ -255,6 +255,7 @@ def test_refused_tables(solved, tmp_path):
     (["--tracker", "antenna"], "--tracker antenna with --reference-table"),
     (["--method", "cfpt", "--offset-model", "point"], "add pwc to --method"),
     (["--ratio", "2.6"], "--ratio with --reference-table"),
+    (["--calibrator-field", "CAL"], "--calibrator-field CAL with --reference-table"),
 ])
 def test_refused_combinations(solved, tmp_path, extra, culprit):
     pair, table = solved
