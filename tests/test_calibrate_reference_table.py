@@ -285,7 +285,7 @@ def test_channel_lattice_resolves_what_the_centre_lattice_cannot():
     one-channel lattice on the channel sums) takes a neighbour whose centre phase is within
     those degrees but whose slope across the window is wrong (39 turns: 4 deg at the centre,
     5.7 rad across the window)."""
-    from hitops.calibrate.channel_lattice import solve_channels
+    from hitops.calibrate.n0.channel_lattice import solve_channels
     from hitops.calibrate.n0.lattice import solve_lattice
 
     freq = 227.1e9 + (np.arange(16) - 7.5) * 125e6

@@ -165,7 +165,7 @@ def _plan_and_run(opts: CalibrateOptions, methods: List[str], ref_ms: str, targe
 
 def _run(run: RunPlan, client, started: float, prepared: PreparedInputs) -> Dict:
     """Every group pair into one OutputTransaction, committed once; then the report."""
-    from .phase_ref import check_calibrator_field, phase_reference, settle_n0_warnings
+    from .phaseref import check_calibrator_field, phase_reference, settle_n0_warnings
     from .pipeline import run_group
     from .report import combined_report, group_report, write_report
 

@@ -19,7 +19,7 @@ a row-by-row transfer such as AIPS SNCOR 'XFER' does), for comparison; ``cwu`` i
 rewrapping cancels the target band's unwrap, so with the same reference wrap count it
 is ``pwc`` (GUIDE section 1).  With ``--offset-model`` or ``--offset-reference-column``,
 ``pwc`` first solves each antenna's integer per segment (the n0 step,
-:mod:`hitops.calibrate.table_offsets`) in a pass over the target set.  The output column,
+:mod:`hitops.calibrate.n0.table`) in a pass over the target set.  The output column,
 FLAG and the staging follow the visibility path
 (:class:`~hitops.calibrate.output.OutputTransaction`: whole or not at all).
 """
@@ -189,9 +189,9 @@ def _chunks(target_ms: str, columns, chunk_rows: int, offset_column=None):
 
 def offset_step(prepared: PreparedTransfer, layout: TargetLayout, columns, chunk_rows: int,
                 opts: CalibrateOptions, target_ms: str):
-    """The n0 step (hitops/calibrate/table_offsets.py): a first pass over the target set,
+    """The n0 step (hitops/calibrate/n0/table.py): a first pass over the target set,
     one lattice solve per field and receptor; the transfer with the integers taken out."""
-    from .table_offsets import accumulate, apply_offsets, solve, solve_windows
+    from .n0.table import accumulate, apply_offsets, solve, solve_windows
 
     offset_column = None if columns.offset_is_model and not columns.model else columns.offset
     solve_on = set(solve_windows(prepared).values())

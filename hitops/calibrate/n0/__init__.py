@@ -12,7 +12,10 @@ One module per job:
   lattice point (:func:`~.baseline.choose_offset`; count and smooth trackers);
 * :mod:`.antenna`: the antenna tracker's integers per antenna and segment, one
   lattice solve over every baseline (and both parallel hands, :mod:`.hands`);
-* :mod:`.lattice`: the integer lattice solver itself, pure.
+* :mod:`.lattice`: the integer lattice solver itself, pure;
+* :mod:`.table` and :mod:`.channel_lattice`: the same step on a table's transferred
+  solutions (``--reference-table``): one integer per antenna, receptor and segment,
+  each channel keeping its own sum.
 
 Across a target window's channels (issue 26) every sum is one per channel and a
 candidate k is scored by Re(sum_j z_j exp(-2 pi i R_j k)) (a

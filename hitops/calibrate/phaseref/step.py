@@ -25,7 +25,7 @@ source-frequency phase referencing (Rioja & Dodson 2011, AJ 141, 114) removes it
 
 Before the solve, every scan of both fields is multiplied by exp(-i 2 pi R_k N), N the
 reference wrap count continued across the scan and field switches
-(hitops/calibrate/phase_ref_bridge.py): the count tracker restarts at every scan, and
+(hitops/calibrate/phaseref/bridge.py): the count tracker restarts at every scan, and
 without this each scan would carry its own 2 pi R_k n0.
 
 The correction is written into the staged output column itself (the same
@@ -45,11 +45,11 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from ..errors import InputError
-from ..io import read as msio
-from ..kernels.phase_ref import antenna_phasors, baseline_sums, model_residuals, phase_and_delay
-from ..kernels.wideband import rotate_channels
-from .output import STAGING_FLAG, VIS_DIMS
+from ...errors import InputError
+from ...io import read as msio
+from ...kernels.phase_ref import antenna_phasors, baseline_sums, model_residuals, phase_and_delay
+from ...kernels.wideband import rotate_channels
+from ..output import STAGING_FLAG, VIS_DIMS
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -275,7 +275,7 @@ def _refant(run, names: List[str], cal_ant: np.ndarray) -> int:
 
 def _bridge_window(table, tx, column: str, rows: np.ndarray, counts: np.ndarray, group,
                    block: int) -> None:
-    """Every scan's rows times exp(-i 2 pi R_k N) (hitops/calibrate/phase_ref_bridge.py):
+    """Every scan's rows times exp(-i 2 pi R_k N) (hitops/calibrate/phaseref/bridge.py):
     as a phase at nu_0 and a delay N / nu_ref, the per-channel transfer's own form."""
     if group.channels is not None:
         ratio, centre = group.channels.ratio, group.channels.tgt_centre
@@ -297,7 +297,7 @@ def _bridge_window(table, tx, column: str, rows: np.ndarray, counts: np.ndarray,
 def _reference_window(run, tx, table, column, meta, cal, ddid, groups, bridge) -> Dict:
     """One target window of one staged column: bridged, solved on the calibrator,
     applied to the other fields; its report entry."""
-    from .phase_ref_report import window_report
+    from .report import window_report
 
     group = groups[0]
     names = group.antenna_names
@@ -328,8 +328,8 @@ def phase_reference(run, tx, cal: Optional[CalibratorField]) -> Optional[Dict]:
     every staged output column of ``tx``; the report's entry (None without a calibrator)."""
     from casacore import tables as pt
 
-    from .phase_ref_bridge import switch_counts
-    from .phase_ref_report import log_summary
+    from .bridge import switch_counts
+    from .report import log_summary
 
     if cal is None:
         return None

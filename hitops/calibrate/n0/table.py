@@ -34,10 +34,10 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 
-from ..solutions.api import PreparedTransfer
-from ..solutions.transfer import TargetWindow
+from ...solutions.api import PreparedTransfer
+from ...solutions.transfer import TargetWindow
 from .channel_lattice import solve_channels
-from .n0.lattice import solve_lattice
+from .lattice import solve_lattice
 
 #: key of one baseline segment's sum: (series, receptor, segment, ant1, ant2)
 EdgeKey = Tuple[int, int, int, int, int]

@@ -24,10 +24,10 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 
-from ..io import read as msio
-from ..io.match import correlation_map, parse_antenna_map
-from ..io.stations import read_stations
-from .channels import reduce_rows
+from ...io import read as msio
+from ...io.match import correlation_map, parse_antenna_map
+from ...io.stations import read_stations
+from ..channels import reduce_rows
 
 #: a step at a scan's first sample beyond this (deg) is counted as a risky switch
 RISKY_STEP_DEG = 90.0
