@@ -133,3 +133,20 @@ def test_a_table_changed_after_indexing_is_refused(new_pair):
         t.putcell("TIME", 3, t.getcell("TIME", 3) + 0.25)
     with pytest.raises(MeasurementSetError, match="TIME changed while it was being read"):
         msio.compute_columns([(reader, READ, slice(0, reader.n_rows))])
+
+
+def test_a_local_run_keeps_no_dask_ms_order_in_its_budget():
+    """Without dask-ms (no cluster, one group) only the pair keys and the rows written stay
+    per row, so a 10^7-row baseline-major pair is cut into chunks of more than 100 000 rows
+    (the floor dask-ms's sort left it at) within the 1 GB default."""
+    from hitops.calibrate.memory import (FIXED_BYTES, LOCAL_ORDER_BYTES_PER_ROW, bytes_per_row,
+                                         read_bytes_per_row, rows_for_budget)
+
+    n = 2 * 10 ** 7
+    sorted_by_dask_ms = rows_for_budget(10 ** 9, n, 4, 1, 1, time_ordered=False, strict=False)
+    local = rows_for_budget(10 ** 9, n, 4, 1, 1, time_ordered=False, strict=False, local=True)
+    assert sorted_by_dask_ms == 100_000 < local
+    room = 10 ** 9 - FIXED_BYTES - LOCAL_ORDER_BYTES_PER_ROW * n
+    assert local == room // (bytes_per_row(4, 1, 1) + read_bytes_per_row(4, 1))
+    assert local == rows_for_budget(10 ** 9, n, 4, 1, 1, time_ordered=True, strict=False,
+                                    local=True)

@@ -41,8 +41,9 @@ FIXED_BYTES = 300_000_000
 #: the TaQL selection behind them, for a table in time order and for one it sorts
 ORDER_BYTES_PER_ROW = 26
 UNSORTED_ORDER_BYTES_PER_ROW = 42
-#: the same without dask-ms (pair keys, rows written, a shuffled table's row numbers)
-LOCAL_ORDER_BYTES_PER_ROW = 6
+#: the same without dask-ms: 2 bytes of pair keys per row of both bands, 0.5 of rows written,
+#: a shuffled table's row numbers (4 bytes per row, hitops/io/time_sorted.py), with a margin
+LOCAL_ORDER_BYTES_PER_ROW = 8
 #: the fewest target rows per chunk a run uses when the default budget cannot be kept (one
 #: channel; a row of n_chan channels is n_chan times larger: see min_chunk_rows)
 MIN_CHUNK_ROWS = 100_000
