@@ -1,13 +1,15 @@
-"""Reading and writing main-table columns of a Measurement Set through dask-ms.
+"""Reading and writing main-table columns of a Measurement Set (dask-ms or python-casacore).
 
 Only dask-ms's public API (``xds_from_ms``, ``xds_to_table``, ``Dataset``):
 calibrate opens one dataset per (field, spectral window) group in time order
-(:func:`open_groups`), diagnose one dataset of the whole table in storage
-order (:func:`open_main`); callers lay rows out by (baseline, time)
-themselves.  Row ranges of a table read in storage order, where no dask graph
-is needed (calibrate's index pass), come from python-casacore directly
-(:class:`MainTable`).  Writes go back through ``ROWID`` so any row subset can be
-written.  Small subtables (SPECTRAL_WINDOW, POLARIZATION,
+(:func:`open_groups`) where a set has several groups or a cluster runs the work,
+diagnose one dataset of the whole table in storage order (:func:`open_main`);
+callers lay rows out by (baseline, time) themselves.  A one-group set that this
+process reads (:func:`open_for_reading`) is read with python-casacore instead, with
+no dask graph: in storage order (:class:`StorageRows`, hitops/io/table_rows.py) or,
+for a table not in time order cut into chunks, in time order through an index of its
+row runs (hitops/io/time_sorted.py).  Writes go back through ``ROWID`` so any row
+subset can be written.  Small subtables (SPECTRAL_WINDOW, POLARIZATION,
 ANTENNA) are read with python-casacore directly: they are a few rows and
 dask-ms adds only overhead there.
 """
