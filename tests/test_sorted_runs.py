@@ -94,6 +94,7 @@ def test_time_sorted_rows_read_what_dask_ms_sorts(shared_pair, layout):
     want = _dask_ms_sorted(ms)
     n = want["TIME"].size
     reader = sort_by_time(ms, block_rows=800)      # buckets of ~100 rows: 30 of them
+    assert reader.bucket_start.size > 20
     assert isinstance(reader, TimeSortedRows) and reader.n_rows == n
     assert (reader.order is not None) == (layout == "shuffled")   # short runs: row numbers
     for rows in (slice(0, n), slice(0, 7), slice(7, 161), slice(333, 334), slice(n - 9, n),

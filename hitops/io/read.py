@@ -117,19 +117,24 @@ def open_for_reading(ms: str, columns: Sequence[str], chunks, time_ordered: bool
     Any other set opens through :func:`open_groups`.
     """
     if (direct and time_ordered or local) and not selection_columns(ms):
+        block = chunks if isinstance(chunks, int) else max(chunks)
         with MainTable(ms) as table:
             # rows naming another FIELD/DATA_DESCRIPTION row than the one there is: the
-            # grouped datasets carry that key, and the plan reports the damage
-            ids = table.read(list(GROUP_COLUMNS), 0, table.n_rows)
-            one_group = not any(np.any(values != 0) for values in ids.values())
+            # grouped datasets carry that key, and the plan reports the damage (read in
+            # blocks of a chunk's rows at most, as every read of a chunked run)
             n_rows = table.n_rows
+            one_group = not any(np.any(values != 0)
+                                for start in range(0, n_rows, max(1, int(block)))
+                                for values in table.read(list(GROUP_COLUMNS), start,
+                                                         min(n_rows, start + block)).values())
         if one_group and (time_ordered or not n_rows):
             return {(0, 0): StorageRows(ms, n_rows)}
         if one_group:
             from .time_sorted import sort_by_time
 
-            block = chunks if isinstance(chunks, int) else max(chunks)
-            return {(0, 0): sort_by_time(ms, int(block))}
+            reader = sort_by_time(ms, int(block))
+            if reader is not None:   # else a TIME that is not finite: the index pass names it
+                return {(0, 0): reader}
     return open_groups(ms, columns, chunks, time_ordered=time_ordered)
 
 

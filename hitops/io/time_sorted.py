@@ -3,10 +3,11 @@
 dask-ms sorts such a table by TIME with one TaQL query per open and keeps the
 sorted row numbers and the selection behind them for the whole run (about 37-40
 bytes per row of both bands, docs/performance.md).  :func:`sort_by_time` reads
-TIME once instead and keeps only which rows fall in each of a few hundred
-*buckets* of consecutive distinct times, as runs of consecutive row numbers
-(a baseline-major table has one run per baseline and bucket, so a few bytes per
-bucket; a shuffled one keeps 4 bytes per row).  A read of positions [a, b) of the
+TIME in blocks instead (never more rows at once than a chunk) and keeps only which
+rows fall in each *bucket*, a range of TIME holding about an eighth of a read
+block, as runs of consecutive row numbers (a baseline-major table has one run per
+baseline and bucket, so a few bytes per bucket; a shuffled one keeps 4 bytes per
+row).  A read of positions [a, b) of the
 time order (:meth:`TimeSortedRows.read`) reads the TIME of the buckets that hold
 them, orders those rows by (TIME, row number), which is the order dask-ms's
 ``ORDERBY TIME`` gives (checked in tests/test_sorted_runs.py), and reads the asked
@@ -23,13 +24,15 @@ from typing import Dict, Optional, Sequence
 import numpy as np
 
 from ..errors import MeasurementSetError
-from .match import distinct_counts
 from .table_rows import MainTable, StorageRows, rows_reader
 
 #: buckets per requested block of rows: a read of a block touches at most two buckets it
 #: does not need, so it reads at most 2 / BUCKETS_PER_BLOCK more TIME values than it keeps
 BUCKETS_PER_BLOCK = 8
-#: keep explicit row numbers (4 bytes per row) instead of runs (16 bytes per run) when the
+#: equal-width time bins counted to place the buckets' edges (1 M bins: a 12-h track in
+#: bins of 0.04 s, finer than any integration)
+TIME_BINS = 1 << 20
+#: keep explicit row numbers (4 bytes per row) instead of runs (12 bytes per run) when the
 #: runs are shorter than this on average (shuffled tables)
 MIN_MEAN_RUN = 4
 
@@ -39,28 +42,26 @@ class TimeSortedRows(StorageRows):
     """The main table of one group, read in (TIME, row number) order with python-casacore.
 
     Positions are those of the table sorted by time (what dask-ms's sorted dataset
-    numbers 0..n_rows-1); ``bucket_time[k]`` is the first distinct-time index of
-    bucket k, whose rows are positions row_start[bucket_time[k]] onwards.  A
-    bucket's rows (ascending row numbers) are runs ``run_first``/``run_len`` from
-    ``bucket_run[k]`` to ``bucket_run[k + 1]``, or, for a table of short runs,
-    ``order[row_start[bucket_time[k]]:row_start[bucket_time[k + 1]]]``.
+    numbers 0..n_rows-1).  Bucket k holds the rows with edges[k] <= TIME <
+    edges[k + 1], at positions bucket_start[k] onwards; its rows (ascending row
+    numbers) are runs ``run_first``/``run_len`` from ``bucket_run[k]`` to
+    ``bucket_run[k + 1]``, or, for a table of short runs,
+    ``order[bucket_start[k]:bucket_start[k + 1]]``.
     """
 
-    unique_time: np.ndarray = field(default=None)   # sorted distinct TIME values
-    row_start: np.ndarray = field(default=None)     # (n_time + 1) first position of each time
-    bucket_time: np.ndarray = field(default=None)   # (n_bucket + 1) first time of each bucket
-    bucket_run: Optional[np.ndarray] = None         # (n_bucket + 1) first run of each bucket
-    run_first: Optional[np.ndarray] = None          # first row number of each run
-    run_len: Optional[np.ndarray] = None            # rows in each run
-    order: Optional[np.ndarray] = None              # int32 rows by bucket (short runs only)
+    edges: np.ndarray = field(default=None)          # (n_bucket + 1) TIME edges, -inf..inf
+    bucket_start: np.ndarray = field(default=None)   # (n_bucket + 1) first position
+    bucket_run: Optional[np.ndarray] = None          # (n_bucket + 1) first run of each bucket
+    run_first: Optional[np.ndarray] = None           # first row number of each run
+    run_len: Optional[np.ndarray] = None             # rows in each run
+    order: Optional[np.ndarray] = None               # int32 rows by bucket (short runs only)
 
     def bucket_rows(self, k0: int, k1: int) -> np.ndarray:
         """Ascending row numbers of buckets [k0, k1)."""
         if self.order is not None:
-            a, b = self.row_start[self.bucket_time[[k0, k1]]]
-            return np.sort(self.order[a:b]).astype(np.int64)
+            return np.sort(self.order[self.bucket_start[k0]:self.bucket_start[k1]]).astype(np.int64)
         r0, r1 = self.bucket_run[k0], self.bucket_run[k1]
-        first, length = self.run_first[r0:r1], self.run_len[r0:r1]
+        first, length = self.run_first[r0:r1], self.run_len[r0:r1].astype(np.int64)
         by_row = np.argsort(first, kind="stable")
         first, length = first[by_row], length[by_row]
         # every run expanded: row = its run's first row + its offset in the run
@@ -76,24 +77,18 @@ class TimeSortedRows(StorageRows):
         a, b, _ = (rows or slice(None)).indices(self.n_rows)
         if b <= a:   # no row: the columns' cell shapes still, as dask-ms gives them
             return {c: v[:0] for c, v in table.read_rows(list(columns), slice(0, 1)).items()}
-        t_a = int(np.searchsorted(self.row_start, a, side="right")) - 1
-        t_b = int(np.searchsorted(self.row_start, b, side="left"))
-        k0 = int(np.searchsorted(self.bucket_time, t_a, side="right")) - 1
-        k1 = int(np.searchsorted(self.bucket_time, t_b, side="left"))
+        k0 = int(np.searchsorted(self.bucket_start, a, side="right")) - 1
+        k1 = int(np.searchsorted(self.bucket_start, b, side="left"))
         candidates = self.bucket_rows(k0, k1)
-        first, stop = self.bucket_time[k0], self.bucket_time[k1]
-        base = int(self.row_start[first])
+        base = int(self.bucket_start[k0])
         times = rows_reader(table._table, candidates)("TIME")
-        # dask-ms's ORDERBY TIME keeps the storage order of equal times: rows grouped by
-        # their time, ascending within each (a counting sort over the buckets' times)
-        from ..kernels.sorted_runs import bucket_rows
-
-        edges = np.concatenate([self.unique_time[first:stop], [np.inf]])
-        by_time, starts = bucket_rows(times, edges)
+        # dask-ms's ORDERBY TIME keeps the storage order of equal times: a stable sort of
+        # rows in ascending row order (a baseline-major bucket is one sorted run per baseline)
+        by_time = np.argsort(times, kind="stable")
         in_order = times[by_time]
-        if starts[0] != 0 or not np.array_equal(
-                in_order, np.repeat(self.unique_time[first:stop],
-                                    np.diff(self.row_start[first:stop + 1]))):
+        # each bucket still holds the rows it was indexed with (else TIME was rewritten)
+        at_edges = np.searchsorted(in_order, self.edges[k0:k1 + 1], side="left")
+        if not np.array_equal(at_edges, self.bucket_start[k0:k1 + 1] - base):
             raise MeasurementSetError(f"{self.ms}: TIME changed while it was being read; run "
                                       "again when nothing else writes to the set")
         picked = by_time[a - base:b - base]
@@ -114,36 +109,73 @@ class TimeSortedRows(StorageRows):
         return out
 
 
-def sort_by_time(ms: str, block_rows: int) -> TimeSortedRows:
+def sort_by_time(ms: str, block_rows: int) -> Optional[TimeSortedRows]:
     """Index the main table of ``ms`` by time for reads of about ``block_rows`` positions.
 
-    Reads TIME whole (8 bytes per row while this runs) and keeps the runs of each
-    bucket of about ``block_rows / BUCKETS_PER_BLOCK`` rows (whole times per bucket).
+    TIME is read three times in blocks of ``block_rows`` rows (never more at once):
+    its range, a histogram of it, then each row's bucket, kept as runs of rows (the
+    buckets have about ``block_rows / BUCKETS_PER_BLOCK`` rows each, and whole times).
+    None when TIME holds a value that is not finite (the index pass names the row).
     """
+    block_rows = max(1, int(block_rows))
     with MainTable(ms) as table:
         n_rows = table.n_rows
-        time = np.ascontiguousarray(table.read(["TIME"], 0, n_rows)["TIME"], dtype=np.float64)
-    unique_time, counts = distinct_counts(time)
-    row_start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    target = max(1, int(block_rows) // BUCKETS_PER_BLOCK)
-    # a bucket starts at the first time whose first position reaches the next multiple
-    firsts = np.searchsorted(row_start[:-1], np.arange(0, n_rows, target), side="left")
-    bucket_time = np.unique(np.concatenate([firsts, [unique_time.size]])).astype(np.int64)
-    from ..kernels.sorted_runs import bucket_rows
 
-    # bucket k: times [edges[k], edges[k + 1]); the last edge is past every time
-    order, _ = bucket_rows(time, np.concatenate([unique_time[bucket_time[:-1]], [np.inf]]))
-    del time
-    starts = row_start[bucket_time]                      # first position of each bucket
-    new_run = np.ones(n_rows, dtype=bool)
-    new_run[1:] = np.diff(order) != 1
-    new_run[starts[:-1]] = True
-    run_at = np.flatnonzero(new_run)
-    if run_at.size * MIN_MEAN_RUN > n_rows:              # short runs: keep the rows
-        return TimeSortedRows(ms, n_rows, unique_time=unique_time, row_start=row_start,
-                              bucket_time=bucket_time, order=order)
-    run_len = np.diff(np.concatenate([run_at, [n_rows]]))
-    return TimeSortedRows(ms, n_rows, unique_time=unique_time, row_start=row_start,
-                          bucket_time=bucket_time,
-                          bucket_run=np.searchsorted(run_at, starts).astype(np.int64),
-                          run_first=order[run_at].astype(np.int64), run_len=run_len)
+        def blocks():
+            for start in range(0, n_rows, block_rows):
+                stop = min(n_rows, start + block_rows)
+                yield start, np.asarray(table.read(["TIME"], start, stop)["TIME"], np.float64)
+
+        lo, hi = np.inf, -np.inf
+        for _, time in blocks():
+            if not np.all(np.isfinite(time)):
+                return None
+            lo, hi = min(lo, float(time.min())), max(hi, float(time.max()))
+        edges = _bucket_edges(blocks(), lo, hi, n_rows, block_rows)
+        runs, counts = _runs(blocks(), edges)
+    bucket_start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    first, length, bucket = runs
+    by_bucket = np.lexsort((first, bucket))
+    first, length, bucket = first[by_bucket], length[by_bucket], bucket[by_bucket]
+    common = dict(edges=edges, bucket_start=bucket_start)
+    if first.size * MIN_MEAN_RUN > n_rows:               # short runs: keep the rows
+        starts = np.repeat(first - np.concatenate([[0], np.cumsum(length)[:-1]]), length)
+        order = (starts + np.arange(n_rows)).astype(np.int32)
+        return TimeSortedRows(ms, n_rows, order=order, **common)
+    return TimeSortedRows(ms, n_rows, bucket_run=np.searchsorted(
+        bucket, np.arange(edges.size)).astype(np.int64), run_first=first,
+        run_len=length.astype(np.int32), **common)
+
+
+def _bucket_edges(blocks, lo: float, hi: float, n_rows: int, block_rows: int) -> np.ndarray:
+    """TIME edges of buckets of about block_rows / BUCKETS_PER_BLOCK rows, from a
+    histogram of TIME in TIME_BINS equal bins over [lo, hi]; -inf and inf at the ends."""
+    n_bins = int(min(TIME_BINS, max(1, n_rows)))
+    width = (hi - lo) / n_bins if hi > lo else 1.0
+    hist = np.zeros(n_bins, dtype=np.int64)
+    for _, time in blocks:
+        at = np.clip(((time - lo) / width).astype(np.int64), 0, n_bins - 1)
+        hist += np.bincount(at, minlength=n_bins)
+    target = max(1, block_rows // BUCKETS_PER_BLOCK)
+    cum = np.cumsum(hist)
+    # a bucket ends after the bin where the rows so far pass the next multiple of target
+    cut = np.unique(np.searchsorted(cum, np.arange(target, n_rows, target), side="left") + 1)
+    inner = lo + cut[cut < n_bins] * width
+    return np.concatenate([[-np.inf], np.unique(inner[inner > lo]), [np.inf]])
+
+
+def _runs(blocks, edges: np.ndarray):
+    """((first row, length, bucket) of every run of consecutive rows in one bucket, rows
+    per bucket), block by block."""
+    firsts, lengths, buckets = [], [], []
+    counts = np.zeros(edges.size - 1, dtype=np.int64)
+    for start, time in blocks:
+        bucket = np.searchsorted(edges, time, side="right") - 1
+        counts += np.bincount(bucket, minlength=counts.size)
+        at = np.flatnonzero(np.diff(bucket) != 0) + 1
+        run_at = np.concatenate([[0], at])
+        firsts.append(start + run_at)
+        lengths.append(np.diff(np.concatenate([run_at, [bucket.size]])))
+        buckets.append(bucket[run_at])
+    return (np.concatenate(firsts).astype(np.int64), np.concatenate(lengths).astype(np.int64),
+            np.concatenate(buckets).astype(np.int32)), counts
