@@ -333,14 +333,14 @@ options <= 1.5x the floor, the verdict <= 10% of the default run, peak <= 1 GB.
 
 Stages (from each run's report, `timings_s`): `checks` validates the inputs and opens
 the subtables; `open` opens the sets for reading (python-casacore directly for a set
-of one group read in one chunk on this process, dask-ms datasets where a set needs a
-sort, several groups, chunks or a cluster); `metadata` is the index pass (TIME,
-ANTENNA1/2, SCAN_NUMBER, INTERVAL, FLAG_ROW of both bands; python-casacore getcol for
-a table read in storage order), and in a fresh process also numba's import and the
+of one group on this process, with a time index of the row runs for a set not in time
+order cut into chunks, hitops/io/time_sorted.py; dask-ms datasets for several groups
+or a cluster); `metadata` is the index pass (TIME, ANTENNA1/2, SCAN_NUMBER, INTERVAL,
+FLAG_ROW of both bands; python-casacore getcol), and in a fresh process also numba's import and the
 loading of the first cached kernels (the floor pays numba's start too); `match` matches the bands and checks every
 cell; `read` reads DATA and FLAG; `transfer` tracks and transfers; `write` writes
-the staged output (python-casacore putcol in a one-chunk run of one-group sets,
-dask-ms otherwise); `verdict` reads 2 x T/dt-long blocks of times spread over the track
+the staged output, and the new flags of chunks where they change FLAG (python-casacore
+putcol for one-group sets on this process, dask-ms otherwise); `verdict` reads 2 x T/dt-long blocks of times spread over the track
 (hitops/calibrate/verdict_sample.py) and predicts.
 
 Run: `python -m benchmarks.bench_calibrate [--workdir DIR] [--repeats N] [--scenes paper,casa]`.

@@ -37,6 +37,7 @@ or ``python -m benchmarks.bench_scaling --memory-only [--max-rows N]``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import shutil
 import sys
@@ -210,17 +211,93 @@ between the two largest tracks (peak RSS ~ rows^{e_rss[0]:.2f} over all points,
 {e_rss[1]:.2f} between the two largest).  calibrate reads and matches the per-row
 metadata chunk by chunk (hitops/calibrate/band_index.py, chunks.py); what stays for the whole
 track is per time (the union time axis, each time's scan and row count), each row's antenna
-pair (2 bytes per row and band) and what dask-ms keeps
-per row of each band it opens (its row numbers and the TaQL selection behind them,
-and for a table not stored in time order like these the sort of it: about 37 bytes
-per row of both bands here, 21 for a table in time order).  The default chunk follows
-from the memory budget (1 GB here; hitops/calibrate/memory.py): a run that fits in
-one chunk is read in storage order without the sort; a larger one is cut so that its
-peak stays within the budget, down to a floor of 100,000 rows per chunk with a warning
-when the whole-run part alone leaves no room (the 10^7-row baseline-major pair).  Several
+pair (2 bytes per row and band) and the rows written (1 byte per target row).  Without a
+cluster these one-group sets are read with python-casacore, a baseline-major one in time
+order through hitops/io/time_sorted.py (the runs of rows of each bucket of times, a few
+bytes per bucket: no sort held for the run); through dask-ms (a cluster, or sets of several
+fields or windows) dask-ms also keeps its row numbers and the TaQL selection behind them
+(about 37 bytes per row of both bands for a table it must sort, 21 for one in time order,
+measured before issue 28).  The default chunk follows from the memory budget (1 GB here;
+hitops/calibrate/memory.py): a run that fits in one chunk is read in storage order; a
+larger one is cut so that its peak stays within the budget, down to a floor of 100,000
+rows per chunk with a warning when the whole-run part alone leaves no room.  Several
 chunks cost time: each chunk's metadata are read again with its data (the checks before
-any write take them from the index pass) and a baseline-major table is read in many short
-runs.
+any write take them from the index pass) and a baseline-major table is read in runs, one
+per baseline and chunk.
+"""
+
+
+ORDER_ROWS = (1_000_000, 4_000_000, 10_000_000)
+
+
+def orders_point(workdir: Path, hitops: str, rows: int, time_order: bool, repeats: int):
+    """``hitops calibrate REF TGT --overwrite`` (default options) and the same-columns floor,
+    interleaved run by run, on one pair stored in time order or baseline by baseline."""
+    import json
+
+    from hitops.testing import make_pair
+    from hitops.testing.pairs import Storage
+
+    from ._floors import floor_commands
+
+    pair_dir = workdir / f"order-{rows}-{'time' if time_order else 'baseline'}"
+    shutil.rmtree(pair_dir, ignore_errors=True)
+    spec = _scene(8, max(2, rows // 28), [f"A{i:02d}" for i in range(8)])
+    make_pair(pair_dir, dataclasses.replace(spec, storage=Storage(time_order=time_order)))
+    ref, tgt = pair_dir / "ref.ms", pair_dir / "target.ms"
+    report_path = pair_dir / "report.json"
+    cmd = [hitops, "calibrate", str(ref), str(tgt), "--overwrite", "--report", str(report_path)]
+    floor = floor_commands(pair_dir, ref, tgt)["same_columns"]
+    run_process(floor)   # warm-up: page cache, numba cache, the output column created
+    run_process(cmd)
+    runs = []
+    for _ in range(repeats):
+        load = os.getloadavg()[0]
+        f = run_process(floor)
+        c = run_process(cmd)
+        rep = json.loads(report_path.read_text())
+        runs.append({"load": load, "floor": f, "calibrate": c, "chunks": rep["chunks"],
+                     "timings": rep["timings_s"]})
+        print("orders", rows, "time" if time_order else "baseline", runs[-1], flush=True)
+    out = {"rows": _nrows(tgt), "time_order": time_order, "runs": runs}
+    shutil.rmtree(pair_dir, ignore_errors=True)
+    return out
+
+
+def render_orders(points, load) -> str:
+    """The ``scaling-orders`` section from orders_point results."""
+    lines = []
+    for p in points:
+        ratios = [r["calibrate"]["wall_s"] / r["floor"]["wall_s"] for r in p["runs"]]
+        cpu_ratios = [r["calibrate"]["cpu_s"] / r["floor"]["cpu_s"] for r in p["runs"]]
+        runs = "; ".join(f"{r['calibrate']['wall_s']:.2f} / {r['floor']['wall_s']:.2f} "
+                         f"(CPU {r['calibrate']['cpu_s']:.2f} / {r['floor']['cpu_s']:.2f}) at "
+                         f"load {r['load']:.1f}" for r in p["runs"])
+        stages = ", ".join(f"{k} {v:.2f}" for k, v in p["runs"][-1]["timings"].items()
+                           if isinstance(v, (int, float)) and k not in ("total",))
+        lines.append(
+            f"| {p['rows']:,} | {'time' if p['time_order'] else 'baseline by baseline'} | "
+            f"{p['runs'][-1]['chunks']} | {runs} | {median(ratios):.2f} "
+            f"({', '.join(f'{x:.2f}' for x in ratios)}) | {median(cpu_ratios):.2f} | "
+            f"{max(r['calibrate']['peak_rss_mb'] for r in p['runs']):.0f} | "
+            f"{max(r['floor']['peak_rss_mb'] for r in p['runs']):.0f} | {stages} |")
+    return f"""## hitops calibrate at 10^6 .. 10^7 rows in both storage orders (issue 28)
+
+Machine: {machine_line()}; 1-minute load average {load[0]:.1f} at the start and
+{load[-1]:.1f} at the end, and before each pair of runs in the table (the machine is
+shared by several agents: wall times carry their load).  hitops.testing pairs, 8
+stations, 4 correlations, one channel, stored in time order or baseline by baseline;
+`hitops calibrate REF TGT --overwrite` with default options (memory budget auto, the
+verdict on) against the same-columns I/O floor (benchmarks/_floors.py: a python-casacore
+process reading TIME, ANTENNA1/2, SCAN_NUMBER, INTERVAL, FLAG_ROW, DATA and FLAG of both
+bands whole and writing one column), run in turn, one pair of runs after the other;
+ratios run by run.  Targets (issue 28): <= 1.5x the floor in time order, <= 2x baseline
+by baseline, <= 1 GB peak by default at 10^7 rows per band.
+`python -m benchmarks.bench_scaling --orders [--max-rows N] [--repeats N]`.
+
+| rows per band | storage order | chunks | calibrate / floor wall (CPU) (s), each run | wall ratio run by run: median (each) | CPU ratio, median | calibrate peak RSS (MB) | floor peak RSS (MB) | stages of the last run (s) |
+|---|---|---|---|---|---|---|---|---|
+{chr(10).join(lines)}
 """
 
 
@@ -251,7 +328,27 @@ def main(argv=None) -> None:
                         help="only the memory ceiling (section scaling-memory)")
     parser.add_argument("--memory-from-json", default=None,
                         help="re-render the memory section from a saved memory-results.json")
+    parser.add_argument("--orders", action="store_true",
+                        help="only calibrate against the floor at 10^6, 4x10^6 and 10^7 rows in "
+                             "time order and baseline by baseline (section scaling-orders)")
     args = parser.parse_args(argv if argv is not None else [])
+    if args.orders:
+        import json
+
+        workdir = Path(args.workdir or tempfile.mkdtemp(prefix="bench-orders-"))
+        workdir.mkdir(parents=True, exist_ok=True)
+        hitops = str(Path(sys.executable).with_name("hitops"))
+        load = [os.getloadavg()[0]]
+        points = [orders_point(workdir, hitops, rows, time_order, args.repeats)
+                  for rows in ORDER_ROWS if rows <= args.max_rows
+                  for time_order in (True, False)]
+        load.append(os.getloadavg()[0])
+        (workdir / "orders-results.json").write_text(json.dumps(
+            {"points": points, "load": load}, indent=1))
+        markdown = render_orders(points, load)
+        print(markdown)
+        replace_section("scaling-orders", markdown)
+        return
     if args.memory_from_json or args.memory_only:
         import json
 

@@ -58,6 +58,8 @@ def _target_coherence(ms: str, column: str = "PWC_DATA", field: int = 0) -> np.n
     for p, q in sorted(set(zip(a1.tolist(), a2.tolist()))):
         v = data[(a1 == p) & (a2 == q)]
         ok = ~flag[(a1 == p) & (a2 == q)] & (np.abs(v) > 0)
+        if not ok.any():    # a baseline wholly flagged has no coherence to give
+            continue
         out.append(abs((v[ok] / np.abs(v[ok])).sum()) / ok.sum())
     return np.array(out)
 
@@ -271,3 +273,29 @@ def test_scene_calibrator_scans(pair):
         assert field[rows][0] == (0 if s % 2 else 1)
         span = time[rows].max() - time[rows].min() + 2.0
         assert span == pytest.approx(120.0 if s % 2 else 60.0)
+
+
+def test_station_without_calibrator_solutions_is_flagged_on_the_target(pair, tmp_path):
+    """A station whose calibrator rows are all flagged has no solution: its target rows
+    end flagged in FLAG after the commit (and only they), the others stay coherent."""
+    ref, tgt = _copy(pair, tmp_path)
+    with pt.table(tgt, readonly=False, ack=False) as t:
+        names = list(pt.table(f"{tgt}::ANTENNA", ack=False).getcol("NAME"))
+        lost = len(names) - 1
+        field, a1, a2 = t.getcol("FIELD_ID"), t.getcol("ANTENNA1"), t.getcol("ANTENNA2")
+        touches = (a1 == lost) | (a2 == lost)
+        flag = t.getcol("FLAG")
+        flag[(field == 1) & touches] = True
+        t.putcol("FLAG", flag)
+        before = t.getcol("FLAG")
+    report = calibrate(ref, tgt, calibrator_field="3C273", no_verdict=True)
+    entry = report["phase_referencing"]["methods"]["PWC_DATA"][0]
+    target_lost = (field == 0) & touches
+    assert entry["target_rows_flagged"] == int(target_lost.sum()) > 0
+    with pt.table(tgt, ack=False) as t:
+        after = t.getcol("FLAG")
+    assert after[target_lost].all()
+    # nothing else lost its data: the other rows keep the flags the transfer gave them
+    others = ~target_lost
+    assert not (after[others] & ~before[others]).any()
+    assert _target_coherence(tgt).min() >= COHERENCE

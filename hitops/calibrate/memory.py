@@ -7,14 +7,18 @@ run's peak resident memory is fitted to peaks measured on this machine
 
 * a fixed part: the interpreter with numba, dask, dask-ms and python-casacore
   loaded (about 160 MB; 300 MB with a margin);
-* a part per row of both bands for the whole run: the row numbers dask-ms
-  keeps for each band and the TaQL selection behind them, and each row's
-  antenna pair kept by the index pass (2 bytes; hitops/calibrate/band_index.py):
-  26 bytes per row for a table stored in time order or read whole in one chunk
-  (21 measured at 10^7 rows per band before the pair keys were kept) and 42 for
-  one dask-ms must sort to cut it into chunks (37-38 measured before; see
-  :func:`hitops.io.read.open_groups` for why that sort does not use dask-ms's
-  grouping query);
+* a part per row of both bands for the whole run: each row's antenna pair kept
+  by the index pass (2 bytes; hitops/calibrate/band_index.py), the rows written
+  (1 byte per target row; hitops/calibrate/output.py) and, for a set read through
+  dask-ms, the row numbers it keeps and the TaQL selection behind them.  A run
+  without a cluster reads one-group sets with python-casacore (hitops/io/read.py,
+  ``open_for_reading``): :data:`LOCAL_ORDER_BYTES_PER_ROW`, with a margin for a
+  shuffled table's row numbers (4 bytes per row, hitops/io/time_sorted.py).  Through
+  dask-ms (a cluster, or sets of several fields or windows): 26 bytes per row for
+  a table stored in time order (21 measured at 10^7 rows per band before the pair
+  keys were kept) and 42 for one dask-ms must sort to cut it into chunks (37-38
+  measured before; see :func:`hitops.io.read.open_groups` for why that sort does
+  not use dask-ms's grouping query);
 * a part per target row of a time chunk (both bands' visibilities, flags, the
   (baseline, time) grids, phasors and outputs): about 96 bytes per correlation
   plus 30 per correlation and method, and the per-channel columns again for
@@ -37,6 +41,9 @@ FIXED_BYTES = 300_000_000
 #: the TaQL selection behind them, for a table in time order and for one it sorts
 ORDER_BYTES_PER_ROW = 26
 UNSORTED_ORDER_BYTES_PER_ROW = 42
+#: the same without dask-ms: 2 bytes of pair keys per row of both bands, 0.5 of rows written,
+#: a shuffled table's row numbers (4 bytes per row, hitops/io/time_sorted.py), with a margin
+LOCAL_ORDER_BYTES_PER_ROW = 8
 #: the fewest target rows per chunk a run uses when the default budget cannot be kept (one
 #: channel; a row of n_chan channels is n_chan times larger: see min_chunk_rows)
 MIN_CHUNK_ROWS = 100_000
@@ -96,21 +103,24 @@ def min_chunk_rows(n_chan: int) -> int:
 
 
 def rows_for_budget(budget: int, n_rows_both_bands: int, n_corr: int, n_chan: int,
-                    n_methods: int, time_ordered: bool = True, strict: bool = True) -> int:
+                    n_methods: int, time_ordered: bool = True, strict: bool = True,
+                    local: bool = False) -> int:
     """Target rows per time chunk that keep the run's peak within ``budget`` bytes.
 
     A run that fits in one chunk holds one; a run of several chunks also holds the
     next chunk's read while it works on one, and its chunks are smaller by that.
     ``strict``: a budget too small for a chunk of 1000 rows is an error (a budget
     the user gave); otherwise (the default budget) chunks have at least
-    :func:`min_chunk_rows` rows, even where that exceeds the budget.
+    :func:`min_chunk_rows` rows, even where that exceeds the budget.  ``local``: the
+    sets are read without dask-ms (no cluster, one group each), in either order.
     """
     per_row = bytes_per_row(n_corr, n_chan, n_methods)
     # a run in one chunk reads every set in storage order: no sort, whatever the layout
-    room = budget - FIXED_BYTES - ORDER_BYTES_PER_ROW * n_rows_both_bands
+    order_bytes = LOCAL_ORDER_BYTES_PER_ROW if local else ORDER_BYTES_PER_ROW
+    room = budget - FIXED_BYTES - order_bytes * n_rows_both_bands
     if 2 * (max(room, 0) // per_row) >= n_rows_both_bands:
         return int(room // per_row)
-    if not time_ordered:
+    if not (time_ordered or local):
         room = budget - FIXED_BYTES - UNSORTED_ORDER_BYTES_PER_ROW * n_rows_both_bands
     rows = int(max(room, 0) // (per_row + read_bytes_per_row(n_corr, n_chan)))
     if not strict:

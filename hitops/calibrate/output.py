@@ -109,6 +109,8 @@ class OutputTransaction:
             with pt.table(target_ms, ack=False) as t:
                 n_rows = t.nrows()
         self.rows_written = np.zeros(int(n_rows), dtype=bool)
+        # rows whose new flags are staged: a chunk whose new flags equal FLAG stages none
+        self.flags_staged = np.zeros(int(n_rows), dtype=bool)
         self.backup_written = False
         self.flag_written = False
 
@@ -174,23 +176,65 @@ class OutputTransaction:
         else:
             arrays = {self.staging[m]: rotate_channels(data, p, delays[m], chan_offset)
                       for m, p in phasors.items()}
-        arrays[STAGING_FLAG] = new_flag
+        stage_flags = not self.direct_writes or self._flags_change(rows, new_flag)
+        if stage_flags:
+            arrays[STAGING_FLAG] = new_flag
         msio.write_main_columns(self.target_ms, rows, arrays,
                                 {name: VIS_DIMS for name in arrays}, scheduler=scheduler,
                                 direct=self.direct_writes)
         self.rows_written[rows] = True
+        if stage_flags:
+            self.flags_staged[rows] = True
+
+    def flags_now(self, table, rows: np.ndarray) -> np.ndarray:
+        """(n, n_chan, n_corr) the flags this run has given ascending ``rows`` so far, read
+        from the open ``table``: the staged ones where it staged them, FLAG elsewhere (a
+        chunk whose new flags equalled FLAG staged none; a row not written keeps FLAG)."""
+        rows = np.asarray(rows)
+        flags = msio.rows_reader(table, rows)("FLAG")
+        staged = self.flags_staged[rows]
+        if staged.any():
+            flags[staged] = msio.rows_reader(table, rows[staged])(STAGING_FLAG)
+        return flags
+
+    def restage(self, rows: np.ndarray, outputs: Dict[str, np.ndarray],
+                new_flag: Optional[np.ndarray] = None) -> None:
+        """Staged output columns (staging names) rewritten at ``rows`` by a later step of the
+        same run (``--calibrator-field``), and their new flags when given: recorded as
+        staged, so that the commit carries them into FLAG."""
+        arrays = dict(outputs)
+        if new_flag is not None:
+            arrays[STAGING_FLAG] = new_flag
+        msio.write_main_columns(self.target_ms, rows, arrays, {n: VIS_DIMS for n in arrays},
+                                direct=self.direct_writes)
+        if new_flag is not None:
+            self.flags_staged[rows] = True
+
+    def _flags_change(self, rows: np.ndarray, new_flag: np.ndarray) -> bool:
+        """Whether ``new_flag`` differs from FLAG anywhere at ``rows`` (read now).
+
+        Where it does not, staging the flags would only have the commit find them equal:
+        writing a staged flag column costs as much as writing an output column (0.3 s of
+        CPU per 1.2 M rows of four correlations in 100-row tiles, measured), reading
+        FLAG a fifth of that.  FLAG itself still changes only in :meth:`commit`.
+        """
+        order = np.argsort(rows, kind="stable")
+        with msio.MainTable(self.target_ms) as table:
+            current = table.read_rows(["FLAG"], rows[order])["FLAG"]
+        return not np.array_equal(current, np.asarray(new_flag)[order])
 
     def commit(self) -> None:
         """Make the finished run visible: FLAG backup, new FLAG, columns renamed.
 
         FLAG is backed up into FLAG_HITOPS_BACKUP the first time hitops changes it;
-        the staged flags replace FLAG on the rows this run wrote (block by block,
-        only where they differ); each staging column takes its final name (an
-        existing column of that name, kept until now, is removed first).
+        the staged flags replace FLAG on the rows whose flags this run staged (block by
+        block, only where they differ; a chunk whose new flags equalled FLAG staged
+        none); each staging column takes its final name (an existing column of that
+        name, kept until now, is removed first).
         """
         from casacore import tables as pt
 
-        written, step = self.rows_written, self.chunk_rows
+        written, step = self.flags_staged, self.chunk_rows
         with pt.table(self.target_ms, readonly=False, ack=False) as t:
             t.lock(write=True)
             n_row = t.nrows()
@@ -202,7 +246,7 @@ class OutputTransaction:
                     continue
                 flag = t.getcol("FLAG", start, n)
                 new = flag.copy()
-                new[rows] = t.getcol(STAGING_FLAG, start, n)[rows]
+                new[rows] = _staged_flags(t, start, rows)
                 if not np.array_equal(new, flag):
                     changed.append(start)
             if changed and FLAG_BACKUP not in t.colnames():
@@ -218,7 +262,7 @@ class OutputTransaction:
                 n = min(step, n_row - start)
                 rows = written[start:start + n]
                 flag = t.getcol("FLAG", start, n)
-                flag[rows] = t.getcol(STAGING_FLAG, start, n)[rows]
+                flag[rows] = _staged_flags(t, start, rows)
                 t.putcol("FLAG", flag, start, n)
             self.flag_written = bool(changed)
             t.removecols([STAGING_FLAG])
@@ -269,6 +313,13 @@ def commit_once(tx: OutputTransaction, note) -> None:
         else:               # an interrupt held back during the commit, delivered after it
             stop.add_note(note())
         raise
+
+
+def _staged_flags(table, start: int, staged: np.ndarray) -> np.ndarray:
+    """The staged flags of the rows ``start + i`` where ``staged[i]``: only rows whose flags
+    were staged are read (in a column of variable cell shape, such as the one copied from
+    casatools.simulator's FLAG, a cell never written has no value to read)."""
+    return msio.rows_reader(table, start + np.flatnonzero(staged))(STAGING_FLAG)
 
 
 def release_cluster_tables(client) -> None:

@@ -107,11 +107,13 @@ def chunk_bounds(per_time: np.ndarray, chunk_rows: int) -> List[int]:
 
 
 def rows_from_budget(budget: int, ref_ms: str, target_ms: str, columns: Columns,
-                     n_methods: int, time_ordered: bool, strict: bool) -> int:
+                     n_methods: int, time_ordered: bool, strict: bool,
+                     local: bool = False) -> int:
     """Rows per time chunk that keep the run within ``budget`` bytes (hitops/calibrate/memory.py).
 
     ``time_ordered``: both sets are stored in time order; ``strict``: the budget was
-    given (not the default), so a budget too small is an error.
+    given (not the default), so a budget too small is an error; ``local``: no cluster,
+    the sets are read without dask-ms (hitops/io/read.py, open_for_reading).
     """
     from casacore import tables as pt
 
@@ -123,11 +125,14 @@ def rows_from_budget(budget: int, ref_ms: str, target_ms: str, columns: Columns,
             if t.nrows():
                 shape = t.getcell(column, 0).shape
                 n_chan, n_corr = max(n_chan, int(shape[0])), max(n_corr, int(shape[-1]))
-    rows = rows_for_budget(budget, n_rows, n_corr, n_chan, n_methods, time_ordered, strict)
+    # sets of several fields or windows are still read through dask-ms's datasets
+    local = local and not any(msio.selection_columns(ms) for ms in (ref_ms, target_ms))
+    rows = rows_for_budget(budget, n_rows, n_corr, n_chan, n_methods, time_ordered, strict,
+                           local)
     if rows == min_chunk_rows(n_chan) and not strict:
         log.warning("the default memory budget (%.0f MB) cannot hold %d rows%s and a chunk: "
                     "chunks of %d rows; give --memory-budget or --chunk-rows to choose",
-                    budget / 1e6, n_rows, "" if time_ordered else
+                    budget / 1e6, n_rows, "" if time_ordered or local else
                     " (a table not stored in time order: dask-ms sorts it and keeps the order)",
                     rows)
     log.info("memory budget %.0f MB: up to %d target rows per time chunk (--chunk-rows "
@@ -149,7 +154,8 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
     if chunk_rows == 0:
         explicit = str(opts.memory_budget or "auto").strip().lower() != "auto"
         chunk_rows = rows_from_budget(budget, ref_ms, target_ms, columns, len(methods),
-                                      all(ordered.values()), strict=explicit)
+                                      all(ordered.values()), strict=explicit,
+                                      local=not opts.scheduler)
     # dask row chunks of chunk_rows rows: the metadata blocks of the first pass are
     # slices of these datasets (no dataset per block); a field/spectral-window group is a
     # dataset of its own, so FIELD_ID and DATA_DESC_ID are not read per row
@@ -162,9 +168,11 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
     # one chunk on this process: a set of one group is read by python-casacore directly
     direct = one_chunk and not opts.scheduler
     ref_groups = msio.open_for_reading(ref_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.ref + columns.snr)),
-                                       io_rows, ordered[ref_ms] or one_chunk, direct)
+                                       io_rows, ordered[ref_ms] or one_chunk, direct,
+                                       local=not opts.scheduler)
     tgt_groups = msio.open_for_reading(target_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.tgt)),
-                                       io_rows, ordered[target_ms] or one_chunk, direct)
+                                       io_rows, ordered[target_ms] or one_chunk, direct,
+                                       local=not opts.scheduler)
     timings["open"] = time.perf_counter() - stage
     ref_stations = read_stations(ref_ms, "reference-band Measurement Set")
     tgt_stations = read_stations(target_ms, "target-band Measurement Set")

@@ -1,26 +1,28 @@
-"""Reading and writing main-table columns of a Measurement Set through dask-ms.
+"""Reading and writing main-table columns of a Measurement Set (dask-ms or python-casacore).
 
 Only dask-ms's public API (``xds_from_ms``, ``xds_to_table``, ``Dataset``):
 calibrate opens one dataset per (field, spectral window) group in time order
-(:func:`open_groups`), diagnose one dataset of the whole table in storage
-order (:func:`open_main`); callers lay rows out by (baseline, time)
-themselves.  Row ranges of a table read in storage order, where no dask graph
-is needed (calibrate's index pass), come from python-casacore directly
-(:class:`MainTable`).  Writes go back through ``ROWID`` so any row subset can be
-written.  Small subtables (SPECTRAL_WINDOW, POLARIZATION,
+(:func:`open_groups`) where a set has several groups or a cluster runs the work,
+diagnose one dataset of the whole table in storage order (:func:`open_main`);
+callers lay rows out by (baseline, time) themselves.  A one-group set that this
+process reads (:func:`open_for_reading`) is read with python-casacore instead, with
+no dask graph: in storage order (:class:`StorageRows`, hitops/io/table_rows.py) or,
+for a table not in time order cut into chunks, in time order through an index of its
+row runs (hitops/io/time_sorted.py).  Writes go back through ``ROWID`` so any row
+subset can be written.  Small subtables (SPECTRAL_WINDOW, POLARIZATION,
 ANTENNA) are read with python-casacore directly: they are a few rows and
 dask-ms adds only overhead there.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, Iterable, List, Optional, Sequence
 
 import numpy as np
 
 from ..errors import ColumnError, MeasurementSetError
+from .table_rows import MAX_RUNS, MainTable, StorageRows, rows_reader  # noqa: F401 (re-exported)
 
 
 def check_ms(ms: str | Path, role: str = "Measurement Set") -> str:
@@ -97,107 +99,42 @@ def row_count(ms: str) -> int:
         return int(t.nrows())
 
 
-class MainTable:
-    """One main table held open to read row ranges of columns in storage order.
-
-    python-casacore's ``getcol(column, startrow, nrow)``: exactly the columns asked
-    for, no dask graph, no query (the cheapest public path; calibrate's index pass of
-    a table read in storage order).  A context manager: the table closes on exit.
-    """
-
-    def __init__(self, ms: str):
-        from casacore import tables as pt
-
-        self.ms = ms
-        self._table = pt.table(ms, ack=False)
-
-    @property
-    def n_rows(self) -> int:
-        return int(self._table.nrows())
-
-    def read(self, columns: Sequence[str], start: int, stop: int) -> Dict[str, np.ndarray]:
-        """Rows [start, stop) of ``columns``."""
-        return {c: self._table.getcol(c, int(start), int(stop - start)) for c in columns}
-
-    def read_rows(self, columns: Sequence[str], rows) -> Dict[str, np.ndarray]:
-        """``columns`` at ``rows`` (a slice, ascending row numbers, or None for all);
-        ``ROWID`` gives the row numbers themselves."""
-        if rows is None or isinstance(rows, slice):
-            start, stop, _ = (rows or slice(None)).indices(self.n_rows)
-            out = self.read([c for c in columns if c != "ROWID"], start, stop)
-            row_ids = np.arange(start, stop, dtype=np.int64)
-        else:
-            row_ids = np.asarray(rows, dtype=np.int64)
-            read = rows_reader(self._table, row_ids)
-            out = {c: read(c) for c in columns if c != "ROWID"}
-        if "ROWID" in columns:
-            out["ROWID"] = row_ids
-        return out
-
-    def close(self) -> None:
-        self._table.close()
-
-    def __enter__(self) -> "MainTable":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
-#: rows_reader reads runs of consecutive rows one getcol each when there are at most this
-#: many runs, else through one row selection
-MAX_RUNS = 512
-
-
-def rows_reader(table, rows: np.ndarray):
-    """A function column -> values at ascending ``rows`` of an open casacore ``table``:
-    one getcol per run of consecutive rows when the runs are few (a table in time order),
-    else one getcol through a row selection (``selectrows``)."""
-    if rows.size == table.nrows():
-        return table.getcol
-    breaks = np.flatnonzero(np.diff(rows) != 1) + 1
-    if breaks.size < MAX_RUNS:
-        starts = np.concatenate([[0], breaks])
-        stops = np.concatenate([breaks, [rows.size]])
-
-        def read_runs(column):
-            parts = [table.getcol(column, int(rows[a]), int(b - a)) for a, b in zip(starts, stops)]
-            return np.concatenate(parts) if len(parts) > 1 else parts[0]
-        return read_runs
-    return table.selectrows(rows).getcol
-
-
-@dataclass(frozen=True)
-class StorageRows:
-    """A whole main table read in storage order with python-casacore, in place of a
-    dask-ms dataset (:func:`open_for_reading`); :func:`compute_columns` reads it."""
-
-    ms: str
-    n_rows: int
-
-    @property
-    def sizes(self) -> Dict[str, int]:
-        return {"row": self.n_rows}
-
-
 def open_for_reading(ms: str, columns: Sequence[str], chunks, time_ordered: bool,
-                     direct: bool) -> Dict[tuple, object]:
+                     direct: bool, local: bool = False) -> Dict[tuple, object]:
     """What calibrate reads a set through, keyed by (FIELD_ID, DATA_DESC_ID).
 
-    ``direct``: the set is read in one chunk on this process's threads (no cluster,
-    no reads overlapping writes): a set of one field and one spectral window
-    (:func:`selection_columns`) read in storage order (``time_ordered``) is then
-    a :class:`StorageRows` under (0, 0), read by python-casacore's getcol (dask-ms's
-    query and graph cost more than the read itself); any other set opens through
-    :func:`open_groups`.
+    A set of one field and one spectral window (:func:`selection_columns`) is read
+    with python-casacore, without dask-ms's query and graph (they cost more than the
+    read itself), when this process reads and writes it:
+
+    * ``direct``: read in one chunk on this process's threads, in storage order when
+      ``time_ordered`` (a :class:`StorageRows` under (0, 0));
+    * ``local``: read in several chunks on this process (no cluster): a set stored in
+      time order (``time_ordered``) is a :class:`StorageRows` too; any other a
+      :class:`hitops.io.time_sorted.TimeSortedRows` (read in time order without
+      dask-ms's sort held for the run; ``chunks``: the rows of a read block).
+
+    Any other set opens through :func:`open_groups`.
     """
-    if direct and time_ordered and not selection_columns(ms):
+    if (direct and time_ordered or local) and not selection_columns(ms):
+        block = chunks if isinstance(chunks, int) else max(chunks)
         with MainTable(ms) as table:
             # rows naming another FIELD/DATA_DESCRIPTION row than the one there is: the
-            # grouped datasets carry that key, and the plan reports the damage
-            ids = table.read(list(GROUP_COLUMNS), 0, table.n_rows)
-            if not any(np.any(values != 0) for values in ids.values()):
-                return {(0, 0): StorageRows(ms, table.n_rows)}
+            # grouped datasets carry that key, and the plan reports the damage (read in
+            # blocks of a chunk's rows at most, as every read of a chunked run)
+            n_rows = table.n_rows
+            one_group = not any(np.any(values != 0)
+                                for start in range(0, n_rows, max(1, int(block)))
+                                for values in table.read(list(GROUP_COLUMNS), start,
+                                                         min(n_rows, start + block)).values())
+        if one_group and (time_ordered or not n_rows):
+            return {(0, 0): StorageRows(ms, n_rows)}
+        if one_group:
+            from .time_sorted import sort_by_time
+
+            reader = sort_by_time(ms, int(block))
+            if reader is not None:   # else a TIME that is not finite: the index pass names it
+                return {(0, 0): reader}
     return open_groups(ms, columns, chunks, time_ordered=time_ordered)
 
 
@@ -296,7 +233,7 @@ def compute_columns(requests, scheduler=None) -> List[Dict[str, np.ndarray]]:
     for i, (ds, columns, rows) in enumerate(requests):
         if isinstance(ds, StorageRows):   # python-casacore, one table at a time
             with MainTable(ds.ms) as table:
-                direct[i] = table.read_rows(list(columns), rows)
+                direct[i] = ds.read(table, list(columns), rows)
         elif isinstance(rows, slice):
             graphs.append({c: ds[c].data[rows] for c in columns})
         else:

@@ -49,7 +49,6 @@ from ...errors import InputError
 from ...io import read as msio
 from ...kernels.phase_ref import antenna_phasors, baseline_sums, model_residuals, phase_and_delay
 from ...kernels.wideband import rotate_channels
-from ..output import STAGING_FLAG, VIS_DIMS
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -193,7 +192,7 @@ def _window_rows(meta: Dict[str, np.ndarray], written: np.ndarray, ddid: int,
                        baselines // n_ant, baselines % n_ant, target_rows)
 
 
-def _solve_window(table, column: str, rows: _WindowRows, group, hands, hand_corr,
+def _solve_window(table, tx, column: str, rows: _WindowRows, group, hands, hand_corr,
                   refant: int, n_ant: int, ddid: int, times: np.ndarray) -> WindowSolution:
     """Every calibrator scan of one window solved (hitops/kernels/phase_ref.py)."""
     chan_offset = np.asarray(group.pair.tgt.chan_freq) - group.pair.tgt.freq
@@ -202,7 +201,7 @@ def _solve_window(table, column: str, rows: _WindowRows, group, hands, hand_corr
     for scan in np.unique(rows.cal_scan):
         pick = rows.cal_scan == scan
         read = msio.rows_reader(table, rows.cal_rows[pick])
-        sums, counts = baseline_sums(read(column), read(STAGING_FLAG),
+        sums, counts = baseline_sums(read(column), tx.flags_now(table, rows.cal_rows[pick]),
                                      rows.cal_bl[pick], hand_corr, rows.ant1.size)
         g, solved = antenna_phasors(sums, counts, rows.ant1, rows.ant2, n_ant, refant,
                                     SOLVE_ITERATIONS)
@@ -256,11 +255,11 @@ def _apply_window(table, tx, column: str, rows: np.ndarray, meta, solution: Wind
         rotated = rotate_channels(read(column), phasor, np.where(ok, dtau, 0.0), chan_offset)
         arrays = {column: rotated * _baseline_factors(solution, a1[:, 0], a2[:, 0], corr_hands,
                                                       n_ant)}
+        new_flag = None
         if not ok.all():
-            arrays[STAGING_FLAG] = read(STAGING_FLAG) | ~ok[:, None, :]
+            new_flag = tx.flags_now(table, part) | ~ok[:, None, :]
             n_flagged += int((~ok).any(axis=1).sum())
-        msio.write_main_columns(tx.target_ms, part, arrays, {n: VIS_DIMS for n in arrays},
-                                direct=tx.direct_writes)
+        tx.restage(part, arrays, new_flag)
     return n_flagged
 
 
@@ -290,8 +289,7 @@ def _bridge_window(table, tx, column: str, rows: np.ndarray, counts: np.ndarray,
         phasor = np.exp(-2j * np.pi * ratio * n)
         arrays = {column: rotate_channels(read(column), phasor, n * (ratio / centre),
                                           chan_offset)}
-        msio.write_main_columns(tx.target_ms, part, arrays, {c: VIS_DIMS for c in arrays},
-                                direct=tx.direct_writes)
+        tx.restage(part, arrays)
 
 
 def _reference_window(run, tx, table, column, meta, cal, ddid, groups, bridge) -> Dict:
@@ -311,7 +309,7 @@ def _reference_window(run, tx, table, column, meta, cal, ddid, groups, bridge) -
     _bridge_window(table, tx, column, both, bridge.counts, group, run.chunk_rows)
     refant = _refant(run, names, np.concatenate([meta["ANTENNA1"][rows.cal_rows],
                                                  meta["ANTENNA2"][rows.cal_rows]]))
-    solution = _solve_window(table, column, rows, group, hands, hand_corr, refant,
+    solution = _solve_window(table, tx, column, rows, group, hands, hand_corr, refant,
                              len(names), ddid, meta["TIME"])
     chan_offset = np.asarray(group.pair.tgt.chan_freq) - group.pair.tgt.freq
     n_flagged = _apply_window(table, tx, column, rows.target_rows, meta, solution,
