@@ -153,7 +153,8 @@ def _offsets(report, window):
             if e.get("samples")]
 
 
-@pytest.mark.parametrize("layout", ["simulated", "casa_laid_out"])
+@pytest.mark.parametrize("layout", ["simulated",
+                                    pytest.param("casa_laid_out", marks=pytest.mark.slow)])
 @pytest.mark.parametrize("tracker", ["antenna", "count"])
 def test_two_windows_feed_two_on_every_channel(layout, tracker, request, tmp_path, monkeypatch,
                                                caplog):
