@@ -267,7 +267,9 @@ def report(recipe: RecipeFile, values: Dict[str, object], logdir: Path, out: Tex
             kinds = sorted({p.name.split("-")[0] for p in plots})
             lines.append(f"Plots:       {_rel(ddir / 'plots')}/ ({len(plots)} PNG: "
                          f"{', '.join(k + '-*' for k in kinds)})")
-    for idir in image_dirs:
+    # several image sub-recipes may share one directory (the demo's images and
+    # images_table): list each directory's images once
+    for idir in dict.fromkeys(image_dirs):
         lines += image_lines(idir)
     lines.append(f"Logs:        {_rel(logdir)}/ (output.txt, casa.log, one log per step)")
     out.write("\n".join(lines) + "\n")
