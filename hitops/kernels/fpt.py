@@ -198,6 +198,23 @@ def offset_sums(tgt_phase, phasor, calibrated, off_phase, off_valid, scan_of_tim
 
 
 @numba.njit(cache=True, nogil=True)
+def row_grid(n_bl, n_time, bl, time_index):
+    """(n_bl, n_time) int64: the index of the row in each (baseline, time) cell, or -1.
+
+    bl, time_index (n_row,): each row's cell (negative values count from the end, as
+    numpy indexing does; a cell given twice holds its last row).
+    """
+    grid = np.full((n_bl, n_time), -1, dtype=np.int64)
+    for i in range(bl.size):
+        b = bl[i] + n_bl if bl[i] < 0 else bl[i]
+        t = time_index[i] + n_time if time_index[i] < 0 else time_index[i]
+        if not (0 <= b < n_bl and 0 <= t < n_time):
+            raise IndexError("a row's baseline or time is outside the chunk's grid")
+        grid[b, t] = i
+    return grid
+
+
+@numba.njit(cache=True, nogil=True)
 def scatter_rows(tgt_rows, grid, n_row, fill):
     """Gather (n_bl, n_time, n_corr) cell values back to (n_row, n_corr) row order."""
     n_bl, n_time, n_corr = grid.shape
