@@ -20,6 +20,7 @@ import numpy as np
 
 from ..io import read as msio
 from ..kernels import wideband
+from ..kernels.fpt import row_grid
 from ..tracking.base import ReferenceGrid
 from ..tracking.grid import gather_grid
 from .band_index import ROW_COLUMNS
@@ -110,9 +111,7 @@ def _sigma(ref: dict, snr_source: str):
 
 
 def _grid(n_bl: int, n_time: int, bl, time_index) -> np.ndarray:
-    grid = np.full((n_bl, n_time), -1, dtype=np.int64)
-    grid[bl, time_index] = np.arange(bl.size)
-    return grid
+    return row_grid(n_bl, n_time, np.asarray(bl), np.asarray(time_index))
 
 
 def read_target(run: RunPlan, group: GroupPlan, k: int, scheduler) -> ChunkData:

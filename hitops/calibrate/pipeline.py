@@ -190,8 +190,7 @@ class GroupPipeline:
 
     def transfer(self, chunk: ChunkData, tracked: ChunkTracking, offsets: Optional[np.ndarray],
                  tgt_carry: Carry, sum_in_groups: bool, offset_k: Optional[np.ndarray] = None):
-        """The chunk's baseline groups as dask tasks: (RowOutputs, [(placed group, its
-        result)])."""
+        """The chunk's baseline groups as dask tasks: (RowOutputs, [(placed group, result)])."""
         import dask
 
         match, group = self.group.match, self.group
@@ -255,17 +254,18 @@ class GroupPipeline:
         return out
 
     def write(self, chunk: ChunkData, out: RowOutputs) -> None:
-        """Stage one chunk: each method's output and the new flags (FLAG | FLAG_ROW | not calibrated)."""
+        """Stage one chunk: each method's output and the new flags (FLAG | FLAG_ROW | not
+        calibrated); the input flags are FLAG unless --overwrite read the backup of them."""
         stage = time.perf_counter()
         names = {v: k for k, v in fpt.METHOD_CODES.items()}
         new_flag = chunk.tgt_flag | chunk.tgt_flag_row[:, None, None] | ~out.calibrated[:, None, :]
-        channels = self.group.channels
+        channels, delays = self.group.channels, out.delay_rows
         self.tx.write_chunk(chunk.tgt_rows, chunk.tgt_data,
                             {names[c]: out.phasor_rows[c] for c in self.codes}, new_flag,
-                            self.io_scheduler,
-                            delays=None if out.delay_rows is None else
-                            {names[c]: out.delay_rows[c] for c in self.codes},
-                            chan_offset=None if channels is None else channels.chan_offset)
+                            self.io_scheduler, delays=None if delays is None else
+                            {names[c]: delays[c] for c in self.codes},
+                            chan_offset=None if channels is None else channels.chan_offset,
+                            flag_read=chunk.tgt_flag if self.run.columns.flag == "FLAG" else None)
         self.timings["write"] += time.perf_counter() - stage
 
     # ---- the passes

@@ -159,7 +159,7 @@ def transfer_group(inputs: TransferInputs) -> TransferResult:
     out = TransferResult(phasors=phasors, calibrated=calibrated, ref_carry=reference.carry,
                          tgt_carry=tgt_carry, wrap_events=reference.wrap_events,
                          samples=sample_causes(tgt_rows, ref_rows, tgt_valid, reference.ref_valid,
-                                               calibrated, n_corr))
+                                               calibrated))
     if inputs.nu_ref is not None:
         out.delays = channel_delays(inputs, reference, calibrated)
     offset_method = fpt.PWC if fpt.PWC in phasors else (fpt.CWU if fpt.CWU in phasors else None)
@@ -194,21 +194,13 @@ def channel_delays(inputs: TransferInputs, reference, calibrated) -> Dict[int, n
     return delays
 
 
-def sample_causes(tgt_rows, ref_rows, tgt_valid, ref_valid, calibrated, n_corr: int) -> SampleCounts:
+def sample_causes(tgt_rows, ref_rows, tgt_valid, ref_valid, calibrated) -> SampleCounts:
     """Why target samples are not calibrated: disjoint causes, in this order, that add up
     to the samples left uncalibrated (a sample flagged in the target and without a
-    reference row counts once, as target-flagged)."""
-    has_tgt = tgt_rows >= 0
-    has_ref = ref_rows >= 0
-    tgt_cell = has_tgt[:, None, :]
-    tgt_bad = tgt_cell & ~tgt_valid
-    no_ref = tgt_cell & tgt_valid & ~has_ref[:, None, :]
-    ref_bad = tgt_cell & tgt_valid & has_ref[:, None, :] & ~ref_valid
-    not_calibrated = ~np.swapaxes(calibrated, 1, 2)   # (n_bl, n_time, n_corr) -> (n_bl, n_corr, n_time)
-    return SampleCounts(n_samples=int(has_tgt.sum()) * n_corr, target_invalid=int(tgt_bad.sum()),
-                        no_reference_row=int(no_ref.sum()), reference_invalid=int(ref_bad.sum()),
-                        other_uncalibrated=int((tgt_cell & not_calibrated & ~tgt_bad & ~no_ref
-                                                & ~ref_bad).sum()))
+    reference row counts once, as target-flagged; :func:`hitops.kernels.fpt.sample_cause_counts`
+    in one pass over the cells)."""
+    counts = fpt.sample_cause_counts(tgt_rows, ref_rows, tgt_valid, ref_valid, calibrated)
+    return SampleCounts(*(int(n) for n in counts))
 
 
 def plan_groups(n_bl: int, n_groups: int) -> List[np.ndarray]:

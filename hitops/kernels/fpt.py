@@ -143,6 +143,35 @@ def transfer_phasors(tgt_rows, tgt_phase, tgt_valid, ref_phase, ref_valid, ref_w
 
 
 @numba.njit(cache=True, nogil=True)
+def sample_cause_counts(tgt_rows, ref_rows, tgt_valid, ref_valid, calibrated):
+    """Target samples and why some are not calibrated, in one pass: int64 (5,) of
+    [samples, target invalid, no reference row, reference invalid, other uncalibrated].
+
+    tgt_rows, ref_rows (n_bl, n_time) row index or -1; tgt_valid, ref_valid
+    (n_bl, n_corr, n_time); calibrated (n_bl, n_time, n_corr).  Each sample of a cell
+    with a target row counts under the first cause that holds, in this order.
+    """
+    n_bl, n_corr, n_time = ref_valid.shape
+    counts = np.zeros(5, dtype=np.int64)
+    for b in range(n_bl):
+        for t in range(n_time):
+            if tgt_rows[b, t] < 0:
+                continue
+            has_ref = ref_rows[b, t] >= 0
+            counts[0] += n_corr
+            for c in range(n_corr):
+                if not tgt_valid[b, c, t]:
+                    counts[1] += 1
+                elif not has_ref:
+                    counts[2] += 1
+                elif not ref_valid[b, c, t]:
+                    counts[3] += 1
+                elif not calibrated[b, t, c]:
+                    counts[4] += 1
+    return counts
+
+
+@numba.njit(cache=True, nogil=True)
 def offset_sums(tgt_phase, phasor, calibrated, off_phase, off_valid, scan_of_time, n_scan):
     """Sum of exp(i*(Phi_ref - Phi_out)) per (baseline, correlation, scan).
 
@@ -166,6 +195,23 @@ def offset_sums(tgt_phase, phasor, calibrated, off_phase, off_valid, scan_of_tim
                 sums[b, c, s] += complex(math.cos(d), math.sin(d))
                 counts[b, c, s] += 1
     return sums, counts
+
+
+@numba.njit(cache=True, nogil=True)
+def row_grid(n_bl, n_time, bl, time_index):
+    """(n_bl, n_time) int64: the index of the row in each (baseline, time) cell, or -1.
+
+    bl, time_index (n_row,): each row's cell (negative values count from the end, as
+    numpy indexing does; a cell given twice holds its last row).
+    """
+    grid = np.full((n_bl, n_time), -1, dtype=np.int64)
+    for i in range(bl.size):
+        b = bl[i] + n_bl if bl[i] < 0 else bl[i]
+        t = time_index[i] + n_time if time_index[i] < 0 else time_index[i]
+        if not (0 <= b < n_bl and 0 <= t < n_time):
+            raise IndexError("a row's baseline or time is outside the chunk's grid")
+        grid[b, t] = i
+    return grid
 
 
 @numba.njit(cache=True, nogil=True)

@@ -25,9 +25,20 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from .base import ChunkTracking, GroupWraps, ResolvedWraps, Tracked, WrapTracker, scan_runs
+from .base import ChunkTracking, GroupWraps, ResolvedWraps, Tracked, WrapTracker
 from .grid import TrackGrid
 from .state import Stats
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def wrap_step(count, last, phase):
+    """The count after a valid sample ``phase`` that follows the valid sample ``last``."""
+    step = phase - last
+    if step > math.pi:
+        return count + 1
+    if step < -math.pi:
+        return count - 1
+    return count
 
 
 @numba.njit(cache=True, nogil=True)
@@ -48,15 +59,61 @@ def count_wraps(ref_phase, valid):
         phase = ref_phase[t]
         if valid[t] and math.isfinite(phase):
             if have_last:
-                step = phase - last
-                if step > math.pi:
-                    count += 1
-                elif step < -math.pi:
-                    count -= 1
+                count = wrap_step(count, last, phase)
             last = phase
             have_last = True
         wraps[t] = count
     return wraps
+
+
+@numba.njit(cache=True, nogil=True)
+def count_chunk(phase, valid, scan_of_time, last_phase, has_last, count, last_scan):
+    """:func:`count_wraps` on every (baseline, correlation) series of a chunk, restarting at
+    each scan and continuing the carried state (``last_phase``, ``has_last``, ``count``
+    (n_bl, n_corr), the previous chunk's ``last_scan``) in the chunk's first scan.
+
+    Returns the counts (n_bl, n_corr, n_time) int64 and the state after the chunk
+    (last_phase, has_last, count; copies: the inputs are not changed).  A series that saw
+    no valid sample in its last scan keeps its carried state when that scan is the
+    carried one and the chunk's only scan, and starts afresh otherwise.
+    """
+    n_bl, n_corr, n_time = phase.shape
+    wraps = np.zeros((n_bl, n_corr, n_time), dtype=np.int64)
+    new_phase, new_has, new_count = last_phase.copy(), has_last.copy(), count.copy()
+    if n_time == 0:
+        return wraps, new_phase, new_has, new_count
+    continues = scan_of_time[0] == last_scan
+    last_start = 0
+    for t in range(1, n_time):
+        if scan_of_time[t] != scan_of_time[t - 1]:
+            last_start = t
+    for b in range(n_bl):
+        for c in range(n_corr):
+            # the carried sample goes first, as a valid one (count_wraps on it and the run)
+            carried = continues and has_last[b, c]
+            n = count[b, c] if carried else 0
+            last = last_phase[b, c]
+            have = carried and math.isfinite(last)
+            t_last = -1
+            for t in range(n_time):
+                if t > 0 and scan_of_time[t] != scan_of_time[t - 1]:
+                    n, have = 0, False
+                ph = phase[b, c, t]
+                if valid[b, c, t] and math.isfinite(ph):
+                    if have:
+                        n = wrap_step(n, last, ph)
+                    last, have = ph, True
+                    if t >= last_start:
+                        t_last = t
+                wraps[b, c, t] = n
+            if t_last >= 0:
+                new_phase[b, c] = phase[b, c, t_last]
+                new_has[b, c] = True
+                new_count[b, c] = wraps[b, c, t_last]
+            elif not (last_start == 0 and continues):
+                new_has[b, c] = False
+                new_count[b, c] = 0
+    return wraps, new_phase, new_has, new_count
 
 
 @numba.njit(cache=True, nogil=True)
@@ -97,43 +154,17 @@ class Carry:
 def count_scans(phase: np.ndarray, valid: np.ndarray, scan_of_time: np.ndarray, carry: Carry):
     """Wrap counts (n_bl, n_corr, n_time) of every series, and the carry after them.
 
-    :func:`count_wraps` runs on each scan run of each series; a run that
-    continues the previous chunk's scan is prefixed with the carried last
-    valid sample, so the count goes on where it stopped.  ``carry`` is not
-    changed: the carry after this chunk is returned.
+    :func:`count_wraps`'s rule on each scan run of each series (:func:`count_chunk`, one
+    kernel call for the whole chunk); a run that continues the previous chunk's scan is
+    prefixed with the carried last valid sample, so the count goes on where it stopped.
+    ``carry`` is not changed: the carry after this chunk is returned.  Phases are compared
+    in float64 (the phases of :func:`hitops.kernels.fpt.gather_phase` are).
     """
-    n_bl, n_corr, n_time = phase.shape
-    wraps = np.zeros((n_bl, n_corr, n_time), dtype=np.int64)
-    runs = scan_runs(scan_of_time)
-    new = Carry(carry.last_phase.copy(), carry.has_last.copy(), carry.count.copy(),
-                runs[-1][2] if runs else carry.last_scan)
-    for b in range(n_bl):
-        for c in range(n_corr):
-            for i, (start, stop, scan) in enumerate(runs):
-                ph = phase[b, c, start:stop]
-                va = valid[b, c, start:stop]
-                if i == 0 and scan == carry.last_scan and carry.has_last[b, c]:
-                    n = count_wraps(np.concatenate(([carry.last_phase[b, c]], ph)),
-                                    np.concatenate(([True], va)))[1:] + carry.count[b, c]
-                else:
-                    n = count_wraps(ph, va)
-                wraps[b, c, start:stop] = n
-            if not runs:
-                continue
-            start, stop, scan = runs[-1]
-            # the sample carried is one count_wraps used: valid and finite (a NaN marked
-            # valid would break the chain at a chunk edge; gather_phase never gives one)
-            last_valid = np.flatnonzero(valid[b, c, start:stop] & np.isfinite(phase[b, c, start:stop]))
-            if last_valid.size:
-                t = start + int(last_valid[-1])
-                new.last_phase[b, c] = phase[b, c, t]
-                new.has_last[b, c] = True
-                new.count[b, c] = wraps[b, c, t]
-            elif not (len(runs) == 1 and scan == carry.last_scan):
-                # the series saw nothing in a scan of its own: the next one starts afresh
-                new.has_last[b, c] = False
-                new.count[b, c] = 0
-    return wraps, new
+    wraps, last_phase, has_last, count = count_chunk(
+        np.asarray(phase, dtype=np.float64), valid, scan_of_time, carry.last_phase,
+        carry.has_last, carry.count, carry.last_scan)
+    last_scan = int(scan_of_time[-1]) if scan_of_time.size else carry.last_scan
+    return wraps, Carry(last_phase, has_last, count, last_scan)
 
 
 def chunk_wrap_events(wraps: np.ndarray, scan_of_time: np.ndarray, carry: Carry) -> np.ndarray:
