@@ -196,7 +196,9 @@ class Progress:
             return
         k = self.names.index(step) + 1 if step in self.names else 0
         info = str(self.recipe.steps.get(step, {}).get("info", "")).strip()
-        head = f"[{k}/{len(self.names)}] {step:<10} "
+        # the descriptions start in one column: names padded to this recipe's longest
+        name_width = max(10, *(len(name) for name in self.names))
+        head = f"[{k}/{len(self.names)}] {step:<{name_width}} "
         room = self.width - len(head) - 22
         if len(info) > room:
             info = info[: max(room - 3, 0)].rstrip() + "..."
