@@ -49,7 +49,10 @@ def interrupt_at(ref, tgt, marker: str):
     status, log text)."""
     proc = subprocess.Popen([str(HITOPS), "calibrate", str(ref), str(tgt), "--method", "pwc"],
                             stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                            # SIGINT as a terminal gives it, even when the suite itself runs
+                            # with it ignored (started in the background by a script)
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     lines = []
     for line in proc.stderr:
         lines.append(line)
