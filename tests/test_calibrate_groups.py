@@ -146,6 +146,40 @@ def test_groups_never_mix(merged, tmp_path):
                                           err_msg=f"{name} {freq} {column}")
 
 
+@pytest.fixture(scope="module")
+def two_fields(tmp_path_factory):
+    """A target and a calibrator in alternating scans (the packaged phaseref scene, 20
+    minutes, no noise): two groups with different numbers of rows."""
+    from hitops.simulate import simulate
+    from hitops.simulate.scene import load_scene_mapping
+
+    scene = load_scene_mapping("phaseref")[0]
+    scene["observation"]["duration"] = 1200
+    scene["corruptions"]["noise"] = False
+    return simulate(scene, tmp_path_factory.mktemp("two-fields"))
+
+
+@pytest.mark.parametrize("tracker", ["count", "antenna"])
+def test_several_groups_cut_into_chunks_write_what_one_chunk_writes(two_fields, tmp_path,
+                                                                    tracker):
+    """Chunks are one group's time chunks: every group of a set with several fields opened
+    with its own (dask-ms applied one group's chunks to every group and refused a group of
+    another length: "Chunks do not add up to shape")."""
+    ref = two_fields["86"]
+    whole, chunked = str(tmp_path / "whole.ms"), str(tmp_path / "chunked.ms")
+    shutil.copytree(two_fields["230"], whole)
+    shutil.copytree(two_fields["230"], chunked)
+    with pt.table(whole, ack=False) as t:
+        sizes = np.bincount(t.getcol("FIELD_ID"))
+    assert sizes.size == 2 and sizes[0] != sizes[1]
+    calibrate(ref, whole, method="pwc,cfpt", tracker=tracker, no_verdict=True)
+    report = calibrate(ref, chunked, method="pwc,cfpt", tracker=tracker, chunk_rows=500,
+                       no_verdict=True)
+    assert all(g["chunks"] > 1 for g in report["groups"]), report["groups"]
+    for column in ("PWC_DATA", "CFPT_DATA", "FLAG"):
+        np.testing.assert_array_equal(col(chunked, column), col(whole, column), err_msg=column)
+
+
 def test_window_counts_that_cannot_pair_are_refused(merged, tmp_path):
     """Two reference windows against one target window: refused, naming both sets' windows."""
     truths, ref, _, root = merged

@@ -167,7 +167,7 @@ class ChunkMatch(GridShape):
                              if p > 0)
             if len(sizes) > 1 and not isinstance(self.datasets[which], msio.StorageRows):
                 datasets = msio.open_groups(band.ms, [c for c in dict.fromkeys(cols) if c != "ROWID"],
-                                            tuple(sizes), band.time_ordered)
+                                            tuple(sizes), band.time_ordered, only=band.key)
                 # the band's only dataset from then on: the first one (and the row order
                 # dask-ms keeps for it, 8 bytes per row) can go
                 chunked[which] = datasets[band.key]

@@ -17,7 +17,7 @@ dask-ms adds only overhead there.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Dict, Iterable, List, Optional, Sequence
+from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -159,7 +159,8 @@ def is_time_ordered(ms: str, block_rows: int = 1 << 20) -> bool:
 
 
 def open_groups(ms: str, columns: Sequence[str], chunks,
-                time_ordered: Optional[bool] = None) -> Dict[tuple, object]:
+                time_ordered: Optional[bool] = None,
+                only: Optional[Tuple[int, int]] = None) -> Dict[tuple, object]:
     """Lazy dask-ms datasets of the main table, one per (FIELD_ID, DATA_DESC_ID), in time order.
 
     dask-ms's own grouping and ordering (``xds_from_ms`` with ``group_cols``
@@ -185,10 +186,15 @@ def open_groups(ms: str, columns: Sequence[str], chunks,
 
     if time_ordered is None:
         time_ordered = is_time_ordered(ms)
-    grouped = time_ordered or bool(selection_columns(ms))
+    mixed = bool(selection_columns(ms))
+    grouped = time_ordered or mixed
+    # ``only`` (FIELD_ID, DATA_DESC_ID): that group alone, e.g. when ``chunks`` are one
+    # group's time chunks (dask-ms would apply them to every group and refuse the others)
+    where = {"taql_where": f"FIELD_ID=={int(only[0])} && DATA_DESC_ID=={int(only[1])}"} \
+        if mixed and only is not None else {}
     datasets = xds_from_ms(ms, columns=list(columns), index_cols=[] if time_ordered else ["TIME"],
                            group_cols=list(GROUP_COLUMNS) if grouped else [],
-                           chunks={"row": chunks})
+                           chunks={"row": chunks}, **where)
     out = {}
     for ds in datasets:
         key = (int(ds.attrs.get("FIELD_ID", 0)), int(ds.attrs.get("DATA_DESC_ID", 0)))
