@@ -47,6 +47,7 @@ import numpy as np
 
 from ...errors import InputError
 from ...io import read as msio
+from ...io.ms_create import CORR_NAMES
 from ...kernels.phase_ref import antenna_phasors, baseline_sums, model_residuals, phase_and_delay
 from ...kernels.wideband import rotate_channels
 
@@ -55,8 +56,6 @@ log = logging.getLogger("hitops.calibrate")
 #: iterations of the per-channel antenna phase solve (converged to < 1e-6 rad on the
 #: noise-free pairs of tests/test_phase_referencing.py well before this)
 SOLVE_ITERATIONS = 60
-#: first CORR_TYPE code of the circular (RR RL LR LL) and linear (XX XY YX YY) products
-_CORR_BASES = (5, 9)
 
 
 @dataclass(frozen=True)
@@ -150,17 +149,10 @@ def check_calibrator_field(run) -> Optional[CalibratorField]:
 def _hands(corr: Tuple[int, ...]) -> Tuple[Tuple[str, ...], np.ndarray, np.ndarray]:
     """(parallel-hand letters, their correlation index, (n_corr, 2) hand index of each
     correlation's two receptors, -1 for a product hitops does not know)."""
-    letters = {5: "RL", 9: "XY"}
-    pairs, names = [], []
-    for code in corr:
-        base = next((b for b in _CORR_BASES if b <= code < b + 4), None)
-        if base is None:
-            pairs.append(None)
-            continue
-        first, second = letters[base][(code - base) // 2], letters[base][(code - base) % 2]
-        pairs.append((first, second))
-        if first == second:
-            names.append(first)
+    # each product's two receptors are the letters of its casacore name (RL: R and L)
+    pairs = [tuple(CORR_NAMES[int(code)]) if int(code) in CORR_NAMES else None
+             for code in corr]
+    names = [p[0] for p in pairs if p and p[0] == p[1]]
     hand_corr = np.array([i for i, p in enumerate(pairs) if p and p[0] == p[1]], np.int64)
     index = np.full((len(corr), 2), -1, np.int64)
     for i, p in enumerate(pairs):
@@ -193,9 +185,10 @@ def _window_rows(meta: Dict[str, np.ndarray], written: np.ndarray, ddid: int,
 
 
 def _solve_window(table, tx, column: str, rows: _WindowRows, group, hands, hand_corr,
-                  refant: int, n_ant: int, ddid: int, times: np.ndarray) -> WindowSolution:
-    """Every calibrator scan of one window solved (hitops/kernels/phase_ref.py)."""
-    chan_offset = np.asarray(group.pair.tgt.chan_freq) - group.pair.tgt.freq
+                  refant: int, n_ant: int, ddid: int, times: np.ndarray,
+                  chan_offset: np.ndarray) -> WindowSolution:
+    """Every calibrator scan of one window solved (hitops/kernels/phase_ref.py);
+    ``chan_offset``: each channel's frequency from the window's centre (Hz)."""
     scans = []
     residual = 0j
     for scan in np.unique(rows.cal_scan):
@@ -309,9 +302,9 @@ def _reference_window(run, tx, table, column, meta, cal, ddid, groups, bridge) -
     _bridge_window(table, tx, column, both, bridge.counts, group, run.chunk_rows)
     refant = _refant(run, names, np.concatenate([meta["ANTENNA1"][rows.cal_rows],
                                                  meta["ANTENNA2"][rows.cal_rows]]))
-    solution = _solve_window(table, tx, column, rows, group, hands, hand_corr, refant,
-                             len(names), ddid, meta["TIME"])
     chan_offset = np.asarray(group.pair.tgt.chan_freq) - group.pair.tgt.freq
+    solution = _solve_window(table, tx, column, rows, group, hands, hand_corr, refant,
+                             len(names), ddid, meta["TIME"], chan_offset)
     n_flagged = _apply_window(table, tx, column, rows.target_rows, meta, solution,
                               corr_hands, chan_offset, run.chunk_rows, len(names))
     entry = window_report(solution, names, rows.target_rows.size, n_flagged)
