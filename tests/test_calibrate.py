@@ -646,7 +646,9 @@ def test_cluster_rerun_with_overwrite_of_its_own_output(new_pair):
 def test_staging_columns_take_the_target_columns_storage(new_pair):
     """The outputs are stored like the column they copy: tiled like DATA with its tiles
     when the chunks are written in time order, short tiles and a bounded cache when
-    they are scattered over a table not in time order; StandardStMan otherwise."""
+    they are scattered over a table not in time order; StandardStMan otherwise.  A
+    TiledColumnStMan of fixed cell shape gives a TiledColumnStMan (cheap to add), any
+    other tiled column a TiledShapeStMan."""
     from hitops.calibrate.output import (SCATTERED_CACHE_BYTES, SCATTERED_TILE_ROWS,
                                          like_dminfo)
 
@@ -654,6 +656,10 @@ def test_staging_columns_take_the_target_columns_storage(new_pair):
     seq = like_dminfo(tiled, "X", taken={"X_TSM"})
     assert seq["TYPE"] == "TiledShapeStMan" and seq["NAME"] == "X_TSM2"
     assert list(seq["SPEC"]["DEFAULTTILESHAPE"]) == [4, 1, 32768]
+    fixed = like_dminfo(tiled, "X", taken={"X_TSM"}, fixed_shape=True)
+    assert fixed["TYPE"] == "TiledColumnStMan" and fixed["NAME"] == "X_TCM"
+    assert like_dminfo({"TYPE": "TiledShapeStMan", "SPEC": {"DEFAULTTILESHAPE": np.array(
+        [4, 1, 32768])}}, "X", fixed_shape=True)["TYPE"] == "TiledShapeStMan"
     spread = like_dminfo(tiled, "X", scattered=True)
     assert list(spread["SPEC"]["DEFAULTTILESHAPE"]) == [4, 1, SCATTERED_TILE_ROWS]
     assert spread["SPEC"]["MAXIMUMCACHESIZE"] == SCATTERED_CACHE_BYTES
@@ -664,5 +670,6 @@ def test_staging_columns_take_the_target_columns_storage(new_pair):
     assert report["chunks"] > 2
     with pt.table(str(truth.target_ms), ack=False) as t:
         info = next(v for v in t.getdminfo().values() if "PWC_DATA" in v["COLUMNS"])
-    assert info["TYPE"] == "TiledShapeStMan"
+        data_type = next(v["TYPE"] for v in t.getdminfo().values() if "DATA" in v["COLUMNS"])
+    assert data_type == "TiledColumnStMan" and info["TYPE"] == "TiledColumnStMan"
     assert int(info["SPEC"]["DEFAULTTILESHAPE"][-1]) == SCATTERED_TILE_ROWS

@@ -9,12 +9,17 @@ For each time chunk of the plan, in time order:
    ``absorb`` and ``finish_chunk``): the smooth and antenna trackers track the
    whole chunk here with their context; the count tracker's share counts
    inside each group's task from a carried sample;
-3. transfer: :func:`hitops.calibrate.transfer.transfer_group` on baseline
-   groups as dask tasks (a :class:`~hitops.calibrate.transfer.TransferInputs`
-   in, a :class:`~hitops.calibrate.transfer.TransferResult` out; the numba
-   kernels of :mod:`hitops.kernels.fpt`);
+3. transfer: :func:`hitops.calibrate.transfer.transfer_group` on baseline groups
+   (:class:`hitops.calibrate.group_tasks.GroupTasks`: threads, or a dask cluster; a
+   :class:`~hitops.calibrate.transfer.TransferInputs` in, a
+   :class:`~hitops.calibrate.transfer.TransferResult` out; the numba kernels of
+   :mod:`hitops.kernels.fpt`);
 4. write the outputs and new flags through the run's
    :class:`hitops.calibrate.output.OutputTransaction`.
+
+Reads and writes run on one I/O thread (:class:`hitops.calibrate.chunk_io.ChunkIO`):
+chunk k+1 is read while chunk k's kernels run, and chunk k is written while chunk
+k+1's run.
 
 With the n0 offset step a first pass (steps 1-3) sums the calibrated phase against the offset
 reference per scan or segment (per target channel across a window); the integers are solved
@@ -39,13 +44,15 @@ from ..kernels.segments import SegmentSums, segment_row_sums
 from ..tracking.base import ChunkTracking, WrapTracker
 from ..tracking.count import Carry
 from ..tracking.factory import new_tracker
+from .chunk_io import ChunkIO
 from .chunk_read import ChunkData, read_chunk, read_target
+from .group_tasks import GroupTasks, StartedGroups
 from .n0.step import (OffsetSolution, OffsetSums, channel_sums, offset_shifted_rows,
                       offset_step_needed, solve_offsets)
 from .output import OutputTransaction
+from .row_outputs import PlacedGroup, RowOutputs, rows_of_groups
 from .plan import GroupPlan, RunPlan
-from .transfer import (SampleCounts, TransferInputs, TransferResult, group_rows, plan_groups,
-                       transfer_group)
+from .transfer import SampleCounts, TransferInputs, group_rows, plan_groups
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -87,16 +94,6 @@ class GroupResult:
 
 
 @dataclass
-class RowOutputs:
-    """One chunk's transfer in the target rows' order."""
-
-    phasor_rows: Dict[int, np.ndarray]            # method code -> (n_row, n_corr) complex64
-    calibrated: np.ndarray                        # (n_row, n_corr) bool
-    # a per-channel transfer's delay across the target window, seconds (channels.py)
-    delay_rows: Optional[Dict[int, np.ndarray]] = None
-
-
-@dataclass
 class KeptChunk:
     """The first pass's output of one chunk, kept for the writing pass."""
 
@@ -105,14 +102,11 @@ class KeptChunk:
 
 
 @dataclass
-class PlacedGroup:
-    """Where a baseline group's output goes: its baselines and, for a compact copy sent to
-    a remote worker, the chunk rows it holds and its own row grid (None: threads, the
-    group's cells hold chunk rows)."""
+class StartedTransfer:
+    """A chunk's baseline-group tasks, started, and where each group's output goes."""
 
-    bls: np.ndarray
-    picked: Optional[np.ndarray]
-    local_grid: Optional[np.ndarray]
+    placed: List[PlacedGroup]
+    groups: StartedGroups
 
 
 class GroupPipeline:
@@ -126,11 +120,11 @@ class GroupPipeline:
         # written here, on this process's threads: a graph holding dask-ms table handles
         # would be unpickled by the cluster's scheduler, whose copies keep the table open
         # (and read-locked) after the run, so that the next run's commit waits on them
-        self.scheduler = client.get if client is not None else dask.threaded.get
         self.io_scheduler = dask.threaded.get
         self.codes = [fpt.METHOD_CODES[m] for m in run.methods]
         n_workers = (len(client.scheduler_info()["workers"]) if client is not None
                      else (os.cpu_count() or 1))
+        self.tasks = GroupTasks(client, n_workers)
         self.baseline_groups = plan_groups(group.match.n_bl, 2 * n_workers)
         self.timings = run.timings
         for key in ("read", "transfer", "write"):
@@ -168,31 +162,14 @@ class GroupPipeline:
         self.timings["read"] += time.perf_counter() - stage
         return chunk
 
-    def chunks(self, keep: bool):
-        """(k, chunk k, the read of chunk k+1 or None), in time order.
+    def close(self) -> None:
+        """Stop the transfer threads."""
+        self.tasks.close()
 
-        Chunk k+1 is read in a background thread while chunk k is tracked and
-        transferred (casacore and the nogil numba kernels release the GIL); the
-        memory budget counts that second chunk's columns (hitops/calibrate/memory.py).
-        """
-        from concurrent.futures import ThreadPoolExecutor
-
-        n_chunks = self.group.n_chunks
-        if n_chunks == 1:
-            yield 0, self.read(0, keep), None
-            return
-        with ThreadPoolExecutor(1, thread_name_prefix="hitops-read") as pool:
-            pending = pool.submit(self.read, 0, keep)
-            for k in range(n_chunks):
-                chunk = pending.result()
-                pending = pool.submit(self.read, k + 1, keep) if k + 1 < n_chunks else None
-                yield k, chunk, pending
-
-    def transfer(self, chunk: ChunkData, tracked: ChunkTracking, offsets: Optional[np.ndarray],
-                 tgt_carry: Carry, sum_in_groups: bool, offset_k: Optional[np.ndarray] = None):
-        """The chunk's baseline groups as dask tasks: (RowOutputs, [(placed group, result)])."""
-        import dask
-
+    def start_transfer(self, chunk: ChunkData, tracked: ChunkTracking,
+                       offsets: Optional[np.ndarray], tgt_carry: Carry, sum_in_groups: bool,
+                       offset_k: Optional[np.ndarray] = None) -> "StartedTransfer":
+        """The chunk's baseline-group tasks, started (:class:`GroupTasks`)."""
         match, group = self.group.match, self.group
         scans = group.grid.scans
         scan_local = scans.scan_of_time[chunk.t0:chunk.t1]
@@ -216,42 +193,16 @@ class GroupPipeline:
                 nu_ref=None if group.channels is None else group.channels.ref_freq,
                 segment_keys=tracked.segment_keys[bls] if sum_segments else None)
             placed.append(PlacedGroup(bls, picked, None if picked is None else rows.tgt_rows))
-            tasks.append(dask.delayed(transfer_group, pure=False)(inputs))
-        results = dask.compute(*tasks, scheduler=self.scheduler)
-        del tasks, inputs   # drop the group inputs as soon as possible
-        return self._to_rows(chunk, placed, results), list(zip(placed, results))
+            tasks.append(inputs)
+        return StartedTransfer(placed, self.tasks.start(tasks))
 
-    def _to_rows(self, chunk: ChunkData, placed: List[PlacedGroup],
-                 results: List[TransferResult]) -> RowOutputs:
-        """Each method's phasors (and delays), the calibrated mask, in the chunk's row order."""
-        n_rows, n_corr = chunk.tgt_rows.size, self.group.n_corr
-        with_delays = results[0].delays is not None
-        if placed[0].local_grid is None:
-            # threads: the groups are consecutive baselines whose cells hold chunk rows, so
-            # their grids stacked are the chunk's grid (one numba pass to row order)
-            def rows_of(cells, fill):
-                return fpt.scatter_rows(chunk.tgt_grid, np.concatenate(cells), n_rows, fill)
-
-            return RowOutputs(
-                {c: rows_of([r.phasors[c] for r in results], np.complex64(0)) for c in self.codes},
-                rows_of([r.calibrated for r in results], False),
-                {c: rows_of([r.delays[c] for r in results], 0.0) for c in self.codes}
-                if with_delays else None)
-        # remote workers: each group's cells hold its own compact rows
-        out = RowOutputs({c: np.zeros((n_rows, n_corr), np.complex64) for c in self.codes},
-                         np.zeros((n_rows, n_corr), dtype=bool),
-                         {c: np.zeros((n_rows, n_corr)) for c in self.codes}
-                         if with_delays else None)
-        for where, res in zip(placed, results):
-            for c in self.codes:
-                out.phasor_rows[c][where.picked] = fpt.scatter_rows(
-                    where.local_grid, res.phasors[c], where.picked.size, np.complex64(0))
-                if with_delays:
-                    out.delay_rows[c][where.picked] = fpt.scatter_rows(
-                        where.local_grid, res.delays[c], where.picked.size, 0.0)
-            out.calibrated[where.picked] = fpt.scatter_rows(where.local_grid, res.calibrated,
-                                                            where.picked.size, False)
-        return out
+    def finish_transfer(self, chunk: ChunkData, started: "StartedTransfer"):
+        """Wait for the chunk's groups: (RowOutputs, [(placed group, result)])."""
+        results = self.tasks.results(started.groups)
+        placed = started.placed
+        out = rows_of_groups(chunk.tgt_grid, chunk.tgt_rows.size, self.group.n_corr,
+                             self.codes, placed, results)
+        return out, list(zip(placed, results))
 
     def write(self, chunk: ChunkData, out: RowOutputs) -> None:
         """Stage one chunk: each method's output and the new flags (FLAG | FLAG_ROW | not
@@ -283,31 +234,37 @@ class GroupPipeline:
         tgt_carry = Carry.empty(match.n_bl, n_corr)
         result = PassResult(samples=SampleCounts(), tracker=tracker,
                             sums=OffsetSums.for_group(self.group))
-        for k, chunk, next_read in self.chunks(keep_reads):
-            stage = time.perf_counter()
-            tracked = tracker.track_chunk(chunk.t0, chunk.t1, chunk.reference)
-            tracked = tracked.with_segment_offsets(segment_k)
-            # a kept first pass sums the offsets here, from the rows (the groups then need
-            # neither the target phases nor the reference/model column)
-            sum_in_groups = offsets is None and kept is None
-            out, parts = self.transfer(chunk, tracked, offsets, tgt_carry, sum_in_groups, offset_k)
-            _add_parts(result, tracker, tgt_carry, parts)
-            if result.sums.window is not None and offsets is None and off_col:
-                channel_sums(result.sums, self.group, chunk, tracked.segment_keys, out)
-            tracker.finish_chunk(chunk.t1)
-            tgt_carry.last_scan = int(scans.scan_of_time[chunk.t1 - 1])
-            if kept is not None:
-                kept[k] = KeptChunk(out, tracked.segment_keys)
-                if offsets is None and off_col:
-                    self._sum_kept(result, chunk, tracked.segment_keys, out.phasor_rows,
-                                   out.calibrated)
-            self.timings["transfer"] += time.perf_counter() - stage
-            if next_read is not None:
-                # the next chunk's read ends before this chunk's write starts: the two never
-                # touch the target table at the same time
-                next_read.result()
-            if write:
-                self.write(chunk, out)
+        with ChunkIO(lambda k: self.read(k, keep_reads), self.group.n_chunks) as io:
+            for k in range(self.group.n_chunks):
+                chunk = io.chunk(k)
+                if tracker.grids_reference:   # the tracker reads the chunk here: read beside it
+                    io.read_ahead(k + 1)
+                stage = time.perf_counter()
+                tracked = tracker.track_chunk(chunk.t0, chunk.t1, chunk.reference)
+                tracked = tracked.with_segment_offsets(segment_k)
+                # a kept first pass sums the offsets here, from the rows (the groups then
+                # need neither the target phases nor the reference/model column)
+                sum_in_groups = offsets is None and kept is None
+                started = self.start_transfer(chunk, tracked, offsets, tgt_carry,
+                                              sum_in_groups, offset_k)
+                # asked for once the kernels run: casacore's getcol holds the GIL, which
+                # each kernel needs to start
+                io.read_ahead(k + 1)
+                out, parts = self.finish_transfer(chunk, started)
+                _add_parts(result, tracker, tgt_carry, parts)
+                if result.sums.window is not None and offsets is None and off_col:
+                    channel_sums(result.sums, self.group, chunk, tracked.segment_keys, out)
+                tracker.finish_chunk(chunk.t1)
+                tgt_carry.last_scan = int(scans.scan_of_time[chunk.t1 - 1])
+                if kept is not None:
+                    kept[k] = KeptChunk(out, tracked.segment_keys)
+                    if offsets is None and off_col:
+                        self._sum_kept(result, chunk, tracked.segment_keys, out.phasor_rows,
+                                       out.calibrated)
+                self.timings["transfer"] += time.perf_counter() - stage
+                if write:   # on the I/O thread, after the next chunk's read
+                    io.write(self.write, chunk, out)
+                del chunk, out, parts, started, tracked
         return result
 
     def _sum_kept(self, result: PassResult, chunk: ChunkData, seg_keys, phasor_rows,
@@ -374,6 +331,13 @@ def kept_bytes(group: GroupPlan, n_methods: int) -> int:
 def run_group(run: RunPlan, group: GroupPlan, tx: OutputTransaction, client) -> GroupResult:
     """Every pass over one group pair; the outputs staged in ``tx``."""
     pipeline = GroupPipeline(run, group, tx, client)
+    try:
+        return _run_passes(run, group, pipeline)
+    finally:
+        pipeline.close()
+
+
+def _run_passes(run: RunPlan, group: GroupPlan, pipeline: GroupPipeline) -> GroupResult:
     codes, columns = pipeline.codes, run.columns
     step = bool(columns.offset) and (fpt.PWC in codes or fpt.CWU in codes)
     if columns.offset and not step:
