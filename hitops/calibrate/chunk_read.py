@@ -114,16 +114,33 @@ def _grid(n_bl: int, n_time: int, bl, time_index) -> np.ndarray:
     return row_grid(n_bl, n_time, np.asarray(bl), np.asarray(time_index))
 
 
+def _meta_read(first, band) -> list:
+    """The per-row metadata a chunk's read adds to the data columns: none when the checks
+    kept the one chunk's rows or the band's metadata is held whole; TIME, ROWID and
+    FLAG_ROW when the index pass kept the rows' pair keys; else every row column."""
+    if first or band.whole:
+        return []
+    return (["TIME", "ROWID", "FLAG_ROW"] if band.pair_key is not None
+            else ROW_COLUMNS + ["ROWID"])
+
+
+def _chunk_rows(match, which: str, rows: slice, meta) -> ChunkRows:
+    """A band's chunk rows on the grid, from the index pass where it kept them."""
+    band = match.tgt if which == "tgt" else match.ref
+    if band.whole:
+        return match.index_rows(which, match.read_meta(which, rows, ROW_COLUMNS + ["ROWID"]))
+    return match.rows_from_index(which, rows, meta) or match.index_rows(which, meta)
+
+
 def read_target(run: RunPlan, group: GroupPlan, k: int, scheduler) -> ChunkData:
     """Chunk ``k``'s target rows only: what writing a kept output needs."""
     columns, match = run.columns, group.match
     t0, t1 = group.bounds[k], group.bounds[k + 1]
     t_rows = match.row_numbers("tgt", t0, t1)
     read = list(dict.fromkeys([columns.target_data, columns.flag]
-                              + ([] if match.tgt.whole else ROW_COLUMNS + ["ROWID"])))
+                              + _meta_read(None, match.tgt)))
     tgt, = msio.compute_columns([match.chunk_request("tgt", t_rows, read)], scheduler=scheduler)
-    t_idx = match.index_rows("tgt", tgt if not match.tgt.whole else
-                             match.read_meta("tgt", t_rows, ROW_COLUMNS + ["ROWID"]))
+    t_idx = _chunk_rows(match, "tgt", t_rows, tgt)
     flag = tgt[columns.flag]
     return ChunkData(t0=t0, t1=t1, tgt_rows=t_idx.rows, tgt_data=tgt[columns.target_data],
                      tgt_flag=flag, tgt_flag_row=t_idx.flag_row, tgt_vis=None, tgt_ok=None,
@@ -148,20 +165,16 @@ def read_chunk(run: RunPlan, group: GroupPlan, k: int, extent: Tuple[int, int],
     first = group.first_chunk if (group.n_chunks == 1 and (t_lo, t_hi) == (t0, t1)) else None
     t_rows = match.row_numbers("tgt", t0, t1)
     r_rows = match.row_numbers("ref", t_lo, t_hi)
-    t_read = list(dict.fromkeys(columns.tgt + ([] if first or match.tgt.whole
-                                               else ROW_COLUMNS + ["ROWID"])))
-    r_read = list(dict.fromkeys(columns.ref + columns.snr + ([] if first or match.ref.whole
-                                                             else ROW_COLUMNS + ["ROWID"])))
+    t_read = list(dict.fromkeys(columns.tgt + _meta_read(first, match.tgt)))
+    r_read = list(dict.fromkeys(columns.ref + columns.snr + _meta_read(first, match.ref)))
     tgt, ref = msio.compute_columns([match.chunk_request("tgt", t_rows, t_read),
                                      match.chunk_request("ref", r_rows, r_read)],
                                     scheduler=scheduler)
     if first:
         t_idx, r_idx = first
     else:
-        t_idx = match.index_rows("tgt", tgt if not match.tgt.whole else
-                                 match.read_meta("tgt", t_rows, ROW_COLUMNS + ["ROWID"]))
-        r_idx = match.index_rows("ref", ref if not match.ref.whole else
-                                 match.read_meta("ref", r_rows, ROW_COLUMNS + ["ROWID"]))
+        t_idx = _chunk_rows(match, "tgt", t_rows, tgt)
+        r_idx = _chunk_rows(match, "ref", r_rows, ref)
     # reference rows whose station pair has no target baseline take no part
     keep = r_idx.bl >= 0
     if not keep.all():

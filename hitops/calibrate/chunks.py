@@ -38,6 +38,7 @@ from ..io.layout import GridShape, unique_times
 from ..io.match import correlation_map, pair_antennas, pairing_table
 from ..io.stations import Stations
 from ..io.ms_create import CORR_NAMES
+from ..kernels.cells import band_cells, count_marked, mark_cells
 from ..tracking.grid import ScanAxis
 from .band_index import ROW_COLUMNS, BandIndex
 
@@ -202,6 +203,26 @@ class ChunkMatch(GridShape):
         return self._on_grid(which, key, group.astype(np.int32)[at], meta.get("SCAN_NUMBER"),
                              rows=meta.get("ROWID"), flag_row=meta.get("FLAG_ROW"))
 
+    def rows_from_index(self, which: str, rows: slice, meta) -> Optional[ChunkRows]:
+        """A chunk's :class:`ChunkRows` from the index pass (each row's antenna pair and
+        time from its position) and the TIME, ROWID and FLAG_ROW in ``meta`` read with
+        its data; None when the band kept no pair keys (then :meth:`index_rows` reads
+        them again).  The index pass read ANTENNA1 and ANTENNA2 of these very
+        positions, so the chunk's read need not, nor look each TIME up: TIME is only
+        compared with the times the index holds for these positions (the same refusal
+        as :meth:`index_rows` when it changed)."""
+        band, _ = self._side(which)
+        if band.pair_key is None:
+            return None
+        u0, u1 = np.searchsorted(band.row_start, [rows.start, rows.stop])
+        indexed = np.repeat(band.unique_time[u0:u1], band.time_rows[u0:u1])
+        if not np.array_equal(np.asarray(meta["TIME"], dtype=np.float64), indexed):
+            raise MeasurementSetError(f"{band.ms}: TIME changed while it was being read; "
+                                      "run again when nothing else writes to the set")
+        found = self._indexed_rows(which, rows)
+        return ChunkRows(rows=meta["ROWID"], bl=found.bl, time=found.time,
+                         swapped=found.swapped, flag_row=meta["FLAG_ROW"], scan=None)
+
     def _on_grid(self, which: str, key, time, scan, rows=None, flag_row=None) -> ChunkRows:
         """:class:`ChunkRows` of a band's rows from their antenna-pair keys and union times."""
         if which == "tgt":
@@ -212,16 +233,11 @@ class ChunkMatch(GridShape):
                          scan=scan)
 
     def _indexed_rows(self, which: str, rows: slice) -> ChunkRows:
-        """A chunk's baselines, times and scans from the index pass (nothing read).
-
-        Each row takes the scan of the last row at its time, which is what
-        filling ``scan_of_time`` row by row leaves there.
-        """
+        """A chunk's baselines and times from the index pass (nothing read; no scans)."""
         band, group = self._side(which)
         u0, u1 = np.searchsorted(band.row_start, [rows.start, rows.stop])
         at = np.repeat(np.arange(u0, u1), band.time_rows[u0:u1])
-        return self._on_grid(which, band.pair_key[rows], group[at].astype(np.int32),
-                             band.time_scan[at])
+        return self._on_grid(which, band.pair_key[rows], group[at].astype(np.int32), None)
 
     def check(self, bounds: List[int], scheduler=None, keep_single: bool = True) -> MatchCheck:
         """Check every chunk's cells, count matches, find each time's scan (before any write).
@@ -238,9 +254,11 @@ class ChunkMatch(GridShape):
             t_rows = self.row_numbers("tgt", t0, t1)
             r_rows = self.row_numbers("ref", t0, t1)
             if from_index:   # nothing to read (hitops/calibrate/band_index.py)
-                matched, unused = self._check_chunk(self._indexed_rows("tgt", t_rows),
-                                                    self._indexed_rows("ref", r_rows), t0, t1,
-                                                    scan_of_time)
+                for which, rows in (("ref", r_rows), ("tgt", t_rows)):
+                    self._index_scans(which, rows, scan_of_time)
+                matched, unused = self._check_cells(self._index_cells("tgt", t_rows, t0, t1),
+                                                    self._index_cells("ref", r_rows, t0, t1),
+                                                    r_rows.stop - r_rows.start, t0, t1)
                 n_matched, n_ref_unused = n_matched + matched, n_ref_unused + unused
                 continue
             if self.tgt.whole is not None and self.ref.whole is not None:
@@ -268,26 +286,43 @@ class ChunkMatch(GridShape):
 
     def _check_chunk(self, tgt: ChunkRows, ref: ChunkRows, t0: int, t1: int,
                      scan_of_time: np.ndarray) -> Tuple[int, int]:
-        """(matched target rows, unused reference rows) of one chunk; sets the chunk's
-        times in ``scan_of_time`` (check's own array, filled chunk by chunk)."""
+        """(matched target rows, unused reference rows) of one chunk read again; sets the
+        chunk's times in ``scan_of_time`` (check's own array, filled chunk by chunk)."""
         n_t = t1 - t0
-        n_cells = self.n_bl * n_t
-        t_cells = tgt.bl.astype(np.int64) * n_t + (tgt.time - t0)
-        has_tgt = np.zeros(n_cells, dtype=bool)
-        has_tgt[t_cells] = True
-        if np.count_nonzero(has_tgt) != t_cells.size:
-            self._raise_duplicate(t_cells, n_t, t0, self.tgt.ms)
-        used = ref.bl >= 0
-        r_cells = ref.bl[used].astype(np.int64) * n_t + (ref.time[used] - t0)
-        has_ref = np.zeros(n_cells, dtype=bool)
-        has_ref[r_cells] = True
-        if np.count_nonzero(has_ref) != r_cells.size:
-            self._raise_duplicate(r_cells, n_t, t0, self.ref.ms)
         # target's SCAN_NUMBER where the target has a row at that time, else the reference's
         scan_of_time[ref.time] = np.searchsorted(self.scan_numbers, ref.scan)
         scan_of_time[tgt.time] = np.searchsorted(self.scan_numbers, tgt.scan)
-        return (int(np.count_nonzero(has_ref[t_cells])),
-                int(ref.bl.size - np.count_nonzero(has_tgt[r_cells])))
+        t_cells = tgt.bl.astype(np.int64) * n_t + (tgt.time - t0)
+        r_cells = np.where(ref.bl >= 0, ref.bl.astype(np.int64) * n_t + (ref.time - t0), -1)
+        return self._check_cells(t_cells, r_cells, ref.bl.size, t0, t1)
+
+    def _index_cells(self, which: str, rows: slice, t0: int, t1: int) -> np.ndarray:
+        """Each row's cell (-1: no baseline) from the index pass's pair keys."""
+        band, group = self._side(which)
+        u0, u1 = np.searchsorted(band.row_start, [rows.start, rows.stop])
+        pair_bl = self.tgt_pair_bl if which == "tgt" else self.ref_pair_bl
+        return band_cells(band.pair_key[rows], pair_bl, band.time_rows[u0:u1],
+                          group[u0:u1], t0, t1 - t0)
+
+    def _index_scans(self, which: str, rows: slice, scan_of_time: np.ndarray) -> None:
+        """Each distinct time's scan (that of its last row) into ``scan_of_time``."""
+        band, group = self._side(which)
+        u0, u1 = np.searchsorted(band.row_start, [rows.start, rows.stop])
+        scan_of_time[group[u0:u1]] = np.searchsorted(self.scan_numbers, band.time_scan[u0:u1])
+
+    def _check_cells(self, t_cells: np.ndarray, r_cells: np.ndarray, n_ref_rows: int,
+                     t0: int, t1: int) -> Tuple[int, int]:
+        """(matched target rows, unused reference rows) from the rows' cells (-1: a
+        reference pair without a target baseline); two rows in one cell are refused."""
+        n_t = t1 - t0
+        has_tgt, shared = mark_cells(t_cells, self.n_bl * n_t)
+        if shared:
+            self._raise_duplicate(t_cells, n_t, t0, self.tgt.ms)
+        has_ref, shared = mark_cells(r_cells, self.n_bl * n_t)
+        if shared:
+            self._raise_duplicate(r_cells[r_cells >= 0], n_t, t0, self.ref.ms)
+        return (int(count_marked(t_cells, has_ref)),
+                int(n_ref_rows - count_marked(r_cells, has_tgt)))
 
     def _raise_duplicate(self, cells, n_t, t0, ms):
         counts = np.bincount(cells, minlength=self.n_bl * n_t)

@@ -2,7 +2,8 @@
 
 The pipeline (:mod:`hitops.calibrate.pipeline`) reads a chunk of rows, calls
 :func:`plan_groups` and runs :func:`transfer_group` on each baseline group as
-a dask task: a :class:`TransferInputs` in (the group's rows, the chunk's scans,
+one task (:class:`hitops.calibrate.group_tasks.GroupTasks`: a thread of this
+process, or a task on a dask cluster): a :class:`TransferInputs` in (the group's rows, the chunk's scans,
 the tracker's share, the n0 shifts), a :class:`TransferResult` out (each
 method's phasors, the calibrated mask, what the task carried, the sample
 counts and the n0 step's sums).  The reference wraps come from the tracker's
@@ -126,7 +127,7 @@ class TransferResult:
 
 
 def transfer_group(inputs: TransferInputs) -> TransferResult:
-    """FPT of one baseline group of one chunk (a dask task; inputs are group-local)."""
+    """FPT of one baseline group of one chunk (one task; inputs are group-local)."""
     rows = inputs.rows
     tgt_rows, ref_rows = rows.tgt_rows, rows.ref_rows
     n_bl, n_time = tgt_rows.shape
