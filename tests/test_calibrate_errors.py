@@ -184,17 +184,21 @@ def test_cli_exit_status_and_message(pair, tmp_path):
     assert snapshot(pair.ref_ms, pair.target_ms) == before
 
 
+@pytest.mark.parametrize("band", ["target", "reference"])
 @pytest.mark.parametrize("chunk_rows", [0, 300])
-def test_two_rows_in_one_cell_are_refused_whole_or_chunked(new_pair, chunk_rows):
-    """Two target rows of one baseline at one time are refused before anything is
-    written, whether the run reads the set whole or checks it chunk by chunk from
-    the index pass's pair keys (hitops/calibrate/band_index.py)."""
+def test_two_rows_in_one_cell_are_refused_whole_or_chunked(new_pair, chunk_rows, band):
+    """Two rows of one baseline at one time, in either band, are refused before anything
+    is written, whether the run reads the set whole or checks it chunk by chunk from
+    the index pass's pair keys (hitops/calibrate/band_index.py, hitops/kernels/cells.py)."""
     truth = new_pair(PairSpec(n_time=400, seed=2))
     late = 250   # a row of the first baseline (stored baseline by baseline), late in the track
-    with pt.table(str(truth.target_ms), readonly=False, ack=False) as t:
+    changed = truth.target_ms if band == "target" else truth.ref_ms
+    with pt.table(str(changed), readonly=False, ack=False) as t:
         t.putcell("TIME", late, t.getcell("TIME", late - 1))
+    with pt.table(str(truth.target_ms), ack=False) as t:
         names = set(t.colnames())
-    with pytest.raises(MeasurementSetError, match=r"share a \(baseline, time\) cell"):
+    with pytest.raises(MeasurementSetError,
+                       match=rf"{changed}: 1 rows share a \(baseline, time\) cell"):
         calibrate(truth.ref_ms, truth.target_ms, method="pwc", chunk_rows=chunk_rows)
     with pt.table(str(truth.target_ms), ack=False) as t:
         assert set(t.colnames()) == names

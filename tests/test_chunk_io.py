@@ -167,3 +167,35 @@ def test_a_time_changed_after_the_index_pass_is_refused_and_nothing_is_written(n
         assert "PWC_DATA" not in t.colnames()
     for c, value in before.items():
         assert np.array_equal(col(truth.target_ms, c), value), c
+
+
+def test_cell_kernels_agree_with_the_numpy_form():
+    """band_cells / mark_cells / count_marked against the NumPy statements they replace,
+    on random chunks with pairs that have no baseline and repeated cells."""
+    from hitops.kernels.cells import band_cells, count_marked, mark_cells
+
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        n_key, n_bl, n_u = 36, 15, int(rng.integers(1, 40))
+        pair_bl = np.where(rng.random(n_key) < 0.2, -1, rng.integers(0, n_bl, n_key))
+        time_rows = rng.integers(1, 9, n_u)
+        t0 = int(rng.integers(0, 50))
+        time_index = t0 + np.sort(rng.choice(60, n_u, replace=False))
+        n_t = int(time_index.max()) - t0 + 1
+        key = rng.integers(0, n_key, int(time_rows.sum())).astype(np.uint16)
+        # the NumPy form: a repeat of each time's index, the pair's baseline, the cell
+        time = np.repeat(time_index, time_rows)
+        bl = pair_bl[key]
+        expected = np.where(bl >= 0, bl * n_t + (time - t0), -1)
+        cells = band_cells(key, pair_bl, time_rows, time_index, t0, n_t)
+        assert np.array_equal(cells, expected)
+        used = cells[cells >= 0]
+        held, shared = mark_cells(cells, n_bl * n_t)
+        numpy_held = np.zeros(n_bl * n_t, bool)
+        numpy_held[used] = True
+        assert np.array_equal(held, numpy_held)
+        assert shared == used.size - np.count_nonzero(numpy_held)
+        other = rng.random(n_bl * n_t) < 0.5
+        assert count_marked(cells, other) == np.count_nonzero(other[used])
+        # cell -1 must not count: read as an index it would be the last cell
+        assert count_marked(np.array([-1], np.int64), np.ones(3, bool)) == 0
