@@ -151,3 +151,41 @@ def test_a_local_run_keeps_no_dask_ms_order_in_its_budget():
     assert local == room // (bytes_per_row(4, 1, 1) + read_bytes_per_row(4, 1))
     assert local == rows_for_budget(10 ** 9, n, 4, 1, 1, time_ordered=True, strict=False,
                                     local=True)
+
+
+@pytest.mark.parametrize("layout", ["baseline-major", "shuffled"])
+def test_a_time_sorted_band_indexed_in_storage_order_equals_its_sorted_rows(shared_pair,
+                                                                            layout):
+    """index_bands reads a TimeSortedRows band in storage order (contiguous blocks) and
+    places each row's pair key in the time order: keys, distinct times, their counts and
+    each time's scan (its last row's, in dask-ms's ORDERBY TIME) must equal those of the
+    sorted table; a wrong placement (keys left in storage order) fails."""
+    from hitops.calibrate.band_index import INDEX_COLUMNS, BandSource, index_bands
+
+    truth = shared_pair(PairSpec(n_ant=5, n_time=300, seed=4, n_scans=2,
+                                 storage=STORAGES[layout]))
+    ms = str(truth.target_ms)
+    want = _dask_ms_sorted(ms)
+    from daskms import xds_from_ms
+
+    (ds,) = xds_from_ms(ms, columns=["SCAN_NUMBER"], index_cols=["TIME"], group_cols=[])
+    scans = ds.SCAN_NUMBER.values
+    n = want["TIME"].size
+    reader = sort_by_time(ms, block_rows=700)
+    source = BandSource(ms=ms, ds=reader, n_row=n, n_ant=5)
+    band, = index_bands([source], [INDEX_COLUMNS], block_rows=700)
+    key = want["ANTENNA1"].astype(np.int64) * 5 + want["ANTENNA2"]
+    assert band.pair_key is not None and np.array_equal(band.pair_key, key)
+    times, counts = np.unique(want["TIME"], return_counts=True)
+    assert np.array_equal(band.unique_time, times) and np.array_equal(band.time_rows, counts)
+    last = np.flatnonzero(np.concatenate([want["TIME"][1:] != want["TIME"][:-1], [True]]))
+    assert np.array_equal(band.time_scan, scans[last])
+    with pt_table(ms) as t:
+        stored_key = t.getcol("ANTENNA1").astype(np.int64) * 5 + t.getcol("ANTENNA2")
+    assert not np.array_equal(band.pair_key, stored_key)
+
+
+def pt_table(ms):
+    from casacore import tables as pt
+
+    return pt.table(ms, ack=False)

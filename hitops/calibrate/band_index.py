@@ -5,7 +5,10 @@ each :class:`BandSource` in blocks of at most ``block_rows`` rows and builds one
 :class:`BandIndex` per band, whole, with summaries (distinct times and their row counts, antenna pairs, scans,
 smallest INTERVAL), and for a band in time order each row's antenna pair (two
 bytes per row), so the checks of every chunk need not read the metadata again
-(:meth:`hitops.calibrate.chunks.ChunkMatch.check`).
+(:meth:`hitops.calibrate.chunks.ChunkMatch.check`).  A table stored out of time
+order and read in time order (:class:`hitops.io.time_sorted.TimeSortedRows`) is
+indexed in storage order instead, each row's pair key then placed at its position
+in the time order (:func:`_index_in_storage_order`).
 """
 
 from __future__ import annotations
@@ -19,6 +22,8 @@ import numpy as np
 from ..errors import MeasurementSetError
 from ..io import read as msio
 from ..io.match import distinct_counts, distinct_ints
+from ..io.time_sorted import TimeSortedRows
+from ..kernels.sorted_runs import lookup_sorted, time_order_places
 
 #: per-row columns read in the first (index) pass
 INDEX_COLUMNS = ["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER", "INTERVAL", "FLAG_ROW"]
@@ -130,13 +135,20 @@ def index_bands(sources: List[BandSource], columns: List[List[str]], block_rows:
     """
     passes = [_Pass(source, block_rows) for source in sources]
     n_blocks = max(-(-s.n_row // block_rows) for s in sources)
+    # a table read in time order through its runs, in several blocks: indexed in storage
+    # order instead (contiguous reads), each row then placed in the time order
+    by_storage = [isinstance(p.source.ds, TimeSortedRows) and p.pair_key is not None
+                  for p in passes]
+    for band, cols, storage in zip(passes, columns, by_storage):
+        if storage:
+            _index_in_storage_order(band, cols, block_rows)
     with contextlib.ExitStack() as stack:
         tables = [_storage_order_table(source, stack) for source in sources]
         for k in range(n_blocks):
             requests, which, direct = [], [], []
-            for band, cols, table in zip(passes, columns, tables):
+            for band, cols, table, storage in zip(passes, columns, tables, by_storage):
                 a, b = k * block_rows, min(band.source.n_row, (k + 1) * block_rows)
-                if a >= b:
+                if a >= b or storage:
                     continue
                 if table is not None:   # storage order: python-casacore, no dask graph
                     meta = table.read(cols, a, b)
@@ -155,6 +167,51 @@ def index_bands(sources: List[BandSource], columns: List[List[str]], block_rows:
     return [band.index() for band in passes]
 
 
+def _index_in_storage_order(band: "_Pass", columns: List[str], block_rows: int) -> None:
+    """Index a band whose dataset is its table in (TIME, row number) order
+    (:class:`hitops.io.time_sorted.TimeSortedRows`) from two passes in storage order.
+
+    Read through its runs, each block of the time order costs one getcol per run of
+    rows (a baseline-major table has one run per baseline and bucket), several times
+    the cost of the same rows read as one range.  The summaries do not depend on the
+    order, so the first pass reads contiguous blocks; the second reads TIME, the
+    antennas and SCAN_NUMBER again and puts each row's pair key at its position in the
+    time order, row_start of its time plus the rows of that time before it (rows
+    ascend within a block and blocks follow each other, as the order's ties do), and
+    each time's scan is that of its last row there.
+    """
+    src = band.source
+    pair_key, band.pair_key = band.pair_key, None   # the first pass keeps no per-row key
+    with msio.MainTable(src.ms) as table:
+        if table.n_rows != src.n_row:
+            raise RuntimeError(f"{src.ms}: a time-sorted band is not its whole table; this "
+                               "is a hitops bug")
+        for a in range(0, src.n_row, block_rows):
+            b = min(src.n_row, a + block_rows)
+            meta = table.read(columns, a, b)
+            meta["ROWID"] = np.arange(a, b)
+            _summarise_block(band, a, b, meta, storage_order=True)
+        row_start = np.concatenate([[0], np.cumsum(band.counts)]).astype(np.int64)
+        seen = np.zeros(band.unique.size, dtype=np.int64)
+        time_scan = np.zeros(band.unique.size, dtype=np.int64)
+        for a in range(0, src.n_row, block_rows):
+            b = min(src.n_row, a + block_rows)
+            meta = table.read(["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER"], a, b)
+            at = lookup_sorted(np.asarray(meta["TIME"], dtype=np.float64), band.unique)
+            if at.size and at.min() < 0:
+                raise MeasurementSetError(f"{src.ms}: TIME changed while it was being read; "
+                                          "run again when nothing else writes to the set")
+            places, seen, time_scan = time_order_places(
+                at, np.asarray(meta["SCAN_NUMBER"], dtype=np.int64), row_start, seen,
+                time_scan)
+            pair_key[places] = meta["ANTENNA1"].astype(np.int64) * src.n_ant + meta["ANTENNA2"]
+    if not np.array_equal(seen, band.counts):
+        raise MeasurementSetError(f"{src.ms}: TIME changed while it was being read; run "
+                                  "again when nothing else writes to the set")
+    band.pair_key = pair_key
+    band.time_scans = [(band.unique, time_scan)]
+
+
 def _storage_order_table(source: BandSource, stack: contextlib.ExitStack):
     """The band's table held open when its dataset positions are the table's row numbers
     (one group, stored in time order or read in storage order); else None (dask-ms's
@@ -165,7 +222,11 @@ def _storage_order_table(source: BandSource, stack: contextlib.ExitStack):
     return table if table.n_rows == source.n_row else None
 
 
-def _summarise_block(band: _Pass, a: int, b: int, meta: Dict[str, np.ndarray]) -> None:
+def _summarise_block(band: _Pass, a: int, b: int, meta: Dict[str, np.ndarray],
+                     storage_order: bool = False) -> None:
+    """Add one block's rows to the band's summaries.  ``storage_order``: a block of a
+    table indexed in storage order (:func:`_index_in_storage_order`): its times are not
+    in order, and the rows' pair keys are placed by the second pass."""
     src = band.source
     t = np.asarray(meta["TIME"], dtype=np.float64)
     if not np.all(np.isfinite(t)):
@@ -174,7 +235,9 @@ def _summarise_block(band: _Pass, a: int, b: int, meta: Dict[str, np.ndarray]) -
         raise MeasurementSetError(f"{src.ms}: TIME of row {row} is {t[bad]}; rows without "
                                   "a valid time cannot be matched: remove them (CASA split "
                                   "with a time range) or repair the TIME column")
-    if not src.ds_in_time_order:
+    if storage_order:
+        pass   # any order: the summaries below do not depend on it
+    elif not src.ds_in_time_order:
         if not (a == 0 and b == src.n_row):
             raise RuntimeError(f"{src.ms}: a band read in storage order must be one block; "
                                "this is a hitops bug")
@@ -183,10 +246,13 @@ def _summarise_block(band: _Pass, a: int, b: int, meta: Dict[str, np.ndarray]) -
         # dask-ms sorted the group by TIME (open_groups); anything else is a changed table
         raise MeasurementSetError(f"{src.ms}: TIME changed while it was being read; run "
                                   "again when nothing else writes to the set")
-    if t.size:
+    if t.size and not storage_order:
         band.last_time = float(t[-1])
-    values, counts = distinct_counts(t)   # one pass: the block is in time order
-    band.unique, band.counts = _merge_time_counts(band.unique, band.counts, values, counts)
+    if storage_order:
+        band.unique, band.counts = _add_times(band.unique, band.counts, t)
+    else:
+        values, counts = distinct_counts(t)   # one pass: the block is in time order
+        band.unique, band.counts = _merge_time_counts(band.unique, band.counts, values, counts)
     key = meta["ANTENNA1"].astype(np.int64) * src.n_ant + meta["ANTENNA2"]
     if key.size and (key.min() < 0 or key.max() >= band.pair_present.size):
         raise MeasurementSetError(f"{src.ms}: ANTENNA1/ANTENNA2 hold indices outside the "
@@ -201,6 +267,22 @@ def _summarise_block(band: _Pass, a: int, b: int, meta: Dict[str, np.ndarray]) -
     iv = iv[np.isfinite(iv) & (iv > 0)]
     if iv.size:
         band.min_interval = min(band.min_interval, float(iv.min()))
+
+
+def _add_times(known, known_counts, times):
+    """Distinct times and rows per time, with a block of times in any order added.
+
+    A block of a baseline-major table in storage order holds parts of a few baselines'
+    tracks, whose times are mostly known after the first: those are counted where the
+    list has them (a linear lookup of ascending runs), and only the new ones sorted.
+    """
+    at = lookup_sorted(times, known)
+    new = at < 0
+    counts = known_counts + np.bincount(at[~new], minlength=known.size).astype(np.int64)
+    if not new.any():
+        return known, counts
+    values, new_counts = np.unique(times[new], return_counts=True)
+    return _merge_time_counts(known, counts, values, new_counts.astype(np.int64))
 
 
 def _merge_time_counts(known, known_counts, values, counts):

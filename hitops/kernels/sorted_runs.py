@@ -145,3 +145,25 @@ def bucket_rows(time, edges):
         order[fill[bucket[i]]] = i
         fill[bucket[i]] += 1
     return order, start
+
+
+@numba.njit(cache=True, nogil=True)
+def time_order_places(at, scans, row_start, seen, time_scan):
+    """Where a block of rows read in storage order goes in the (TIME, row number) order.
+
+    ``at`` (n,): each row's index among the distinct times (ascending rows, so rows of
+    one time arrive in the order they take); ``scans`` (n,): each row's SCAN_NUMBER;
+    ``row_start``: the first position of each distinct time; ``seen``: rows of each
+    time already placed by earlier blocks; ``time_scan``: the scan of the last row
+    placed at each time so far.  Returns (positions, seen, time_scan) after the block;
+    the inputs are not changed.
+    """
+    seen_after = seen.copy()
+    scan_after = time_scan.copy()
+    positions = np.empty(at.size, dtype=np.int64)
+    for i in range(at.size):
+        u = at[i]
+        positions[i] = row_start[u] + seen_after[u]
+        seen_after[u] += 1
+        scan_after[u] = scans[i]
+    return positions, seen_after, scan_after
