@@ -77,6 +77,23 @@ def test_reads_and_writes_run_one_at_a_time_in_the_pipelines_order():
     assert len(rec.threads) == 1 and next(iter(rec.threads)).startswith("hitops-io")
 
 
+def test_one_chunk_is_read_and_written_on_the_calling_thread():
+    """Nothing to overlap: no thread (a fresh thread's allocations cost more, measured)."""
+    rec = _Recorder()
+    with ChunkIO(rec.read, 1) as io:
+        _loop(io, rec, 1)
+    assert [name for kind, name in rec.events if kind == "start"] == ["r0", "w0"]
+    assert rec.threads == {threading.current_thread().name}
+
+    def failing(k):
+        raise OSError("disk full (simulated)")
+
+    with pytest.raises(OSError, match="simulated"):
+        with ChunkIO(rec.read, 1) as io:
+            io.chunk(0)
+            io.write(failing, 0)
+
+
 def test_a_failed_write_raises_in_the_caller_and_later_jobs_do_not_run():
     rec = _Recorder()
 
