@@ -221,9 +221,10 @@ measured before issue 28).  The default chunk follows from the memory budget (1 
 hitops/calibrate/memory.py): a run that fits in one chunk is read in storage order; a
 larger one is cut so that its peak stays within the budget, down to a floor of 100,000
 rows per chunk with a warning when the whole-run part alone leaves no room.  Several
-chunks cost time: each chunk's metadata are read again with its data (the checks before
-any write take them from the index pass) and a baseline-major table is read in runs, one
-per baseline and chunk.
+chunks cost time: each chunk reads TIME, ROWID and FLAG_ROW beside its data (its
+baselines and times, like the checks before any write, come from the index pass, which
+indexes a baseline-major table in storage order and places each row in the time order),
+and a baseline-major table is read in runs, one per baseline and bucket of times.
 """
 
 
