@@ -19,7 +19,8 @@ groups' :class:`~hitops.calibrate.transfer.TransferInputs` over and returns at o
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import List, Optional
 
 from .transfer import TransferInputs, TransferResult, transfer_group
@@ -61,8 +62,9 @@ class GroupTasks:
             self._pool.shutdown(wait=True, cancel_futures=True)
 
 
+@dataclass(frozen=True)
 class StartedGroups:
     """One chunk's group tasks: futures of this process's threads, or delayed cluster tasks."""
 
-    def __init__(self, futures, delayed):
-        self.futures, self.delayed = futures, delayed
+    futures: Optional[List[Future]]
+    delayed: Optional[list]

@@ -176,7 +176,7 @@ class GroupPipeline:
         # per-segment sums: a segmented tracker's first pass (no per-scan shifts) with a step
         sum_segments = (tracked.segment_keys is not None and offsets is None
                         and bool(self.run.columns.offset))
-        placed, tasks = [], []
+        placed, group_inputs = [], []
         for bls in self.baseline_groups:
             rows, picked = group_rows(bls, chunk.tgt_grid, chunk.ref_grid, chunk.tgt_vis,
                                       chunk.tgt_ok, chunk.ref_vis, chunk.ref_ok,
@@ -193,8 +193,8 @@ class GroupPipeline:
                 nu_ref=None if group.channels is None else group.channels.ref_freq,
                 segment_keys=tracked.segment_keys[bls] if sum_segments else None)
             placed.append(PlacedGroup(bls, picked, None if picked is None else rows.tgt_rows))
-            tasks.append(inputs)
-        return StartedTransfer(placed, self.tasks.start(tasks))
+            group_inputs.append(inputs)
+        return StartedTransfer(placed, self.tasks.start(group_inputs))
 
     def finish_transfer(self, chunk: ChunkData, started: "StartedTransfer"):
         """Wait for the chunk's groups: (RowOutputs, [(placed group, result)])."""
