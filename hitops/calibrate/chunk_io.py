@@ -32,8 +32,8 @@ class ChunkIO:
     def __init__(self, read: Callable[[int], object], n_chunks: int):
         self._read, self.n_chunks = read, n_chunks
         # one chunk: nothing to overlap, so the reads and writes run on the calling
-        # thread (a paper-size read took 0.15 s of CPU there against 0.16-0.31 s on a
-        # fresh thread, whose allocations come from a new malloc arena; measured)
+        # thread (a paper-size read's getcols took 0.12-0.15 s of CPU there against
+        # 0.16-0.31 s on a fresh thread, measured; the cause is not pinned down)
         self._pool = (ThreadPoolExecutor(1, thread_name_prefix="hitops-io")
                       if n_chunks > 1 else None)
         self._reads: Dict[int, Future] = {}
