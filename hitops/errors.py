@@ -21,6 +21,18 @@ class MeasurementSetError(HitopsError):
     """A Measurement Set is missing, malformed or incompatible."""
 
 
+class TimeChangedError(MeasurementSetError):
+    """A set's TIME column changed while this run was reading it (another writer)."""
+
+    def __init__(self, ms):
+        self.ms = ms
+        super().__init__(f"{ms}: TIME changed while it was being read; run again when "
+                         "nothing else writes to the set")
+
+    def __reduce__(self):   # pickled by its set, not its message
+        return type(self), (self.ms,)
+
+
 class ColumnError(MeasurementSetError):
     """A column is missing, or exists when it should not."""
 

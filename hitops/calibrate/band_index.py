@@ -19,7 +19,7 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
-from ..errors import MeasurementSetError
+from ..errors import MeasurementSetError, TimeChangedError
 from ..io import read as msio
 from ..io.match import distinct_counts, distinct_ints
 from ..io.time_sorted import TimeSortedRows
@@ -80,6 +80,12 @@ class BandIndex:
                                "storage order (one chunk only); this is a hitops bug")
         u0, u1 = np.searchsorted(self.unique_time, [lo, hi])
         return slice(int(self.row_start[u0]), int(self.row_start[u1]))
+
+    def times_of(self, rows: slice) -> slice:
+        """The distinct times (indices into ``unique_time``) whose rows are ``rows``, a
+        slice given by :meth:`rows_in`."""
+        u0, u1 = np.searchsorted(self.row_start, [rows.start, rows.stop])
+        return slice(int(u0), int(u1))
 
 
 class _Pass:
@@ -199,15 +205,13 @@ def _index_in_storage_order(band: "_Pass", columns: List[str], block_rows: int) 
             meta = table.read(["TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER"], a, b)
             at = lookup_sorted(np.asarray(meta["TIME"], dtype=np.float64), band.unique)
             if at.size and at.min() < 0:
-                raise MeasurementSetError(f"{src.ms}: TIME changed while it was being read; "
-                                          "run again when nothing else writes to the set")
+                raise TimeChangedError(src.ms)
             places, seen, time_scan = time_order_places(
                 at, np.asarray(meta["SCAN_NUMBER"], dtype=np.int64), row_start, seen,
                 time_scan)
             pair_key[places] = meta["ANTENNA1"].astype(np.int64) * src.n_ant + meta["ANTENNA2"]
     if not np.array_equal(seen, band.counts):
-        raise MeasurementSetError(f"{src.ms}: TIME changed while it was being read; run "
-                                  "again when nothing else writes to the set")
+        raise TimeChangedError(src.ms)
     band.pair_key = pair_key
     band.time_scans = [(band.unique, time_scan)]
 
@@ -235,22 +239,19 @@ def _summarise_block(band: _Pass, a: int, b: int, meta: Dict[str, np.ndarray],
         raise MeasurementSetError(f"{src.ms}: TIME of row {row} is {t[bad]}; rows without "
                                   "a valid time cannot be matched: remove them (CASA split "
                                   "with a time range) or repair the TIME column")
-    if storage_order:
-        pass   # any order: the summaries below do not depend on it
-    elif not src.ds_in_time_order:
-        if not (a == 0 and b == src.n_row):
-            raise RuntimeError(f"{src.ms}: a band read in storage order must be one block; "
-                               "this is a hitops bug")
-        t = np.sort(t)   # the band's only block: its summaries need the times in order
-    elif t.size and (np.any(t[1:] < t[:-1]) or t[0] < band.last_time):
-        # dask-ms sorted the group by TIME (open_groups); anything else is a changed table
-        raise MeasurementSetError(f"{src.ms}: TIME changed while it was being read; run "
-                                  "again when nothing else writes to the set")
-    if t.size and not storage_order:
-        band.last_time = float(t[-1])
-    if storage_order:
+    if storage_order:   # any order: counted against the times known so far
         band.unique, band.counts = _add_times(band.unique, band.counts, t)
     else:
+        if not src.ds_in_time_order:
+            if not (a == 0 and b == src.n_row):
+                raise RuntimeError(f"{src.ms}: a band read in storage order must be one "
+                                   "block; this is a hitops bug")
+            t = np.sort(t)   # the band's only block: its summaries need the times in order
+        elif t.size and (np.any(t[1:] < t[:-1]) or t[0] < band.last_time):
+            # dask-ms sorted the group by TIME (open_groups); anything else is a changed table
+            raise TimeChangedError(src.ms)
+        if t.size:
+            band.last_time = float(t[-1])
         values, counts = distinct_counts(t)   # one pass: the block is in time order
         band.unique, band.counts = _merge_time_counts(band.unique, band.counts, values, counts)
     key = meta["ANTENNA1"].astype(np.int64) * src.n_ant + meta["ANTENNA2"]

@@ -129,7 +129,9 @@ def _chunk_rows(match, which: str, rows: slice, meta) -> ChunkRows:
     band = match.tgt if which == "tgt" else match.ref
     if band.whole:
         return match.index_rows(which, match.read_meta(which, rows, ROW_COLUMNS + ["ROWID"]))
-    return match.rows_from_index(which, rows, meta) or match.index_rows(which, meta)
+    if band.pair_key is not None:
+        return match.rows_from_index(which, rows, meta)
+    return match.index_rows(which, meta)
 
 
 def read_target(run: RunPlan, group: GroupPlan, k: int, scheduler) -> ChunkData:

@@ -17,7 +17,8 @@ per time chunk:
    kept), checks for duplicate cells, counts matched rows and finds the scan
    of each time, all before anything is written, and returns them as a
    :class:`MatchCheck` (the match itself is not changed);
-4. :meth:`ChunkMatch.row_numbers` and :meth:`ChunkMatch.index_rows` give a
+4. :meth:`ChunkMatch.row_numbers` and :meth:`ChunkMatch.rows_from_index` (from the
+   pair keys) or :meth:`ChunkMatch.index_rows` (from metadata read again) give a
    chunk's row numbers, baseline and time indices when it is processed.
 
 The matching rules are those of :mod:`hitops.io.match` (same tolerance, same
@@ -32,7 +33,7 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from ..errors import MeasurementSetError
+from ..errors import MeasurementSetError, TimeChangedError
 from ..io import read as msio
 from ..io.layout import GridShape, unique_times
 from ..io.match import correlation_map, pair_antennas, pairing_table
@@ -197,29 +198,25 @@ class ChunkMatch(GridShape):
         # every TIME is one of the band's distinct times (read from the same column)
         at = lookup_sorted(np.ascontiguousarray(meta["TIME"], dtype=np.float64), band.unique_time)
         if at.size and at.min() < 0:
-            raise MeasurementSetError(f"{band.ms}: TIME changed while it was being read; "
-                                      "run again when nothing else writes to the set")
+            raise TimeChangedError(band.ms)
         key = meta["ANTENNA1"].astype(np.int64) * band.n_ant + meta["ANTENNA2"]
         return self._on_grid(which, key, group.astype(np.int32)[at], meta.get("SCAN_NUMBER"),
                              rows=meta.get("ROWID"), flag_row=meta.get("FLAG_ROW"))
 
-    def rows_from_index(self, which: str, rows: slice, meta) -> Optional[ChunkRows]:
-        """A chunk's :class:`ChunkRows` from the index pass (each row's antenna pair and
-        time from its position) and the TIME, ROWID and FLAG_ROW in ``meta`` read with
-        its data; None when the band kept no pair keys (then :meth:`index_rows` reads
-        them again).  The index pass read ANTENNA1 and ANTENNA2 of these very
-        positions, so the chunk's read need not, nor look each TIME up: TIME is only
-        compared with the times the index holds for these positions (the same refusal
-        as :meth:`index_rows` when it changed)."""
-        band, _ = self._side(which)
-        if band.pair_key is None:
-            return None
-        u0, u1 = np.searchsorted(band.row_start, [rows.start, rows.stop])
-        indexed = np.repeat(band.unique_time[u0:u1], band.time_rows[u0:u1])
-        if not np.array_equal(np.asarray(meta["TIME"], dtype=np.float64), indexed):
-            raise MeasurementSetError(f"{band.ms}: TIME changed while it was being read; "
-                                      "run again when nothing else writes to the set")
-        found = self._indexed_rows(which, rows)
+    def rows_from_index(self, which: str, rows: slice, meta) -> ChunkRows:
+        """A chunk's :class:`ChunkRows` of a band whose index pass kept its pair keys:
+        each row's antenna pair and time from its position, and the TIME, ROWID and
+        FLAG_ROW in ``meta`` read with its data.  The index pass read ANTENNA1 and
+        ANTENNA2 of these very positions, so the chunk's read need not, nor look each
+        TIME up: TIME is only compared with the times the index holds for these
+        positions (the same refusal as :meth:`index_rows` when it changed)."""
+        band, group = self._side(which)
+        span = band.times_of(rows)
+        at = np.repeat(np.arange(span.start, span.stop), band.time_rows[span])
+        if not np.array_equal(np.asarray(meta["TIME"], dtype=np.float64),
+                              band.unique_time[at]):
+            raise TimeChangedError(band.ms)
+        found = self._on_grid(which, band.pair_key[rows], group[at].astype(np.int32), None)
         return ChunkRows(rows=meta["ROWID"], bl=found.bl, time=found.time,
                          swapped=found.swapped, flag_row=meta["FLAG_ROW"], scan=None)
 
@@ -231,13 +228,6 @@ class ChunkMatch(GridShape):
             bl, swapped = self.ref_pair_bl[key], self.ref_pair_swapped[key]
         return ChunkRows(rows=rows, bl=bl, time=time, swapped=swapped, flag_row=flag_row,
                          scan=scan)
-
-    def _indexed_rows(self, which: str, rows: slice) -> ChunkRows:
-        """A chunk's baselines and times from the index pass (nothing read; no scans)."""
-        band, group = self._side(which)
-        u0, u1 = np.searchsorted(band.row_start, [rows.start, rows.stop])
-        at = np.repeat(np.arange(u0, u1), band.time_rows[u0:u1])
-        return self._on_grid(which, band.pair_key[rows], group[at].astype(np.int32), None)
 
     def check(self, bounds: List[int], scheduler=None, keep_single: bool = True) -> MatchCheck:
         """Check every chunk's cells, count matches, find each time's scan (before any write).
@@ -299,16 +289,16 @@ class ChunkMatch(GridShape):
     def _index_cells(self, which: str, rows: slice, t0: int, t1: int) -> np.ndarray:
         """Each row's cell (-1: no baseline) from the index pass's pair keys."""
         band, group = self._side(which)
-        u0, u1 = np.searchsorted(band.row_start, [rows.start, rows.stop])
+        span = band.times_of(rows)
         pair_bl = self.tgt_pair_bl if which == "tgt" else self.ref_pair_bl
-        return band_cells(band.pair_key[rows], pair_bl, band.time_rows[u0:u1],
-                          group[u0:u1], t0, t1 - t0)
+        return band_cells(band.pair_key[rows], pair_bl, band.time_rows[span], group[span],
+                          t0, t1 - t0)
 
     def _index_scans(self, which: str, rows: slice, scan_of_time: np.ndarray) -> None:
         """Each distinct time's scan (that of its last row) into ``scan_of_time``."""
         band, group = self._side(which)
-        u0, u1 = np.searchsorted(band.row_start, [rows.start, rows.stop])
-        scan_of_time[group[u0:u1]] = np.searchsorted(self.scan_numbers, band.time_scan[u0:u1])
+        span = band.times_of(rows)
+        scan_of_time[group[span]] = np.searchsorted(self.scan_numbers, band.time_scan[span])
 
     def _check_cells(self, t_cells: np.ndarray, r_cells: np.ndarray, n_ref_rows: int,
                      t0: int, t1: int) -> Tuple[int, int]:

@@ -23,7 +23,7 @@ from typing import Dict, Optional, Sequence
 
 import numpy as np
 
-from ..errors import MeasurementSetError
+from ..errors import TimeChangedError
 from .table_rows import MainTable, StorageRows, rows_reader
 
 #: buckets per requested block of rows: a read of a block touches at most two buckets it
@@ -89,8 +89,7 @@ class TimeSortedRows(StorageRows):
         # each bucket still holds the rows it was indexed with (else TIME was rewritten)
         at_edges = np.searchsorted(in_order, self.edges[k0:k1 + 1], side="left")
         if not np.array_equal(at_edges, self.bucket_start[k0:k1 + 1] - base):
-            raise MeasurementSetError(f"{self.ms}: TIME changed while it was being read; run "
-                                      "again when nothing else writes to the set")
+            raise TimeChangedError(self.ms)
         picked = by_time[a - base:b - base]
         # read in ascending row order (runs of rows), then put the values in time order
         keep = np.zeros(candidates.size, dtype=bool)
