@@ -34,7 +34,8 @@ from ..options import make_options
 from .band_index import INDEX_COLUMNS
 from .from_table import calibrate_from_table
 from .inputs import CalibrateOptions, check_inputs, parse_methods
-from .output import (FLAG_BACKUP, OutputTransaction, commit_once, drop_stale_columns,
+from .commit import stage_and_commit
+from .output import (FLAG_BACKUP, OutputTransaction, drop_stale_columns,
                      release_cluster_tables)
 from .rules import PreparedInputs, prepare_inputs
 
@@ -186,16 +187,16 @@ def _run(run: RunPlan, client, started: float, prepared: PreparedInputs) -> Dict
     if client is not None:
         log.info("created %s in %s before sending work to the cluster", ", ".join(created),
                  run.target_ms)
-    try:
+
+    def stage():
         results = [run_group(run, group, tx, client) for group in run.groups]
         # the instrumental term solved on the calibrator, applied to the staged columns
         referencing = phase_reference(run, tx, calibrator)
         if client is not None:
             release_cluster_tables(client)
-    except BaseException:
-        tx.rollback()
-        raise
-    commit_once(tx, lambda: _committed(run, tx))
+        return results, referencing
+
+    results, referencing = stage_and_commit(tx, stage, lambda: _committed(run, tx))
     try:
         reports = [group_report(run, group, result, tx, started)
                    for group, result in zip(run.groups, results)]

@@ -41,7 +41,8 @@ from ..kernels.wideband import rotate_channels
 from ..solutions.api import PreparedTransfer, prepare_transfer, transfer_report, write_target_table
 from ..solutions.apply import all_fields, gains_at
 from .inputs import CalibrateOptions, check_inputs
-from .output import OutputTransaction, commit_once
+from .commit import stage_and_commit
+from .output import OutputTransaction
 from .rules import PreparedInputs, finish_report
 
 log = logging.getLogger("hitops.calibrate")
@@ -257,17 +258,6 @@ def _committed(tx: OutputTransaction) -> str:
             "finish; rerun the same command with --overwrite to redo it")
 
 
-def _commit(tx: OutputTransaction, write) -> Dict:
-    """Stage, then commit once; a failure or an interrupt before the end rolls back."""
-    try:
-        counts = write()
-    except BaseException:
-        tx.rollback()
-        raise
-    commit_once(tx, lambda: _committed(tx))
-    return counts
-
-
 def _report(opts, methods, ref_ms, target_ms, outputs, transfers, counts, started) -> Dict:
     first = transfers[methods[0]]
     reports = {m: dataclasses.asdict(transfer_report(p, None, 0)) for m, p in transfers.items()}
@@ -304,7 +294,9 @@ def calibrate_from_table(opts: CalibrateOptions, methods: List[str], ref_ms: str
                            direct_writes=True)
     tx.check_space()
     tx.create_columns()
-    counts = _commit(tx, lambda: _write_outputs(tx, transfers, layout, columns, chunk_rows))
+    counts = stage_and_commit(tx, lambda: _write_outputs(tx, transfers, layout, columns,
+                                                         chunk_rows),
+                              lambda: _committed(tx))
     try:
         return _finish(opts, methods, ref_ms, target_ms, outputs, transfers, counts, offsets,
                        columns, started, prepared)

@@ -340,28 +340,6 @@ class OutputTransaction:
                 "remove them by hand (casacore table.removecols)") from err
 
 
-def commit_once(tx: OutputTransaction, note) -> None:
-    """Commit ``tx`` with interrupts held until it is done.
-
-    A commit that failed rolls back; an interrupt held back during the commit and
-    delivered after it gets ``note()``: what the set holds now (the caller's words).
-    """
-    from ..signals import interrupts_held
-
-    committed = False
-    try:
-        # an interrupt during the commit would leave FLAG half rewritten: it waits
-        with interrupts_held():
-            tx.commit()
-            committed = True
-    except BaseException as stop:
-        if not committed:   # the commit itself failed
-            tx.rollback()
-        else:               # an interrupt held back during the commit, delivered after it
-            stop.add_note(note())
-        raise
-
-
 def _staged_flags(table, start: int, staged: np.ndarray) -> np.ndarray:
     """The staged flags of the rows ``start + i`` where ``staged[i]``: only rows whose flags
     were staged are read (in a column of variable cell shape, such as the one copied from
