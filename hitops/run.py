@@ -49,6 +49,10 @@ from .errors import HitopsError
 from .recipe_params import PARAMS_CAB, RecipeFile, load_recipe
 
 _STEP_START = re.compile(r"STIMELA\.(?P<logger>[\w.-]+) INFO: processing step '(?P<step>[^']+)'")
+#: cabs of the bookkeeping steps: the parameter files and the run's page
+BOOKKEEPING_CABS = (PARAMS_CAB, "hitops.report")
+#: the sub-recipe step that restores a branch's flag version before imaging
+RESTORE_STEP = "restore_flags"
 _SKIP_FRESH = "all required outputs are OK, skipping this step"
 _SKIP_COND = "skipping step based on conditonal settings"   # sic, Stimela 2.1.4
 _PARAMS_NOTE = re.compile(r"parameters changed for: [\w, -]+")
@@ -156,7 +160,9 @@ class Progress:
 
     def __init__(self, recipe: RecipeFile, out: TextIO, enabled: bool = True):
         self.recipe, self.out, self.enabled = recipe, out, enabled
-        self.names = [s for s, d in recipe.steps.items() if d.get("cab") != PARAMS_CAB]
+        # bookkeeping steps (the parameter files, the run's page) get no numbered line
+        self.names = [s for s, d in recipe.steps.items() if d.get("cab") not in BOOKKEEPING_CABS]
+        self.params_steps = {s for s, d in recipe.steps.items() if d.get("cab") == PARAMS_CAB}
         self.params_note = ""
         self.current: Optional[str] = None
         self.start = 0.0
@@ -178,7 +184,10 @@ class Progress:
         if self.current is None:
             return
         if match and match.group("logger").startswith(f"{self.recipe.name}.{self.current}"):
-            self.inner_started += 1
+            # a sub-recipe's flag restore always runs (recipes/fpt-lib.yml): bookkeeping,
+            # not work, so a sub-recipe whose other steps were fresh is still up to date
+            if match.group("step") != RESTORE_STEP:
+                self.inner_started += 1
         elif f"{top} INFO: {_SKIP_FRESH}" in line:
             self.skip_note = "up to date"
         elif f"{top} INFO: {_SKIP_COND}" in line:
@@ -219,8 +228,11 @@ class Progress:
             status = _seconds(took)
         self.results[self.current] = status
         if self.enabled and self.current not in self.names:
-            # the parameter files: a line only when some changed, or the step failed
-            note = f"parameter files ({self.current}) {status}" if failed else self.params_note
+            # the parameter files: a line only when some changed; the page is named at the
+            # end; either only when it failed
+            what = "parameter files" if self.current in self.params_steps else "page"
+            note = f"{what} ({self.current}) {status}" if failed else (
+                self.params_note if self.current in self.params_steps else "")
             self.out.write(f"{note}\n" if note else "")
         elif self.enabled:
             self.out.write(f" .. {status}\n")
@@ -242,7 +254,7 @@ def report(recipe: RecipeFile, values: Dict[str, object], logdir: Path, out: Tex
     """The result table and where everything is, from the compare, diagnose and image steps."""
     from .compare.table import text_summary
 
-    compares, diagnoses, image_dirs = [], [], []
+    compares, diagnoses, image_dirs, pages = [], [], [], []
     for step, sdef in recipe.steps.items():
         params = sdef.get("params") or {}
         cab = sdef.get("cab")
@@ -251,6 +263,8 @@ def report(recipe: RecipeFile, values: Dict[str, object], logdir: Path, out: Tex
             compares.append((step, outdir / f"{substitute(params.get('name', 'peak-flux'), values)}"))
         elif cab == "hitops.diagnose":
             diagnoses.append(Path(str(substitute(params.get("outdir", "."), values))))
+        elif cab == "hitops.report":
+            pages.append(Path(str(substitute(params.get("dir", "."), values))) / "index.html")
         elif sdef.get("recipe") and params.get("dir"):
             image_dirs.append(Path(str(substitute(params["dir"], values))))
     main = next((c for c in compares if c[0] == "compare"), compares[0] if compares else None)
@@ -274,6 +288,10 @@ def report(recipe: RecipeFile, values: Dict[str, object], logdir: Path, out: Tex
     for idir in dict.fromkeys(image_dirs):
         lines += image_lines(idir)
     lines.append(f"Logs:        {_rel(logdir)}/ (output.txt, casa.log, one log per step)")
+    for page in pages:
+        if page.is_file():
+            lines.append(f"Page:        {_rel(page)} (everything above on one page: open it in a "
+                         "browser)")
     out.write("\n".join(lines) + "\n")
 
 

@@ -86,8 +86,9 @@ def test_parameter_files_change_only_for_the_steps_that_use_a_value(tmp_path, ca
         return write_recipe_params(str(rec.path), str(tmp_path), _values(rec, **changes))["changed"]
 
     assert write() == rec.parameter_steps()      # first run: every file but its own written
-    assert "params" not in rec.parameter_steps() and len(rec.parameter_steps()) == 13
-    assert "parameters written for all 13 steps" in capsys.readouterr().out
+    # 14: the demo's steps after params, the run's page (report) last
+    assert "params" not in rec.parameter_steps() and len(rec.parameter_steps()) == 14
+    assert "parameters written for all 14 steps" in capsys.readouterr().out
     mtimes = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "params").iterdir()}
     assert write() == []                         # nothing changed: nothing rewritten
     assert mtimes == {p.name: p.stat().st_mtime_ns for p in (tmp_path / "params").iterdir()}

@@ -282,7 +282,9 @@ def test_existing_output_needs_overwrite(tmp_path):
     assert np.array_equal(read(tmp_path / "sim-86.ms", "DATA")[0], before)
     simulate(scene, tmp_path, seed=99, overwrite=True)
     assert not np.array_equal(read(tmp_path / "sim-86.ms", "DATA")[0], before)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["sim-230.ms", "sim-86.ms"]
+    # each set with its flags as simulated, kept as a CASA flag version
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "sim-230.ms", "sim-230.ms.flagversions", "sim-86.ms", "sim-86.ms.flagversions"]
 
 
 def test_cli_runs_packaged_scene_with_overrides(tmp_path):
@@ -291,7 +293,8 @@ def test_cli_runs_packaged_scene_with_overrides(tmp_path):
                                     "--stations", "AP,PV,PB"],
                           capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["d-230.ms", "d-86.ms", "d-truth.npz"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "d-230.ms", "d-230.ms.flagversions", "d-86.ms", "d-86.ms.flagversions", "d-truth.npz"]
     truth = np.load(tmp_path / "d-truth.npz")
     assert list(truth["stations"]) == ["AP", "PV", "PB"]
 

@@ -28,12 +28,12 @@ import time
 from typing import TYPE_CHECKING, Dict, List
 
 from ..errors import InputError
-from ..io import access
+from ..io import access, flag_versions
 from ..io import read as msio
 from ..options import make_options
 from .band_index import INDEX_COLUMNS
 from .from_table import calibrate_from_table
-from .inputs import CalibrateOptions, check_inputs, parse_methods
+from .inputs import CalibrateOptions, check_inputs, output_columns, parse_methods
 from .commit import stage_and_commit
 from .output import (FLAG_BACKUP, OutputTransaction, drop_stale_columns,
                      release_cluster_tables)
@@ -54,7 +54,7 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
               jump_window=0, jump_action="segment", refant=None, solve_half_window=-1,
               no_elevation_scaling=False, memory_budget="auto", chunk_rows=0, report=None, scheduler=None,
               lock_timeout=60.0, no_verdict=False, verdict_interval=60.0, caltable=None,
-              calibrator_field=None) -> Dict:
+              calibrator_field=None, restore_flags=None, save_flags=None) -> Dict:
     """Frequency phase transfer from ``ref_ms`` (reference band) to ``target_ms``.
 
     Writes one column per method into ``target_ms`` (PWC_DATA, CFPT_DATA,
@@ -105,20 +105,43 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
             workdir=workdir, export_uvfits=export_uvfits, scheduler=scheduler,
             lock_timeout=lock_timeout, caltable=caltable, no_verdict=no_verdict,
             verdict_interval=verdict_interval, calibrator_field=calibrator_field,
-            reference_table=reference_table))
+            reference_table=reference_table, restore_flags=restore_flags,
+            save_flags=save_flags))
         run = calibrate_from_table if opts.reference_table else _calibrate_locked
         try:
-            return run(opts, methods, ref_ms, target_ms, started, prepared)
+            _restore_flags(opts, target_ms)
+            result = run(opts, methods, ref_ms, target_ms, started, prepared)
+            _save_flags(opts, methods, target_ms)
+            return result
         except RuntimeError as err:
             # casacore's messages do not always say which table failed: find the damage
-            access.raise_if_damaged(err, [(ref_ms, [ref_column, "FLAG"] + INDEX_COLUMNS),
-                                    (target_ms, [target_column, "FLAG"] + INDEX_COLUMNS)])
+            read = [(ref_ms, [ref_column, "FLAG"] + INDEX_COLUMNS),
+                    (target_ms, [target_column, "FLAG"] + INDEX_COLUMNS)]
+            access.raise_if_damaged(err, read + ([(reference_table, None)] if reference_table
+                                                 else []))
             raise
         finally:
             # dask-ms keeps its table handles until they are collected; close them now, so
             # that CASA (its own casacore) or another process can change the set next
             # without this process holding a stale column list
             gc.collect()
+
+
+def _restore_flags(opts: CalibrateOptions, target_ms: str) -> None:
+    """--restore-flags: FLAG set to the union of the named flag versions (all of them
+    read and checked before FLAG is written: a missing one is refused with FLAG as it was)."""
+    names = flag_versions.split_names(opts.restore_flags)
+    if names:
+        flag_versions.restore_versions(target_ms, names)
+
+
+def _save_flags(opts: CalibrateOptions, methods: List[str], target_ms: str) -> None:
+    """--save-flags: the run's FLAG kept as a CASA flag version, its comment saying what made it."""
+    if opts.save_flags:
+        columns = ", ".join(output_columns(opts, methods).values())
+        flag_versions.save_version(
+            target_ms, opts.save_flags, f"after hitops calibrate --method {opts.method} -> "
+            f"{columns} (started from {opts.restore_flags or 'FLAG'})")
 
 
 def _check_run_scalars(ref_ms: str, target_ms: str, lock_timeout, verdict_interval) -> None:

@@ -112,7 +112,9 @@ def check_inputs(opts: CalibrateOptions, methods: List[str], ref_ms: str,
     # a rerun with --overwrite starts from the flags hitops found before its first run
     # (FLAG_HITOPS_BACKUP), so two identical runs give identical FLAG columns; a run that
     # was killed half-way through writing FLAG is repaired the same way
-    flag_column = FLAG_BACKUP if (opts.overwrite and FLAG_BACKUP in present) else "FLAG"
+    # --restore-flags names the starting flags explicitly: FLAG holds them now
+    flag_column = (FLAG_BACKUP if (opts.overwrite and FLAG_BACKUP in present
+                                   and not opts.restore_flags) else "FLAG")
     if flag_column == FLAG_BACKUP:
         log.info("--overwrite: starting from %s (the flags before hitops first ran), not "
                  "from FLAG, so this run's flags replace the earlier run's", FLAG_BACKUP)

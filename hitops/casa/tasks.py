@@ -19,6 +19,7 @@ from typing import Dict, List, Optional, Sequence, Union
 import numpy as np
 
 from ..errors import ExternalToolError, InputError, MeasurementSetError, OutputExistsError
+from ..io import flag_versions
 from .runner import run_task
 
 log = logging.getLogger("hitops.casa")
@@ -99,14 +100,17 @@ def table_summary(caltable: str, task: str) -> Dict[str, float]:
 def fringefit(vis: str, caltable: str, solint: str = "20s", refant: StrList = "",
               minsnr: float = 3.0, field: str = "", spw: str = "",
               zerorates: bool = False, globalsolve: bool = True,
-              gaintable: StrList = None, overwrite: bool = False) -> Dict[str, object]:
+              gaintable: StrList = None, overwrite: bool = False,
+              restore_flags: StrList = "") -> Dict[str, object]:
     """CASA fringefit: delay/rate/phase solutions per ``solint``.
 
     ``refant`` should be a priority list (e.g. "PV,PB,AP"): CASA stops with
     "No valid reference antenna supplied" when a single refant sets mid-track.
+    ``restore_flags``: flag versions whose union becomes FLAG before the solve.
     """
     _check_ms(vis)
     _prepare_output(caltable, overwrite)
+    _restore_flags(vis, restore_flags)
     refants = _as_list(refant)
     with _no_table_on_failure(caltable):
         run_task("fringefit", log_dir=_parent(caltable), vis=vis, caltable=caltable,
@@ -121,16 +125,19 @@ def fringefit(vis: str, caltable: str, solint: str = "20s", refant: StrList = ""
 def gaincal(vis: str, caltable: str, solint: str = "10s", refant: StrList = "",
             calmode: str = "p", gaintype: str = "G", minsnr: float = 3.0,
             field: str = "", spw: str = "", gaintable: StrList = None,
-            minblperant: int = 4, overwrite: bool = False) -> Dict[str, object]:
+            minblperant: int = 4, overwrite: bool = False,
+            restore_flags: StrList = "") -> Dict[str, object]:
     """CASA gaincal (self-calibration against the model, default a 1 Jy point source).
 
     ``minblperant`` (CASA default 4) must be at most n_ant - 1: with four
     stations every interval fails with "Insufficient unflagged antennas".
+    ``restore_flags``: flag versions whose union becomes FLAG before the solve.
     """
     _check_ms(vis)
     if calmode not in ("p", "a", "ap"):
         raise InputError(f"gaincal calmode '{calmode}' must be one of p, a, ap")
     _prepare_output(caltable, overwrite)
+    _restore_flags(vis, restore_flags)
     with _no_table_on_failure(caltable):
         run_task("gaincal", log_dir=_parent(caltable), vis=vis, caltable=caltable,
                  field=field, spw=spw,
@@ -143,12 +150,15 @@ def gaincal(vis: str, caltable: str, solint: str = "10s", refant: StrList = "",
 
 def applycal(vis: str, gaintable: StrList, interp: StrList = None,
              applymode: str = "calflag", calwt: bool = False,
-             flagbackup: bool = False, receipt: str | None = None) -> Dict[str, object]:
+             flagbackup: bool = False, receipt: str | None = None,
+             restore_flags: StrList = "", save_flags: str = "") -> Dict[str, object]:
     """CASA applycal into CORRECTED_DATA; check the column exists afterwards.
 
     Returns the fraction of the data flagged after the apply.  ``receipt``
     names a JSON file written on success: the MS is changed in place, so the
     receipt is the file a pipeline can test for "this step is done".
+    ``restore_flags``: flag versions whose union becomes FLAG before the apply;
+    ``save_flags``: the flag version the result is kept as (CASA's .flagversions).
     """
     from casacore import tables as pt
 
@@ -160,6 +170,7 @@ def applycal(vis: str, gaintable: StrList, interp: StrList = None,
         if not (Path(table) / "table.dat").exists():
             raise InputError(f"applycal: calibration table '{table}' does not exist; "
                              "run the solve step first")
+    _restore_flags(vis, restore_flags)
     run_task("applycal", log_dir=_parent(receipt or vis), vis=vis, gaintable=tables,
              interp=_as_list(interp),
              applymode=applymode, calwt=[bool(calwt)] * len(tables),
@@ -170,6 +181,10 @@ def applycal(vis: str, gaintable: StrList, interp: StrList = None,
         flags = tab.getcol("FLAG")
     flagged = float(np.mean(flags)) if flags.size else 1.0
     log.info("%s: CORRECTED_DATA written, %.1f%% flagged", vis, 100 * flagged)
+    if save_flags:
+        flag_versions.save_version(vis, save_flags, f"after CASA applycal of {', '.join(tables)} "
+                                   f"(applymode {applymode}; started from "
+                                   f"{', '.join(_as_list(restore_flags)) or 'FLAG'})")
     # only the cab's declared outputs are returned (Stimela rejects others)
     out = {"flagged_fraction": flagged}
     if receipt:
@@ -177,6 +192,14 @@ def applycal(vis: str, gaintable: StrList, interp: StrList = None,
                               "flagged_fraction": flagged})
         out["receipt"] = receipt
     return out
+
+
+def _restore_flags(vis: str, versions: StrList) -> None:
+    """FLAG set to the union of saved flag versions, so a step starts from declared
+    flags and not from whatever an earlier step or run left (docs/recipes.md)."""
+    names = _as_list(versions)
+    if names:
+        flag_versions.restore_versions(vis, names)
 
 
 def _write_json(path: str, payload: Dict[str, object]) -> None:

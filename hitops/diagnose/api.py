@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 from ..errors import InputError
+from ..io import flag_versions
 from . import tables
 from .metrics import compute_coherence, parse_intervals, run_lengths
 from .read import read_grid
@@ -55,7 +56,7 @@ def _time_range(text):
 def diagnose(ms, columns="DATA,CORRECTED_DATA", metric="coherence-factor", interval=60.0,
              intervals="log:1:3600:30", min_fill=0.5, ref_ms=None, ref_column="DATA",
              outdir="hitops-diagnose", plots=None, plot_time_range=None, baselines=None,
-             correlations=None, calibrate_report=None) -> dict:
+             correlations=None, calibrate_report=None, restore_flags=None) -> dict:
     """Coherence diagnostics of ``columns`` of ``ms``; see docs/diagnose.md.
 
     Returns the summary dict also written to ``outdir/summary.json``.  With
@@ -86,6 +87,9 @@ def diagnose(ms, columns="DATA,CORRECTED_DATA", metric="coherence-factor", inter
         raise InputError(f"--min-fill {min_fill}: must lie in (0, 1]")
     grid = parse_intervals(intervals)
     trange = _time_range(plot_time_range)
+    versions = flag_versions.split_names(restore_flags)
+    if versions:   # every version read and checked before FLAG is written
+        flag_versions.restore_versions(str(ms), versions)
 
     spectral_grid = None
     if is_spectral(str(ms)):

@@ -189,18 +189,22 @@ def wait_for_table_lock(ms: str, write: bool, timeout_s: float, role: str) -> No
 def raise_if_damaged(err: Exception, tables) -> None:
     """Turn an unexpected casacore error into one naming the damaged table and column.
 
-    ``tables``: (ms, columns) pairs that were being read.  Returns without raising
-    when every column reads (the error had another cause, and is re-raised by the
-    caller).
+    ``tables``: (ms, columns) pairs that were being read (columns None: every column,
+    as for a calibration table, whose remedy is to rerun the step that wrote it).
+    Returns without raising when every column reads (the error had another cause, and
+    is re-raised by the caller).
     """
     for ms, columns in tables:
-        damage = locate_damage(ms, list(dict.fromkeys(columns)))
+        damage = locate_damage(ms, None if columns is None else list(dict.fromkeys(columns)))
         if damage:
+            remedy = ("restore the set from its source or a backup" if columns is not None
+                      else "rerun the task that wrote the table")
             raise MeasurementSetError(f"'{ms}' is damaged: {damage}; nothing was changed: "
-                                      "restore the set from its source or a backup") from err
+                                      f"{remedy}") from err
 
 
-def locate_damage(ms: str, columns: Iterable[str], step: int = 200_000) -> Optional[str]:
+def locate_damage(ms: str, columns: Optional[Iterable[str]],
+                  step: int = 200_000) -> Optional[str]:
     """'column C, rows a-b: message' for the first column of ``ms`` that cannot be read.
 
     Reads each column in blocks with python-casacore; used only after an
@@ -214,7 +218,7 @@ def locate_damage(ms: str, columns: Iterable[str], step: int = 200_000) -> Optio
         return f"the table itself: {' '.join(str(err).split())}"
     with t:
         n_row = t.nrows()
-        for column in columns:
+        for column in (t.colnames() if columns is None else columns):
             if column not in t.colnames():
                 continue
             for start in range(0, max(n_row, 1), step):

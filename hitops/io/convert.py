@@ -50,6 +50,7 @@ import numpy as np
 
 from ..errors import ExternalToolError, InputError, MeasurementSetError
 from .detect import check_fitsidi, check_uvfits, detect_format, hdus_of
+from .flag_versions import keep_original
 from .uvfits_read import NeedsCasa, import_uvfits_direct
 
 log = logging.getLogger("hitops.io")
@@ -321,6 +322,9 @@ def _move_into_place(path: str, partial: Path, dest: Path, record: Dict) -> None
             shutil.rmtree(partial, ignore_errors=True)
         else:
             raise
+    else:
+        # the flags as imported, as a CASA flag version that recipe steps restore
+        keep_original(dest, f"imported from {Path(path).name}")
 
 
 # ---------------------------------------------------------------- Stimela cab (cabs/interop.yml)

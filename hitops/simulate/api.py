@@ -22,6 +22,7 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from ..errors import OutputExistsError, SceneError
+from ..io.flag_versions import keep_original
 from ..io.ms_create import ArrayLayout, Field
 from .. import radiometer
 from . import geometry, troposphere
@@ -302,6 +303,10 @@ def simulate(scene, outdir, prefix: str = "sim", seed: Optional[int] = None,
         for key, final in paths.items():
             _remove(final)
             staging[key].rename(final)
+            if final.suffix == ".ms":
+                # the flags as simulated, as a CASA flag version: every recipe step that
+                # flags starts from it, so a rerun is a fresh run (hitops/io/flag_versions.py)
+                keep_original(final, "simulated")
     except BaseException:
         for tmp in staging.values():
             _remove(tmp)
