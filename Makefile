@@ -16,20 +16,23 @@ export PATH := $(abspath $(VENV))/bin:$(PATH)
 # numba's compiled kernels are cached here between runs
 export NUMBA_CACHE_DIR ?= $(abspath $(VENV))/numba-cache
 
-.PHONY: help setup run test bench cabs wsclean casa-config numba-cache clean
+.PHONY: help setup run test bench cabs wsclean browser casa-config numba-cache clean
 # `make` alone sets up, as before `make help` existed
 .DEFAULT_GOAL := setup
 
 help: ## list the targets
 	@awk -F ':.*## ' '/^[a-zA-Z_.-]+:.*## /{printf "make %-12s %s\n", $$1, $$2}' $(MAKEFILE_LIST)
 
-setup: $(STAMP) wsclean casa-config numba-cache ## set up: .venv with the Python packages, WSClean, CASA offline data, numba cache
+setup: $(STAMP) wsclean browser casa-config numba-cache ## set up: .venv with the Python packages, WSClean, Chromium, CASA offline data, numba cache
 
 $(STAMP): pyproject.toml
 	@$(SETUP) venv
 
 wsclean: ## install WSClean from Debian when missing (apt-get; through sudo when not root)
 	@$(SETUP) wsclean
+
+browser: ## install Chromium and chromedriver from Debian when missing (the run page's browser tests)
+	@$(SETUP) browser
 
 casa-config: $(STAMP) ## write CASA's offline data configuration into .venv/etc/hitops/
 	@$(SETUP) casa-config

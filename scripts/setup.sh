@@ -5,6 +5,8 @@
 #                only when pyproject.toml is newer than .venv/.hitops-installed
 #   wsclean      WSClean from Debian when it is not on PATH (apt-get; through sudo
 #                when not root)
+#   browser      Chromium and chromedriver from Debian when missing (the run page's
+#                browser tests), the same way
 #   casa-config  CASA's offline data configuration, inside the environment
 #                (.venv/etc/hitops/casasiteconfig.py; hitops/casa_env.py)
 #   numba-cache  the directory numba caches its compiled kernels in
@@ -70,29 +72,51 @@ step_venv() {
     touch "$STAMP"
 }
 
-step_wsclean() {
-    if command -v wsclean >/dev/null; then
-        say "WSClean found: $(command -v wsclean)"
+# Debian packages that provide commands, installed only when a command is missing:
+# from_debian WHAT "COMMAND ..." "PACKAGE ..."
+from_debian() {
+    local what=$1 commands=$2 packages=$3 cmd missing=""
+    for cmd in $commands; do
+        command -v "$cmd" >/dev/null || missing="$missing $cmd"
+    done
+    if [ -z "$missing" ]; then
+        local found=()
+        for cmd in $commands; do found+=("$(command -v "$cmd")"); done
+        say "$what found: ${found[*]}"
         return
     fi
     command -v apt-get >/dev/null ||
-        fail "WSClean is not on PATH and there is no apt-get to install it: install WSClean 3.x yourself, then rerun 'make setup'"
+        fail "$what is not on PATH and there is no apt-get to install it: install $what yourself, then rerun 'make setup'"
     local as_root=()
     if [ "$(id -u)" -ne 0 ]; then
         command -v sudo >/dev/null ||
-            fail "WSClean is not on PATH and installing it needs root: run 'apt-get install wsclean' as root (or install sudo), then rerun 'make setup'"
+            fail "$what is not on PATH and installing it needs root: run 'apt-get install $packages' as root (or install sudo), then rerun 'make setup'"
         as_root=(sudo)
     fi
     # "env VAR=value apt-get" rather than "VAR=value apt-get": with as_root empty
     # the assignment would be run as a command (issue 11), and sudo's env_reset
     # drops a variable set in front of sudo itself
-    say "installing WSClean from Debian (${as_root[*]:+${as_root[*]} }apt-get install wsclean; output in $LOG)"
+    say "installing $what from Debian (${as_root[*]:+${as_root[*]} }apt-get install $packages; output in $LOG)"
     run_logged "apt-get update" \
         "${as_root[@]}" env DEBIAN_FRONTEND=noninteractive apt-get update -q
-    run_logged "apt-get install wsclean" \
-        "${as_root[@]}" env DEBIAN_FRONTEND=noninteractive apt-get install -y -q wsclean
-    command -v wsclean >/dev/null ||
-        fail "apt-get installed the wsclean package but no wsclean is on PATH ($PATH): see 'dpkg -L wsclean'"
+    # $packages unquoted: one word per package
+    # shellcheck disable=SC2086
+    run_logged "apt-get install $packages" \
+        "${as_root[@]}" env DEBIAN_FRONTEND=noninteractive apt-get install -y -q $packages
+    for cmd in $commands; do
+        command -v "$cmd" >/dev/null ||
+            fail "apt-get installed $packages but no $cmd is on PATH ($PATH): see 'dpkg -L ${packages%% *}'"
+    done
+}
+
+step_wsclean() {
+    from_debian WSClean "wsclean" "wsclean"
+}
+
+# the headless browser the run's page is tested in (tests/test_report*.py): Debian's
+# Chromium and its WebDriver, nothing that downloads a browser of its own
+step_browser() {
+    from_debian Chromium "chromium chromedriver" "chromium chromium-driver"
 }
 
 step_casa_config() {
@@ -110,13 +134,14 @@ step_numba_cache() {
 }
 
 steps=("$@")
-[ ${#steps[@]} -gt 0 ] || steps=(venv wsclean casa-config numba-cache)
+[ ${#steps[@]} -gt 0 ] || steps=(venv wsclean browser casa-config numba-cache)
 for step in "${steps[@]}"; do
     case $step in
     venv) step_venv ;;
     wsclean) step_wsclean ;;
+    browser) step_browser ;;
     casa-config) step_casa_config ;;
     numba-cache) step_numba_cache ;;
-    *) fail "unknown step '$step': use venv, wsclean, casa-config or numba-cache (scripts/setup.sh)" ;;
+    *) fail "unknown step '$step': use venv, wsclean, browser, casa-config or numba-cache (scripts/setup.sh)" ;;
     esac
 done

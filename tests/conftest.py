@@ -102,3 +102,23 @@ def eht_imported(tmp_path_factory):
     """(lo.ms, hi.ms): the EHT pair as CASA importuvfits writes it, read-only."""
     root = tmp_path_factory.mktemp("eht2017")
     return importuvfits(EHT_LO, root / "lo.ms"), importuvfits(EHT_HI, root / "hi.ms")
+
+
+@pytest.fixture(scope="session")
+def short_demo(tmp_path_factory):
+    """``hitops simulate``'s demo scene over 10 minutes, simulated once for the suite: the
+    sets as the simulator leaves them, each with its flags kept as ``hitops_original``."""
+    from hitops.simulate import simulate
+
+    out = tmp_path_factory.mktemp("short-demo")
+    simulate("demo", out, duration=600)
+    return out
+
+
+@pytest.fixture
+def new_demo(short_demo, tmp_path):
+    """A private copy of ``short_demo`` (both sets and their CASA flag versions):
+    (reference set, target set)."""
+    for item in short_demo.iterdir():
+        shutil.copytree(item, tmp_path / item.name)
+    return tmp_path / "sim-86.ms", tmp_path / "sim-230.ms"

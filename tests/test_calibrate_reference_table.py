@@ -246,6 +246,12 @@ def test_refused_tables(solved, tmp_path):
             minblperant=2)
     _refused([pair.ref_ms, target, "--reference-table", slow],
              "moves by more than pi between solutions 60 s apart", target, [slow], tmp_path)
+    # a damaged table: one of its files lost (casacore alone says "FiledesIO ...")
+    damaged = tmp_path / "damaged.fringe"
+    shutil.copytree(table, damaged)
+    (damaged / "table.f0").unlink()
+    _refused([pair.ref_ms, target, "--reference-table", damaged],
+             f"'{damaged}' is damaged", target, [damaged], tmp_path)
 
 
 @pytest.mark.parametrize("extra, culprit", [

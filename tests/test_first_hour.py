@@ -137,6 +137,8 @@ def test_demo_is_quiet_and_ends_with_the_answer(clone):
     assert re.search(r"raw \(DATA\)\s+no source", text)           # no number for noise
     assert "Coherence C(60 s) per baseline" in text
     tail = "\n".join(lines[-8:])
+    # the run ends by naming its page
+    assert lines[-1].startswith("Page:        out/demo/index.html"), lines[-1]
     for key in ("Summary:     out/demo/peak-flux.md", "Plots:       out/demo/diagnose/plots/",
                 "Images:      out/demo/images/", "Logs:        out/demo/logs/run-"):
         assert key in tail, tail
@@ -183,6 +185,7 @@ def test_demo_reruns_exactly_what_a_changed_parameter_affects(clone):
     ran = {k for k, v in _statuses(plots.stdout).items() if v != "up to date"}
     assert ran == {"diagnose", "compare"}, plots.stdout
     assert (out / "peak-flux.json").stat().st_mtime_ns > table_before
+    fresh_numbers = _numbers(json.loads((out / "peak-flux.json").read_text()))
     # a calibration parameter: everything from fringefit on, not the simulation
     sim_before = (out / "sim-86.ms").stat().st_mtime_ns
     fringe = runner("recipes/fpt-demo.yml", "plots=coherence", "fringefit_solint=60s",
@@ -194,9 +197,23 @@ def test_demo_reruns_exactly_what_a_changed_parameter_affects(clone):
     assert (out / "sim-86.ms").stat().st_mtime_ns == sim_before
     assert json.loads((out / "params" / "fringefit.json").read_text())["inputs"][
         "fringefit_solint"] == "60s"
+    # back at 20 s: every number of the table is the first run's again (each step starts
+    # from the flags as simulated, kept as a CASA flag version; docs/recipes.md)
+    back = runner("recipes/fpt-demo.yml", "plots=coherence", cwd=repo, env=env)
+    assert back.returncode == 0, back.stdout[-3000:]
+    assert _numbers(json.loads((out / "peak-flux.json").read_text())) == fresh_numbers
     # and a misspelt one changes nothing
     bad = runner("recipes/fpt-demo.yml", "fringefit_soltint=30s", cwd=repo, env=env)
     assert bad.returncode == 2 and "did you mean 'fringefit_solint'" in bad.stderr
+
+
+def _numbers(table, path=""):
+    """Every number of a peak-flux.json, by its place (paths to files left out)."""
+    if isinstance(table, dict):
+        return {k: v for key, value in table.items() for k, v in _numbers(value, f"{path}/{key}").items()}
+    if isinstance(table, list):
+        return {k: v for i, value in enumerate(table) for k, v in _numbers(value, f"{path}[{i}]").items()}
+    return {path: table} if isinstance(table, (int, float)) and not isinstance(table, bool) else {}
 
 
 # ---------------------------------------------------------------------------

@@ -127,3 +127,19 @@ def test_wideband_rerun_skips_every_step_when_fresh(wideband_run):
     assert sum(name == "image" for name, _ in chunks) == len(LABELS)
     assert "fringefit(vis=" not in log and "imfit(imagename=" not in log
     assert {p: p.stat().st_mtime_ns for p in before} == before
+
+
+@pytest.mark.slow
+def test_wideband_page_in_a_real_browser_after_the_rerun(wideband_run):
+    from browser import check_page, page_numbers_equal_table
+
+    work, out, _ = wideband_run
+    visit = check_page(out / "index.html", work / "wideband-page.png")
+    page_numbers_equal_table(visit, out / "peak-flux.json")
+    srcs = [src for src, _ in visit.images]
+    assert sorted(s for s in srcs if s.startswith("report/image-")) == sorted(
+        f"report/image-{label}.png" for label in LABELS)
+    # the page of the rerun (the test before) says every step was up to date, and why
+    steps = visit.text["steps"]
+    for name in ("simulate", "fringefit", "calibrate_window", "diagnose", "images", "compare"):
+        assert f"{name} up to date" in steps, steps

@@ -166,6 +166,37 @@ def test_demo_cfpt_residuals_jump_where_pwc_does_not(demo_run):
 
 
 @pytest.mark.slow
+def test_demo_page_in_a_real_browser(demo_run):
+    from browser import check_page, page_numbers_equal_table
+
+    work, out, done = demo_run
+    page = out / "index.html"
+    assert page.is_file(), done.stdout[-3000:]
+    visit = check_page(page, work / "demo-page.png")
+    page_numbers_equal_table(visit, out / "peak-flux.json")
+    # every image of the table and the diagnose plots are on the page
+    srcs = [src for src, _ in visit.images]
+    assert sum(s.startswith("report/image-") for s in srcs) == 6
+    assert sum(s.startswith("diagnose/plots/") for s in srcs) == len(
+        list((out / "diagnose" / "plots").glob("*.png")))
+    # every step of this run, in order, with its status
+    steps = visit.text["steps"]
+    for name in ("simulate", "fringefit", "applycal", "calibrate", "diagnose", "images", "compare"):
+        assert f"{name} ran" in steps, steps
+
+
+@pytest.mark.slow
+def test_demo_keeps_the_flags_as_simulated_as_a_casa_flag_version(demo_run):
+    from hitops.casa.runner import run_task
+
+    _, out, _ = demo_run
+    listed = run_task("flagmanager", vis=str(out / "sim-230.ms"), mode="list")
+    names = [v["name"] for k, v in listed.items() if k != "MS"]
+    # the flags as simulated, then each branch's own (comments say what made them)
+    assert names == ["hitops_original", "pwcft", "pwcnc", "ffsc", "pwc"], listed
+
+
+@pytest.mark.slow
 def test_demo_rerun_picks_up_where_it_stopped(demo_run):
     work, out, _ = demo_run
     # lose the last image fit and the table, as if the run had died there

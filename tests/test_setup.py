@@ -49,8 +49,16 @@ def _machine(tmp_path: Path, *, uid: int, sudo: bool, wsclean: bool = False) -> 
     _write_script(bin_dir / "apt-get", f"""
 printf '%s|DEBIAN_FRONTEND=%s|SUDO_USER=%s\\n' "$*" "${{DEBIAN_FRONTEND-}}" "${{SUDO_USER-}}" >> {calls}
 if [ "$1" = install ]; then
-    printf '#!/bin/bash\\necho "WSClean version 3.1 (stand-in)"\\n' > {bin_dir}/wsclean
-    /bin/chmod +x {bin_dir}/wsclean
+    for package in "$@"; do    # each package's command appears, as Debian's would
+        case $package in
+        wsclean) command=wsclean ;;
+        chromium) command=chromium ;;
+        chromium-driver) command=chromedriver ;;
+        *) continue ;;
+        esac
+        printf '#!/bin/bash\\necho "%s (stand-in)"\\n' "$command" > {bin_dir}/$command
+        /bin/chmod +x {bin_dir}/$command
+    done
 fi
 """)
     _write_script(bin_dir / "id", f"""
@@ -74,8 +82,8 @@ exec /usr/bin/env -i PATH="$PATH" SUDO_USER=tester "$@"
             "VENV": str(tmp_path / "venv")}
 
 
-def _make_wsclean(env: dict) -> subprocess.CompletedProcess:
-    return subprocess.run([shutil.which("make"), "--no-print-directory", "-C", str(ROOT), "wsclean"],
+def _make_wsclean(env: dict, target: str = "wsclean") -> subprocess.CompletedProcess:
+    return subprocess.run([shutil.which("make"), "--no-print-directory", "-C", str(ROOT), target],
                           env=env, capture_output=True, text=True, timeout=60)
 
 
@@ -130,6 +138,19 @@ def test_wsclean_present_is_left_alone(tmp_path):
     assert done.returncode == 0, done.stderr
     assert _apt_calls(tmp_path) == []
     assert "WSClean found" in done.stdout
+
+
+def test_browser_installed_when_missing_and_left_alone_when_present(tmp_path):
+    env = _machine(tmp_path, uid=0, sudo=False)
+    # the browser alone is there: its WebDriver is still missing, so both are installed
+    _write_script(tmp_path / "bin" / "chromium", 'echo "Chromium (stand-in)"\n')
+    done = _make_wsclean(env, "browser")
+    assert done.returncode == 0, done.stderr
+    assert [c.split("|")[0] for c in _apt_calls(tmp_path)] == [
+        "update -q", "install -y -q chromium chromium-driver"]
+    again = _make_wsclean(env, "browser")
+    assert again.returncode == 0 and "Chromium found" in again.stdout
+    assert len(_apt_calls(tmp_path)) == 2          # nothing more installed
 
 
 def test_casa_config_and_numba_cache_on_a_fresh_machine(tmp_path):

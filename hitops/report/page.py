@@ -114,7 +114,8 @@ def verdict(facts: RunFacts) -> str:
 
 def _peak_section(facts: RunFacts) -> str:
     if not facts.peak_rows:
-        return ""
+        return (f"<section id='answer'><h2>Answer</h2><div class='verdict warn' id='verdict'>"
+                f"{_e(verdict(facts))}</div></section>")
     body = [(r.method, r.peak_jy, r.peak_err_jy, r.recovery, r.recovery_err,
              r.note or r.fit) for r in facts.peak_rows]
     cls = "verdict" if any(r.label == "pwc" and r.recovery for r in facts.peak_rows) else "verdict warn"
@@ -175,7 +176,7 @@ def _plots(facts: RunFacts, base: Path) -> str:
         kinds.setdefault(plot.stem.split("-")[0], []).append(plot)
     out = []
     for kind, plots in sorted(kinds.items()):
-        imgs = "".join(f"<img src='{_rel(p, base)}' alt='{_e(p.stem)}' loading='lazy'>"
+        imgs = "".join(f"<img src='{_rel(p, base)}' alt='{_e(p.stem)}'>"
                        for p in plots)
         out.append(f"<details{' open' if kind == 'coherence' else ''}><summary>{_e(kind)} plots "
                    f"({len(plots)})</summary><div class='grid plots'>{imgs}</div></details>")
