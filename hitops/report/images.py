@@ -101,12 +101,15 @@ def render_row(items: List[ImageFit], out_dir: Path, scale_jy: Optional[float]) 
                     color="cyan", markersize=14, mew=1.5)
         bmaj, bmin = header.get("BMAJ"), header.get("BMIN")
         if bmaj and bmin:
-            width, height = extent[0] - extent[1], extent[3] - extent[2]
-            major = float(bmaj) * _MAS
-            # bottom-left corner, clear of the edge by the beam's own size
-            centre = (extent[0] - max(0.12 * width, 0.6 * major), extent[2] + max(0.12 * height, 0.6 * major))
-            ax.add_patch(Ellipse(centre, float(bmin) * _MAS, major,
-                                 angle=-float(header.get("BPA", 0.0)), fill=False,
+            major, minor = float(bmaj) * _MAS, float(bmin) * _MAS
+            pa = math.radians(float(header.get("BPA", 0.0)))   # east of north
+            # the beam's half extents on the axes, so it sits whole in the bottom-left corner
+            half_x = math.hypot(major / 2 * math.sin(pa), minor / 2 * math.cos(pa))
+            half_y = math.hypot(major / 2 * math.cos(pa), minor / 2 * math.sin(pa))
+            margin = 0.04 * (extent[3] - extent[2])
+            centre = (extent[0] - half_x - margin, extent[2] + half_y + margin)
+            # angle counter-clockwise from +x in data coordinates; RA grows to the left
+            ax.add_patch(Ellipse(centre, minor, major, angle=-math.degrees(pa), fill=False,
                                  edgecolor="white", lw=1.2))
         ax.set_xlim(extent[0], extent[1])
         ax.set_ylim(extent[2], extent[3])
