@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from browser import check_page
 
 HITOPS = Path(sys.executable).parent / "hitops"
@@ -31,8 +33,15 @@ def test_page_of_calibrate_and_diagnose_outputs(new_demo, tmp_path):
     done = _hitops("report", tmp_path)
     assert done.returncode == 0, done.stderr
     visit = check_page(tmp_path / "index.html", tmp_path / "page.png")
-    assert visit.text["verdict"] == ("No images in this directory: the coherence of each "
-                                     "column is below.")
+    summary = json.loads((tmp_path / "diagnose" / "summary.json").read_text())
+    medians = {col: float(np.median([bl["columns"][col]["coherence_factor"]
+                                     for bl in summary["baselines"]]))
+               for col in ("DATA", "CFPT_DATA", "PWC_DATA")}
+    assert visit.text["verdict"] == (
+        f"No images in this directory. Median coherence C(60 s) over {len(summary['baselines'])} "
+        f"baselines: DATA {medians['DATA']:.3f}, CFPT_DATA {medians['CFPT_DATA']:.3f}, "
+        f"PWC_DATA {medians['PWC_DATA']:.3f}.")
+    assert medians["PWC_DATA"] > medians["DATA"]
     html = (tmp_path / "index.html").read_text()
     # the per-station facts of the calibrate report: each station's n0 integers
     n0 = {}
@@ -42,7 +51,6 @@ def test_page_of_calibrate_and_diagnose_outputs(new_demo, tmp_path):
     for station in n0:
         assert f"<td>{station}</td>" in html
     # the coherence of every baseline and column, as diagnose wrote it
-    summary = json.loads((tmp_path / "diagnose" / "summary.json").read_text())
     for bl in summary["baselines"]:
         assert f"<td>{bl['baseline']}</td>" in html
         value = bl["columns"]["PWC_DATA"]["coherence_factor"]

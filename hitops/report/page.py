@@ -106,10 +106,26 @@ def verdict(facts: RunFacts) -> str:
     if pwc:
         return f"PWC gave no peak: {pwc.note or pwc.fit}."
     if facts.diagnose:
-        return "No images in this directory: the coherence of each column is below."
+        return "No images in this directory. " + _coherence_verdict(facts.diagnose)
     if facts.calibrate_reports:
         return "Calibration only: the per-station facts are below."
     return "Nothing this page knows how to show was found in the directory."
+
+
+def _coherence_verdict(summary: Dict) -> str:
+    """Median per-baseline coherence of each diagnosed column, in one sentence."""
+    import statistics
+
+    parts = []
+    for col in summary.get("columns", []):
+        values = [bl["columns"][col]["coherence_factor"] for bl in summary.get("baselines", [])
+                  if isinstance(bl.get("columns", {}).get(col, {}).get("coherence_factor"), float)]
+        if values:
+            parts.append(f"{col} {statistics.median(values):.3f}")
+    n_bl = len(summary.get("baselines", []))
+    interval = summary.get("interval_s", 0.0)
+    return (f"Median coherence C({interval:g} s) over {n_bl} baselines: " + ", ".join(parts) + "."
+            if parts else "The coherence of each column is below.")
 
 
 def _peak_section(facts: RunFacts) -> str:
