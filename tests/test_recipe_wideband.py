@@ -143,3 +143,12 @@ def test_wideband_page_in_a_real_browser_after_the_rerun(wideband_run):
     steps = visit.text["steps"]
     for name in ("simulate", "fringefit", "calibrate_window", "diagnose", "images", "compare"):
         assert f"{name} up to date" in steps, steps
+    # wideband: every baseline and column per window, as diagnose measured it
+    summary = json.loads((out / "diagnose" / "summary.json").read_text())
+    html = (out / "index.html").read_text()
+    spectral = summary["spectral"]
+    assert len(spectral["windows"]) == 2 and "id='spectral-table'" in html
+    for col, entry in spectral["columns"].items():
+        for values in entry["baselines"].values():
+            for value in values["windows"]:
+                assert f"{value:.4f}" in html

@@ -54,6 +54,7 @@ class RunFacts:
     """Everything the page shows, read from the run's directory."""
 
     dir: Path
+    peak_table: Optional[Path]         # the compare step's JSON table
     peak_rows: List[PeakRow]
     input_peak: Optional[float]
     coherence: Optional[Dict]          # peak-flux.json's coherence section
@@ -110,7 +111,7 @@ def _summary_dirs(run_dir: Path) -> List[Path]:
 def _calibrate_reports(run_dir: Path) -> List[CalibrateReport]:
     out = []
     for path in sorted(run_dir.glob("*.json")) + sorted(run_dir.glob("*.hitops-calibrate.json")):
-        body = _load(path) if path.name != "peak-flux.json" else None
+        body = _load(path) if path.name not in TABLE_NAMES else None
         # a calibrate report names both sets and its methods; nothing else here does
         if body and "target_ms" in body and "methods" in body and path not in [r.path for r in out]:
             out.append(CalibrateReport(path=path, body=body))
@@ -123,9 +124,26 @@ def _sets(run_dir: Path, reports: List[CalibrateReport]) -> List[Path]:
     return sorted(s if s.is_dir() else run_dir / s.name for s in sets)
 
 
+#: the compare step's table: the demo and wideband recipes name it peak-flux, the paper's summary
+TABLE_NAMES = ("peak-flux.json", "summary.json")
+
+
+def _peak_table(run_dir: Path) -> Optional[Dict]:
+    for name in TABLE_NAMES:
+        if (run_dir / name).is_file():
+            table = _load(run_dir / name)
+            if table and "rows" in table:
+                return table
+    return None
+
+
+def peak_table_path(run_dir: Path) -> Optional[Path]:
+    return next((run_dir / n for n in TABLE_NAMES if (run_dir / n).is_file()), None)
+
+
 def collect(run_dir: Path) -> RunFacts:
     """The facts of the run in ``run_dir``."""
-    table = _load(run_dir / "peak-flux.json") if (run_dir / "peak-flux.json").is_file() else None
+    table = _peak_table(run_dir)
     summaries = _summary_dirs(run_dir)
     diagnose_dir = summaries[0] if summaries else None
     diagnose = _load(diagnose_dir / "summary.json") if diagnose_dir else None
@@ -140,7 +158,7 @@ def collect(run_dir: Path) -> RunFacts:
         body = _load(receipt)
         if body:
             receipts[str(receipt.relative_to(run_dir))] = body
-    return RunFacts(dir=run_dir, peak_rows=rows, input_peak=input_peak,
+    return RunFacts(dir=run_dir, peak_table=peak_table_path(run_dir), peak_rows=rows, input_peak=input_peak,
                     coherence=(table or {}).get("coherence"), diagnose=diagnose,
                     diagnose_dir=diagnose_dir, images=_images(run_dir / "images"),
                     plots=plots, calibrate_reports=reports, flag_versions=versions,

@@ -46,19 +46,29 @@ def read_image(path: Path):
     return plane * float(header.get("BSCALE", 1.0)) + float(header.get("BZERO", 0.0)), header
 
 
-def _state(fit: dict) -> str:
+#: a restored image brighter than this many times the row's scale is a diverged CLEAN (the
+#: image-fit recipe's max_abs_peak is 5 Jy/beam for a 1-Jy source)
+DIVERGED_FACTOR = 5.0
+
+
+def _state(fit: dict, scale_jy: float = 1.0) -> str:
     method = str(fit.get("method", ""))
     if fit.get("diverged") or "diverged" in str(fit.get("note", "")) or method == "max-pixel":
+        return "diverged"
+    # a fit that found "no source" in an image whose brightest pixel is absurd: CLEAN diverged
+    if abs(float(fit.get("brightest") or 0.0)) > DIVERGED_FACTOR * scale_jy:
         return "diverged"
     if method in ("no-source",) or fit.get("peak") is None:
         return "no source"
     return "fit"
 
 
-def _shown_file(item: ImageFit) -> Path:
+def _shown_file(item: ImageFit, state: str) -> Path:
     # a diverged CLEAN's fit was made on the dirty image (the restored one was renamed)
     fitted = Path(str(item.fit.get("fallback_image") or item.fit.get("image") or item.fits_path))
-    for candidate in (fitted, item.fits_path.parent / fitted.name, item.fits_path):
+    dirty = item.fits_path.parent / f"{item.label}-dirty.fits"
+    first = [dirty] if state == "diverged" else []
+    for candidate in (*first, fitted, item.fits_path.parent / fitted.name, item.fits_path):
         if candidate.is_file():
             return candidate
     return item.fits_path
@@ -72,11 +82,13 @@ def render_row(items: List[ImageFit], out_dir: Path, scale_jy: Optional[float]) 
     from matplotlib.patches import Ellipse
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    peaks = [float(i.fit["peak"]) for i in items if _state(i.fit) == "fit"]
+    peaks = [float(i.fit["peak"]) for i in items if i.fit.get("peak") is not None
+             and str(i.fit.get("method")) == "gaussian"]
     vmax = scale_jy or (max(peaks) if peaks else 1.0)
     pictures = []
     for item in items:
-        path = _shown_file(item)
+        state = _state(item.fit, vmax)
+        path = _shown_file(item, state)
         if not path.is_file():
             continue
         image, header = read_image(path)
@@ -95,7 +107,6 @@ def render_row(items: List[ImageFit], out_dir: Path, scale_jy: Optional[float]) 
         fig, ax = plt.subplots(figsize=(3.4, 3.4), dpi=110)
         shown = ax.imshow(image, origin="lower", cmap="inferno", vmin=-0.1 * vmax, vmax=vmax,
                           extent=extent, interpolation="nearest")
-        state = _state(item.fit)
         if state == "fit" and item.fit.get("x_pix") is not None:
             ax.plot([ra(float(item.fit["x_pix"]))], [dec(float(item.fit["y_pix"]))], marker="+",
                     color="cyan", markersize=14, mew=1.5)
@@ -141,7 +152,11 @@ def _caption(fit: dict, state: str) -> str:
         return (f"imfit peak {peak:.4f} ± {err:.4f} Jy/beam"
                 + (f", SNR {float(snr):.0f}" if snr else ""))
     if state == "diverged":
-        peak = fit.get("peak")
-        return ("CLEAN diverged; brightest dirty pixel "
-                + (f"{float(peak):.3f} Jy/beam" if peak is not None else "unknown"))
+        peak = fit.get("peak") if fit.get("method") == "max-pixel" else None
+        brightest = fit.get("brightest")
+        return ("CLEAN diverged; " + (f"brightest dirty pixel {float(peak):.3f} Jy/beam"
+                                      if peak is not None else
+                                      f"restored image's brightest pixel {float(brightest):.3g} "
+                                      "Jy/beam; the dirty image is shown"
+                                      if brightest is not None else "the dirty image is shown"))
     return str(fit.get("reason") or fit.get("note") or "no source above the noise")

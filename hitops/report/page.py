@@ -138,10 +138,11 @@ def _peak_section(facts: RunFacts) -> str:
     table = _table(["method", "peak (Jy/beam)", "± (Jy/beam)", "recovery", "±", "fit"], body,
                    ident="peak-flux")
     peak = f" of the input peak {facts.input_peak} Jy/beam" if facts.input_peak else ""
+    source = facts.peak_table.name if facts.peak_table else "peak-flux.json"
     return (f"<section id='answer'><h2>Fractional peak-flux recovery</h2>"
             f"<div class='{cls}' id='verdict'>{_e(verdict(facts))}</div>{table}"
             f"<p class='muted'>CASA imfit Gaussian peak{_e(peak)}; uncertainty from imfit. "
-            "Source: <a href='peak-flux.json'>peak-flux.json</a> (also .csv, .md).</p></section>")
+            f"Source: <a href='{source}'>{source}</a> (also .csv, .md).</p></section>")
 
 
 def _images_section(pictures: List[Picture], base: Path) -> str:
@@ -178,12 +179,31 @@ def _coherence_section(facts: RunFacts, base: Path) -> str:
         rows.append(row)
     head = (["baseline"] + [f"C({summary.get('interval_s', '?'):g} s) {c}" for c in cols]
             + [f"τc (s) {c}" for c in cols])
-    plots = _plots(facts, base)
+    plots = _spectral_table(summary.get("spectral")) + _plots(facts, base)
     rel = _rel(facts.diagnose_dir, base) if facts.diagnose_dir else "diagnose"
     return (f"<section id='coherence'><h2>Coherence per baseline</h2>"
             f"<p class='muted'>Click a heading to sort. From <a href='{rel}/summary.json'>"
             f"{rel}/summary.json</a> and <a href='{rel}/coherence-table.txt'>coherence-table.txt"
             f"</a>.</p>{_table(head, rows, 'sortable', 'coherence-table')}{plots}</section>")
+
+
+def _spectral_table(spectral: Optional[Dict]) -> str:
+    """Wideband sets: per baseline and column, C over all channels, per window and the
+    worst channel of each window (diagnose's 'spectral' section)."""
+    if not spectral:
+        return ""
+    windows = spectral.get("windows", [])
+    names = [f"{w['freq_min_hz'] / 1e9:.2f}-{w['freq_max_hz'] / 1e9:.2f} GHz ({w['n_chan']} ch)"
+             for w in windows]
+    head = (["baseline", "column", "C all channels"] + [f"C window {n}" for n in names]
+            + [f"worst channel {n}" for n in names])
+    rows = []
+    for col, entry in spectral.get("columns", {}).items():
+        for bl, values in entry.get("baselines", {}).items():
+            rows.append([bl, col, values.get("all_channels")] + list(values.get("windows", []))
+                        + list(values.get("channel_min", [])))
+    return (f"<h3>Per window and channel (C({spectral.get('interval_s', 0):g} s))</h3>"
+            + _table(head, rows, "sortable", "spectral-table"))
 
 
 def _plots(facts: RunFacts, base: Path) -> str:
