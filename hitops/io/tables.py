@@ -1,0 +1,112 @@
+"""Every casacore table open of hitops outside hitops/io's own readers: the MSv2 backend's seam.
+
+A Measurement Set v2 and a CASA calibration table are casacore tables on disk;
+this module is the one place the rest of hitops opens them (tests/test_layout.py
+fails on a ``casacore.tables`` open anywhere outside hitops/io/, hitops/casa/ and
+hitops/testing/).  What it offers, by what the caller does:
+
+* hold a table open: :func:`main_table` (a set's main table), :func:`subtable`
+  (``ms::ANTENNA``, ...), :func:`calibration_subtable` (a caltable's ``ANTENNA``, ...,
+  the directory CASA writes beside its main table), :func:`open_table` (any path);
+  each returns python-casacore's table, a context manager, read-only unless
+  ``writable=True``;
+* read without holding: :func:`read_columns` (whole columns of a table or subtable),
+  :func:`read_cells` (one column row by row: CHAN_FREQ of windows of different
+  sizes), :func:`first_cell_shape`, :func:`row_count`, :func:`column_names`,
+  :func:`table_info`;
+* create: :func:`create_ms` (casacore's ``default_ms`` with a description and data
+  managers, :func:`array_column` / :func:`table_description` for the description).
+
+A set's metadata (antennas, fields, windows, data descriptions, polarizations) is
+read once per set through :func:`hitops.io.metadata.read_metadata`, which is the
+backend-neutral entry: an MSv4 processing set (xradio/zarr) plugs in there beside
+this module, not here.  No module state: every call opens and closes its table
+(or returns it open to the caller's ``with``).
+"""
+
+from __future__ import annotations
+
+from typing import Dict, List, Mapping, Sequence
+
+import numpy as np
+
+
+def _tables():
+    # imported when a table is opened: hitops imports without python-casacore's start-up
+    from casacore import tables
+    return tables
+
+
+def open_table(path: str, writable: bool = False):
+    """The casacore table at ``path`` (a directory, or ``ms::SUBTABLE``), open; use in ``with``."""
+    return _tables().table(str(path), readonly=not writable, ack=False)
+
+
+def main_table(ms: str, writable: bool = False):
+    """The main table of Measurement Set ``ms``, open; use in ``with``."""
+    return open_table(ms, writable)
+
+
+def subtable(ms: str, name: str, writable: bool = False):
+    """Subtable ``name`` (ANTENNA, FIELD, SPECTRAL_WINDOW, ...) of ``ms``, open; use in ``with``."""
+    return open_table(f"{ms}::{name}", writable)
+
+
+def calibration_subtable(path: str, name: str, writable: bool = False):
+    """Subtable ``name`` of the CASA calibration table at ``path``, open; use in ``with``."""
+    return open_table(f"{path}/{name}", writable)
+
+
+def read_columns(path: str, columns: Sequence[str]) -> Dict[str, np.ndarray]:
+    """Whole columns of the table at ``path`` (empty arrays for a table of no rows)."""
+    with open_table(path) as t:
+        return {c: (t.getcol(c) if t.nrows() else np.array([])) for c in columns}
+
+
+def read_cells(path: str, column: str, dtype=float) -> List[np.ndarray]:
+    """``column`` row by row as arrays of ``dtype`` (cells whose shapes differ per row)."""
+    with open_table(path) as t:
+        return [np.asarray(t.getcell(column, i), dtype) for i in range(t.nrows())]
+
+
+def first_cell_shape(ms: str, column: str) -> tuple:
+    """Shape of ``column``'s cell in the main table's first row; () for a table of no rows."""
+    with main_table(ms) as t:
+        return tuple(t.getcell(column, 0).shape) if t.nrows() else ()
+
+
+def row_count(path: str) -> int:
+    """Rows of the table at ``path``."""
+    with open_table(path) as t:
+        return int(t.nrows())
+
+
+def column_names(path: str) -> List[str]:
+    """Names of the columns of the table at ``path``."""
+    with open_table(path) as t:
+        return list(t.colnames())
+
+
+def table_info(path: str) -> Dict[str, str]:
+    """The table's info record (``type``, ``subType``: 'Calibration', 'Fringe Jones', ...)."""
+    with open_table(path) as t:
+        return dict(t.info())
+
+
+def array_column(name: str, value, shape: Sequence[int], valuetype: str, comment: str,
+                 fixed: bool = True) -> dict:
+    """Description of an array column (casacore ``makearrcoldesc``), fixed shape by default."""
+    fixed_shape = 4  # casacore ColumnDesc::FixedShape (tables/Tables/ColumnDesc.h)
+    return _tables().makearrcoldesc(name, value, shape=list(shape), valuetype=valuetype,
+                                    options=fixed_shape if fixed else 0, comment=comment)
+
+
+def table_description(columns: Sequence[dict]) -> dict:
+    """A table description of ``columns`` (casacore ``maketabdesc``)."""
+    return _tables().maketabdesc(list(columns))
+
+
+def create_ms(path: str, description: dict, data_managers: Mapping[str, dict]):
+    """A new Measurement Set at ``path`` (casacore ``default_ms``: the standard columns and
+    subtables, plus ``description``'s columns), open for writing; close it when done."""
+    return _tables().default_ms(str(path), description, dict(data_managers))
