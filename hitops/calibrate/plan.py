@@ -31,6 +31,7 @@ from .chunks import ChunkMatch, ChunkRows, MatchCheck
 from .channels import ChannelPlan, channel_plan, check_channel_counts
 from .groups import GroupPair, describe_groups, pair_groups
 from .inputs import CalibrateOptions, Columns
+from ..io import tables
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -115,12 +116,10 @@ def rows_from_budget(budget: int, ref_ms: str, target_ms: str, columns: Columns,
     given (not the default), so a budget too small is an error; ``local``: no cluster,
     the sets are read without dask-ms (hitops/io/read.py, open_for_reading).
     """
-    from casacore import tables as pt
-
     from .memory import min_chunk_rows, rows_for_budget
     n_rows, n_corr, n_chan = 0, 1, 1
     for ms, column in ((ref_ms, columns.ref_data), (target_ms, columns.target_data)):
-        with pt.table(ms, ack=False) as t:
+        with tables.main_table(ms) as t:
             n_rows += t.nrows()
             if t.nrows():
                 shape = t.getcell(column, 0).shape

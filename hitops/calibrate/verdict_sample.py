@@ -30,6 +30,7 @@ from ..errors import ColumnError, MeasurementSetError
 from ..io.layout import baseline_time_layout
 from ..io.read import rows_reader
 from ..io.stations import read_stations
+from ..io import tables
 
 #: casacore Stokes codes of the parallel hands, the only correlations the verdict uses
 PARALLEL_CODES = {5: "RR", 8: "LL", 9: "XX", 12: "YY", 1: "I"}
@@ -133,12 +134,10 @@ def _rows_in_blocks(time: np.ndarray, blocks: TimeBlocks) -> np.ndarray:
 
 def _parallel_hands(ms: str, table, first_row: int):
     """(indices, names) of the parallel-hand correlations of the row's data description."""
-    from casacore import tables as pt
-
     ddid = int(table.getcell("DATA_DESC_ID", first_row))
-    with pt.table(f"{ms}::DATA_DESCRIPTION", ack=False) as dd:
+    with tables.subtable(ms, "DATA_DESCRIPTION") as dd:
         pol_id = int(dd.getcell("POLARIZATION_ID", ddid))
-    with pt.table(f"{ms}::POLARIZATION", ack=False) as pol:
+    with tables.subtable(ms, "POLARIZATION") as pol:
         corr = [int(c) for c in pol.getcell("CORR_TYPE", pol_id)]
     index = [i for i, c in enumerate(corr) if c in PARALLEL_CODES]
     if not index:   # no parallel hand: every correlation (as diagnose does)
@@ -149,9 +148,7 @@ def _parallel_hands(ms: str, table, first_row: int):
 
 def read_times(ms: str) -> np.ndarray:
     """The TIME column of a main table (storage order)."""
-    from casacore import tables as pt
-
-    with pt.table(ms, ack=False) as table:
+    with tables.main_table(ms) as table:
         return table.getcol("TIME") if table.nrows() else np.zeros(0)
 
 
@@ -161,12 +158,10 @@ def read_sampled(ms: str, column: str, time: np.ndarray, blocks: TimeBlocks) -> 
     Several channels are vector-averaged over their unflagged channels (the verdict
     needs each sample's phase); autocorrelations are left out.
     """
-    from casacore import tables as pt
-
     rows = _rows_in_blocks(time, blocks)
     if rows.size == 0:
         raise MeasurementSetError(f"{ms}: no row at the times the verdict samples")
-    with pt.table(ms, ack=False) as table:
+    with tables.main_table(ms) as table:
         if column not in table.colnames():
             raise ColumnError(f"{ms} has no column {column}")
         corr_idx, corr_names = _parallel_hands(ms, table, int(rows[0]))

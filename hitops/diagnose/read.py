@@ -30,6 +30,7 @@ from ..io.access import raise_if_damaged, require_subtables
 from ..io.stations import read_stations
 from ..io import read as msio
 from ..io.layout import baseline_time_layout
+from ..io import tables
 
 log = logging.getLogger("hitops.diagnose")
 
@@ -91,9 +92,7 @@ def _subtable(ms: str, name: str, columns: Sequence[str]):
 
 def data_columns(ms: str) -> List[str]:
     """Complex visibility-like columns of the main table."""
-    from casacore import tables as pt
-
-    with pt.table(ms, ack=False) as tab:
+    with tables.main_table(ms) as tab:
         names = []
         for name in tab.colnames():
             desc = tab.getcoldesc(name)
@@ -185,9 +184,7 @@ def sampling_interval(ms: str, times: np.ndarray) -> float:
     if times.size > 1:
         dt = float(np.median(np.diff(times)))
     else:
-        from casacore import tables as pt
-
-        with pt.table(ms, ack=False) as tab:   # one time step only: fall back on INTERVAL
+        with tables.main_table(ms) as tab:   # one time step only: fall back on INTERVAL
             dt = float(np.median(tab.getcol("INTERVAL")))
     if not dt > 0:
         raise MeasurementSetError(f"{ms}: cannot find a positive sampling interval "

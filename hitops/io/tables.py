@@ -14,7 +14,7 @@ hitops/testing/).  What it offers, by what the caller does:
   :func:`read_cells` (one column row by row: CHAN_FREQ of windows of different
   sizes), :func:`first_cell_shape`, :func:`row_count`, :func:`column_names`,
   :func:`table_info`;
-* create: :func:`create_ms` (casacore's ``default_ms`` with a description and data
+* create: :func:`new_measurement_set` (casacore's ``default_ms`` with a description and data
   managers, :func:`array_column` / :func:`table_description` for the description).
 
 A set's metadata (antennas, fields, windows, data descriptions, polarizations) is
@@ -101,12 +101,17 @@ def array_column(name: str, value, shape: Sequence[int], valuetype: str, comment
                                     options=fixed_shape if fixed else 0, comment=comment)
 
 
+def column_description(name: str, description: dict) -> dict:
+    """A column description named ``name`` from another column's (casacore ``makecoldesc``)."""
+    return _tables().makecoldesc(name, description)
+
+
 def table_description(columns: Sequence[dict]) -> dict:
     """A table description of ``columns`` (casacore ``maketabdesc``)."""
     return _tables().maketabdesc(list(columns))
 
 
-def create_ms(path: str, description: dict, data_managers: Mapping[str, dict]):
+def new_measurement_set(path: str, description: dict, data_managers: Mapping[str, dict]):
     """A new Measurement Set at ``path`` (casacore ``default_ms``: the standard columns and
     subtables, plus ``description``'s columns), open for writing; close it when done."""
     return _tables().default_ms(str(path), description, dict(data_managers))
