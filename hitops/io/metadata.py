@@ -115,12 +115,13 @@ def read_metadata(ms: str) -> SetMetadata:
 
 
 def _read_msv2(ms: str) -> SetMetadata:
-    return SetMetadata(ms=ms, antennas=_antennas(ms), fields=_fields(ms), windows=_windows(ms),
+    return SetMetadata(ms=ms, antennas=read_antennas(ms), fields=_fields(ms), windows=_windows(ms),
                        data_descriptions=_data_descriptions(ms),
                        polarizations=_polarizations(ms))
 
 
-def _antennas(ms: str) -> Antennas:
+def read_antennas(ms: str) -> Antennas:
+    """The ANTENNA table alone (one open), for a reader that needs only the stations."""
     with tables.subtable(ms, "ANTENNA") as t:
         n_ant, present = t.nrows(), set(t.colnames())
         names = tuple(str(n) for n in t.getcol("NAME")) if n_ant else ()
