@@ -173,10 +173,10 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
     direct = one_chunk and not opts.scheduler
     ref_groups = msio.open_for_reading(ref_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.ref + columns.snr)),
                                        io_rows, ordered[ref_ms] or one_chunk, direct,
-                                       local=not opts.scheduler)
+                                       local=not opts.scheduler, mixed=ref_meta.has_groups())
     tgt_groups = msio.open_for_reading(target_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.tgt)),
                                        io_rows, ordered[target_ms] or one_chunk, direct,
-                                       local=not opts.scheduler)
+                                       local=not opts.scheduler, mixed=tgt_meta.has_groups())
     timings["open"] = time.perf_counter() - stage
     ref_role, tgt_role = "reference-band Measurement Set", "target-band Measurement Set"
     ref_stations = stations_of(ref_ms, ref_meta.antennas, ref_role)

@@ -100,7 +100,8 @@ def row_count(ms: str) -> int:
 
 
 def open_for_reading(ms: str, columns: Sequence[str], chunks, time_ordered: bool,
-                     direct: bool, local: bool = False) -> Dict[tuple, object]:
+                     direct: bool, local: bool = False,
+                     mixed: Optional[bool] = None) -> Dict[tuple, object]:
     """What calibrate reads a set through, keyed by (FIELD_ID, DATA_DESC_ID).
 
     A set of one field and one spectral window (:func:`selection_columns`) is read
@@ -114,9 +115,13 @@ def open_for_reading(ms: str, columns: Sequence[str], chunks, time_ordered: bool
       :class:`hitops.io.time_sorted.TimeSortedRows` (read in time order without
       dask-ms's sort held for the run; ``chunks``: the rows of a read block).
 
-    Any other set opens through :func:`open_groups`.
+    Any other set opens through :func:`open_groups`.  ``mixed``: the set may mix
+    fields or windows (:func:`selection_columns`; ``SetMetadata.has_groups`` of a run
+    that read its metadata), read from the subtables when None.
     """
-    if (direct and time_ordered or local) and not selection_columns(ms):
+    if mixed is None:
+        mixed = bool(selection_columns(ms))
+    if (direct and time_ordered or local) and not mixed:
         block = chunks if isinstance(chunks, int) else max(chunks)
         with MainTable(ms) as table:
             # rows naming another FIELD/DATA_DESCRIPTION row than the one there is: the
@@ -135,7 +140,7 @@ def open_for_reading(ms: str, columns: Sequence[str], chunks, time_ordered: bool
             reader = sort_by_time(ms, int(block))
             if reader is not None:   # else a TIME that is not finite: the index pass names it
                 return {(0, 0): reader}
-    return open_groups(ms, columns, chunks, time_ordered=time_ordered)
+    return open_groups(ms, columns, chunks, time_ordered=time_ordered, mixed=mixed)
 
 
 def is_time_ordered(ms: str, block_rows: int = 1 << 20) -> bool:
@@ -160,7 +165,8 @@ def is_time_ordered(ms: str, block_rows: int = 1 << 20) -> bool:
 
 def open_groups(ms: str, columns: Sequence[str], chunks,
                 time_ordered: Optional[bool] = None,
-                only: Optional[Tuple[int, int]] = None) -> Dict[tuple, object]:
+                only: Optional[Tuple[int, int]] = None,
+                mixed: Optional[bool] = None) -> Dict[tuple, object]:
     """Lazy dask-ms datasets of the main table, one per (FIELD_ID, DATA_DESC_ID), in time order.
 
     dask-ms's own grouping and ordering (``xds_from_ms`` with ``group_cols``
@@ -171,7 +177,7 @@ def open_groups(ms: str, columns: Sequence[str], chunks,
     block, or a tuple of block sizes (one block per time chunk).
     ``time_ordered``: the table is stored in time order (:func:`is_time_ordered`;
     checked when None), so the storage order is already the time order and
-    dask-ms's sort is skipped.
+    dask-ms's sort is skipped.  ``mixed``: as in :func:`open_for_reading`.
 
     Which dask-ms query (measured on 10^7 rows per band, docs/performance.md):
     in storage order the grouping query costs less than the plain one (0.7 s
@@ -186,7 +192,8 @@ def open_groups(ms: str, columns: Sequence[str], chunks,
 
     if time_ordered is None:
         time_ordered = is_time_ordered(ms)
-    mixed = bool(selection_columns(ms))
+    if mixed is None:
+        mixed = bool(selection_columns(ms))
     grouped = time_ordered or mixed
     # ``only`` (FIELD_ID, DATA_DESC_ID): that group alone, e.g. when ``chunks`` are one
     # group's time chunks (dask-ms would apply them to every group and refuse the others)

@@ -28,6 +28,7 @@ import numpy as np
 
 from .errors import NoSolutionsError, SolutionTableError, TableMismatchError, UnsupportedTableError
 from ..io import tables
+from ..io.metadata import read_metadata
 
 SUPPORTED = ("Fringe Jones", "G Jones", "T Jones")
 #: the remedy every TableMismatchError ends with
@@ -81,14 +82,10 @@ def _table_kind(path: str) -> str:
 
 
 def _ms_meta(ms: str):
-    with tables.subtable(ms, "ANTENNA") as t:
-        names = tuple(str(n) for n in t.getcol("NAME"))
-    with tables.subtable(ms, "FIELD") as t:
-        fields = tuple(str(n) for n in t.getcol("NAME"))
-    with tables.subtable(ms, "SPECTRAL_WINDOW") as t:
-        chan_freq = [np.asarray(t.getcell("CHAN_FREQ", i), float) for i in range(t.nrows())]
-        ref_freq = t.getcol("REF_FREQUENCY")
-    return names, fields, chan_freq, ref_freq
+    meta = read_metadata(ms)
+    chan_freq = [w.chan_freq for w in meta.windows]
+    ref_freq = np.array([w.ref_frequency for w in meta.windows], np.float64)
+    return meta.antennas.names, meta.fields.names, chan_freq, ref_freq
 
 
 def _check_subtables(path: str, ms: str, names, fields, ms_chan_freq, ms_ref_freq):
