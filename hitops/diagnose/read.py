@@ -27,7 +27,8 @@ import numpy as np
 
 from ..errors import ColumnError, InputError, MeasurementSetError
 from ..io.access import raise_if_damaged, require_subtables
-from ..io.stations import read_stations
+from ..io.metadata import SetMetadata, read_metadata
+from ..io.stations import stations_of
 from ..io import read as msio
 from ..io.layout import baseline_time_layout
 from ..io import tables
@@ -84,10 +85,6 @@ def check_ms(ms: str) -> None:
     if not (path / "table.dat").exists():
         raise MeasurementSetError(f"{ms}: not a Measurement Set (no table.dat); check the path")
     require_subtables(ms, "Measurement Set")
-
-
-def _subtable(ms: str, name: str, columns: Sequence[str]):
-    return msio.read_subtable(ms, name, columns)
 
 
 def data_columns(ms: str) -> List[str]:
@@ -194,21 +191,20 @@ def sampling_interval(ms: str, times: np.ndarray) -> float:
 
 def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = None,
               baselines: Optional[str] = None, want_uvw: bool = False,
-              row_chunk: int = 400_000) -> GridData:
+              row_chunk: int = 400_000, meta: Optional[SetMetadata] = None) -> GridData:
     """Read ``columns`` of ``ms`` for the selected baselines and correlations."""
     ms = str(ms)
     check_columns(ms, columns)
 
     # station codes (ANTENNA::STATION where NAME is only a number, as after importuvfits)
-    ant_names = read_stations(ms).codes
-    pol = _subtable(ms, "POLARIZATION", ["CORR_TYPE"])["CORR_TYPE"]
-    spw = _subtable(ms, "SPECTRAL_WINDOW", ["REF_FREQUENCY"])["REF_FREQUENCY"]
+    meta = read_metadata(ms) if meta is None else meta   # the caller's, read once
+    ant_names = stations_of(ms, meta.antennas).codes
 
     wanted_cols = ["TIME", "ANTENNA1", "ANTENNA2", "FLAG", "FLAG_ROW", "SCAN_NUMBER"]
     if want_uvw:
         wanted_cols.append("UVW")
     wanted_cols += list(dict.fromkeys(columns))
-    selection = msio.selection_columns(ms)
+    selection = ["DATA_DESC_ID", "FIELD_ID"] if meta.has_groups() else []
     xds = msio.open_main(ms, wanted_cols + selection, chunk_rows=row_chunk)
     # the threaded scheduler passed as a function (inside compute_columns): named or
     # default schedulers make dask look for a distributed client, whose import alone
@@ -229,9 +225,8 @@ def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = 
             raise MeasurementSetError(f"{ms} holds several fields or spectral windows ({text}); "
                                       "split them (e.g. CASA split by field/spw) and diagnose each")
         ddid = int(groups[0][1])
-    dd = _subtable(ms, "DATA_DESCRIPTION", ["SPECTRAL_WINDOW_ID", "POLARIZATION_ID"])
-    corr_types = pol[int(dd["POLARIZATION_ID"][ddid])]
-    freq_hz = float(spw[int(dd["SPECTRAL_WINDOW_ID"][ddid])])
+    corr_types = meta.corr_types_of(ddid)
+    freq_hz = meta.windows[meta.window_of(ddid)].ref_frequency
     corr_idx, corr_names = select_correlations(corr_types, correlations, ms)
 
     time = values["TIME"]
