@@ -137,15 +137,15 @@ def _fields(ms: str) -> Fields:
         n_field = t.nrows()
         names = tuple(str(n) for n in t.getcol("NAME")) if n_field else ()
         # PHASE_DIR is (NUM_POLY + 1, 2) per row; its first term is the direction at TIME
-        dirs = [np.asarray(t.getcell("PHASE_DIR", i), np.float64).reshape(-1, 2)[0]
+        dirs = [_array_cell(t, "PHASE_DIR", i, np.float64, np.full(2, np.nan)).reshape(-1, 2)[0]
                 for i in range(n_field)]
     return Fields(names=names, phase_dirs=np.array(dirs, np.float64).reshape(-1, 2))
 
 
 def _windows(ms: str) -> Tuple[Window, ...]:
     with tables.subtable(ms, "SPECTRAL_WINDOW") as t:
-        return tuple(Window(chan_freq=np.asarray(t.getcell("CHAN_FREQ", i), np.float64),
-                            chan_width=np.asarray(t.getcell("CHAN_WIDTH", i), np.float64),
+        return tuple(Window(chan_freq=_array_cell(t, "CHAN_FREQ", i, np.float64),
+                            chan_width=_array_cell(t, "CHAN_WIDTH", i, np.float64),
                             ref_frequency=float(t.getcell("REF_FREQUENCY", i)),
                             num_chan=int(t.getcell("NUM_CHAN", i)))
                      for i in range(t.nrows()))
@@ -162,7 +162,15 @@ def _data_descriptions(ms: str) -> Tuple[DataDescription, ...]:
 def _polarizations(ms: str) -> Tuple[Polarization, ...]:
     with tables.subtable(ms, "POLARIZATION") as t:
         return tuple(
-            Polarization(corr_types=tuple(int(c) for c in t.getcell("CORR_TYPE", i)),
+            Polarization(corr_types=tuple(int(c) for c in _array_cell(t, "CORR_TYPE", i, int)),
                          receptors=tuple((int(a), int(b)) for a, b in
-                                         np.asarray(t.getcell("CORR_PRODUCT", i)).reshape(-1, 2)))
+                                         _array_cell(t, "CORR_PRODUCT", i, int).reshape(-1, 2)))
             for i in range(t.nrows()))
+
+
+def _array_cell(t, column: str, row: int, dtype, empty=None) -> np.ndarray:
+    """An array cell as ``dtype``; ``empty`` (default: no values) where the row holds no array
+    (a row added without it: the callers name what is missing where they need it)."""
+    if column in t.colnames() and t.iscelldefined(column, row):
+        return np.asarray(t.getcell(column, row), dtype)
+    return np.asarray(np.array([], dtype) if empty is None else empty, dtype)
