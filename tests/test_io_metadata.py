@@ -97,3 +97,19 @@ def test_a_calibrate_run_reads_each_subtable_once(new_pair, tmp_path, counted_op
                 for sub in ("ANTENNA", "FIELD", "SPECTRAL_WINDOW", "DATA_DESCRIPTION",
                             "POLARIZATION")}
     assert subtables == expected
+
+
+def test_the_verdict_reads_no_subtable_given_the_runs_metadata(shared_pair, counted_opens):
+    """calibrate/verdict.predict with the run's SetMetadata (RunPlan.ref_meta/tgt_meta) takes
+    stations and correlations from it; without, it reads them itself."""
+    from hitops.calibrate.verdict import predict
+
+    truth = shared_pair(PairSpec(n_ant=3, n_time=120))
+    ref, tgt = str(truth.ref_ms), str(truth.target_ms)
+    metas = metadata.read_metadata(ref), metadata.read_metadata(tgt)
+    counted_opens.clear()
+    given = predict(ref, tgt, truth.ratio, ref_meta=metas[0], tgt_meta=metas[1])
+    assert not [name for name in counted_opens if "::" in name]
+    alone = predict(ref, tgt, truth.ratio)
+    assert [name for name in counted_opens if "::" in name]
+    assert given.closure == alone.closure and given.sampled == alone.sampled

@@ -23,7 +23,7 @@ import numpy as np
 from ..errors import InputError, MeasurementSetError
 from ..io import read as msio
 from ..io.match import parse_antenna_map
-from ..io.metadata import read_metadata
+from ..io.metadata import SetMetadata, read_metadata
 from ..io.stations import Stations, stations_of
 from ..tracking.grid import ScanAxis, TrackGrid
 from ..tracking.options import TrackingSetup
@@ -84,6 +84,9 @@ class RunPlan:
     budget: int                     # --memory-budget in bytes (auto resolved once)
     groups: List[GroupPlan] = field(default_factory=list)
     timings: Dict[str, float] = field(default_factory=dict)
+    #: each set's subtables, read once (hitops/io/metadata.py) for every later stage
+    ref_meta: Optional[SetMetadata] = None
+    tgt_meta: Optional[SetMetadata] = None
 
 
 def split_ratio(ratio: float):
@@ -188,7 +191,7 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
                  "; ".join(p.label for p in pairs))
     run = RunPlan(opts=opts, methods=methods, outputs=outputs, ref_ms=ref_ms,
                   target_ms=target_ms, columns=columns, chunk_rows=chunk_rows, budget=budget,
-                  timings=timings)
+                  timings=timings, ref_meta=ref_meta, tgt_meta=tgt_meta)
     for pair in pairs:
         ref_band = _band(ref_ms, ref_groups, pair.ref.key, ref_stations.n_ant, ordered[ref_ms],
                          in_time_order[ref_ms])
