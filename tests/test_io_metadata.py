@@ -82,16 +82,18 @@ def test_tables_read_and_write_through_one_seam(new_pair, tmp_path):
             t.putcell("NAME", 0, "again")
 
 
-def test_a_calibrate_run_reads_each_subtable_once(new_pair, tmp_path, counted_opens):
-    """build_plan reads each set's SetMetadata once and passes it down: groups, stations and
-    the readers' one-group check open no subtable again (the verdict, which samples the
-    sets on its own, is left out here)."""
+@pytest.mark.parametrize("tracker", ["count", "smooth"])
+def test_a_calibrate_run_reads_each_subtable_once(new_pair, tmp_path, counted_opens, tracker):
+    """build_plan reads each set's SetMetadata once and passes it down: groups, stations,
+    the readers' one-group check and (smooth) the stations' elevations open no subtable
+    again (the verdict, whose caller passes the run's metadata after the run skeleton's
+    rewrite, is left out here)."""
     from hitops.calibrate import calibrate
 
     truth = new_pair(PairSpec(n_ant=3, n_time=20), tmp_path)
     counted_opens.clear()   # the pair's build (the session's first) is not the run
     calibrate(str(truth.ref_ms), str(truth.target_ms), method="pwc", no_verdict=True,
-              overwrite=True)
+              overwrite=True, tracker=tracker)
     subtables = {name: n for name, n in counted_opens.items() if "::" in name}
     expected = {f"{ms}::{sub}": 1 for ms in (truth.ref_ms, truth.target_ms)
                 for sub in ("ANTENNA", "FIELD", "SPECTRAL_WINDOW", "DATA_DESCRIPTION",

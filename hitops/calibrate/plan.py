@@ -282,7 +282,8 @@ def plan_group(run: RunPlan, pair: GroupPair, ref_source: BandSource, tgt_source
                                             float(opts.coherence_time)))
     timings["match"] = time.perf_counter() - stage
     from .tracking_setup import tracking_setup
-    setup = tracking_setup(opts, grid, run.target_ms, tgt_stations.codes, columns.snr_from)
+    setup = tracking_setup(opts, grid, run.target_ms, tgt_stations.codes, columns.snr_from,
+                           run.tgt_meta)
     _log_match(run, match, grid, checked, tgt_band.n_row)
     return GroupPlan(pair=pair, label=label, match=match, grid=grid, bounds=bounds,
                      first_chunk=checked.first_chunk, ratio=ratio, r=r, eps=eps,

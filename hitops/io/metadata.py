@@ -81,6 +81,7 @@ class SetMetadata:
     ms: str
     antennas: Antennas
     fields: Fields
+    #: indexed by SPECTRAL_WINDOW_ID, DATA_DESC_ID and POLARIZATION_ID as the rows are
     windows: Tuple[Window, ...]
     data_descriptions: Tuple[DataDescription, ...]
     polarizations: Tuple[Polarization, ...]
