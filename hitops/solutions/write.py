@@ -31,6 +31,7 @@ from ..io.caltable import _create_empty
 from .read import FRINGE_PARS
 from .transfer import TargetWindow
 from ..io import tables
+from ..io.metadata import read_metadata
 
 #: receptors of a CASA Fringe Jones table (applycal aborts on a one-receptor table)
 N_RECEPTOR = 2
@@ -42,9 +43,9 @@ def _set_centres(path: str, ms: str) -> None:
     createcaltable leaves one channel per window at the MS's channel n_chan/2 (227.1625
     GHz for 16 channels centred on 227.1 GHz), so the centre comes from the MS itself.
     """
-    with tables.subtable(ms, "SPECTRAL_WINDOW") as t:
-        freqs = [np.asarray(t.getcell("CHAN_FREQ", i), float) for i in range(t.nrows())]
-        widths = [np.abs(np.asarray(t.getcell("CHAN_WIDTH", i), float)) for i in range(t.nrows())]
+    windows = read_metadata(ms).windows
+    freqs = [w.chan_freq for w in windows]
+    widths = [np.abs(w.chan_width) for w in windows]
     with tables.calibration_subtable(path, "SPECTRAL_WINDOW", writable=True) as t:
         for row, (freq, width) in enumerate(zip(freqs, widths)):
             centre = 0.5 * (freq.min() + freq.max())
