@@ -231,3 +231,18 @@ def test_casacore_tables_are_opened_only_in_hitops_io():
         # the allowlist names only modules that still open tables: it shrinks, never hides
         assert found or relative not in _PENDING_SKELETON, f"{relative}: take it off the list"
     assert opens == {}, "open casacore tables through hitops/io/tables.py or metadata.py"
+
+
+def test_inside_hitops_io_one_module_opens_casacore_tables_and_one_opens_dask_ms():
+    """hitops/io/tables.py holds python-casacore's table calls, hitops/io/read.py dask-ms's:
+    the two places a second backend stands beside."""
+    daskms = ("import daskms", "xds_from_ms()", "xds_from_table()", "xds_to_table()")
+    opens = {}
+    for path in sorted((ROOT / "io").rglob("*.py")):
+        relative = path.relative_to(ROOT).as_posix()
+        for found in table_opens(path):
+            is_daskms = found.split(": ", 1)[1].startswith(daskms)
+            if relative != ("io/read.py" if is_daskms else "io/tables.py"):
+                opens.setdefault(relative, []).append(found)
+    assert table_opens(ROOT / "io" / "tables.py")
+    assert opens == {}

@@ -1,9 +1,10 @@
-"""Every casacore table open of hitops outside hitops/io's own readers: the MSv2 backend's seam.
+"""Every python-casacore table call of hitops: the MSv2 and calibration-table backend's seam.
 
 A Measurement Set v2 and a CASA calibration table are casacore tables on disk;
-this module is the one place the rest of hitops opens them (tests/test_layout.py
-fails on a ``casacore.tables`` open anywhere outside hitops/io/, hitops/casa/ and
-hitops/testing/).  What it offers, by what the caller does:
+this module is the one place hitops opens them (tests/test_layout.py fails on a
+``casacore.tables`` open anywhere outside hitops/io/, hitops/casa/ and
+hitops/testing/, and inside hitops/io/ anywhere but here; dask-ms's reads and
+writes are hitops/io/read.py's).  What it offers, by what the caller does:
 
 * hold a table open: :func:`main_table` (a set's main table), :func:`subtable`
   (``ms::ANTENNA``, ...), :func:`calibration_subtable` (a caltable's ``ANTENNA``, ...,
@@ -37,14 +38,20 @@ def _tables():
     return tables
 
 
-def open_table(path: str, writable: bool = False):
-    """The casacore table at ``path`` (a directory, or ``ms::SUBTABLE``), open; use in ``with``."""
+def open_table(path: str, writable: bool = False, user_locks: bool = False):
+    """The casacore table at ``path`` (a directory, or ``ms::SUBTABLE``), open; use in ``with``.
+
+    ``user_locks``: casacore's ``lockoptions="user"``, the caller takes and releases the
+    locks itself (hitops/io/access.py: the run lock, the wait for another holder).
+    """
+    if user_locks:
+        return _tables().table(str(path), readonly=not writable, ack=False, lockoptions="user")
     return _tables().table(str(path), readonly=not writable, ack=False)
 
 
-def main_table(ms: str, writable: bool = False):
+def main_table(ms: str, writable: bool = False, user_locks: bool = False):
     """The main table of Measurement Set ``ms``, open; use in ``with``."""
-    return open_table(ms, writable)
+    return open_table(ms, writable, user_locks)
 
 
 def subtable(ms: str, name: str, writable: bool = False):

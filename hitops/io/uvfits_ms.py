@@ -13,6 +13,7 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from ..errors import ColumnError, MeasurementSetError
+from . import tables
 
 #: casacore Stokes code -> AIPS STOKES axis value
 AIPS_STOKES = {1: 1, 2: 2, 3: 3, 4: 4, 5: -1, 8: -2, 6: -3, 7: -4, 9: -5, 12: -6, 10: -7, 11: -8}
@@ -64,9 +65,7 @@ class Setup:
 
 
 def read_main(ms: str, column: str, role: str) -> MainRows:
-    from casacore import tables as pt
-
-    with pt.table(ms, ack=False) as t:
+    with tables.main_table(ms) as t:
         names = t.colnames()
         if column not in names:
             raise ColumnError(f"{role} '{ms}' has no column {column} to export (columns: "
@@ -95,14 +94,12 @@ def read_windows(ms: str, ddids: np.ndarray):
     """(ddids in frequency order, chan_freq, chan_width, total_bw, sideband, pol) of the
     set's data descriptions, which UVFITS writes as IFs: one channel count, width and
     polarisation setup for all of them, or a one-line error."""
-    from casacore import tables as pt
-
-    with pt.table(f"{ms}::DATA_DESCRIPTION", ack=False) as t:
+    with tables.subtable(ms, "DATA_DESCRIPTION") as t:
         spws = t.getcol("SPECTRAL_WINDOW_ID")[ddids]
         pols = t.getcol("POLARIZATION_ID")[ddids]
-    with pt.table(f"{ms}::POLARIZATION", ack=False) as t:
+    with tables.subtable(ms, "POLARIZATION") as t:
         corrs = {tuple(int(c) for c in t.getcell("CORR_TYPE", int(p))) for p in pols}
-    with pt.table(f"{ms}::SPECTRAL_WINDOW", ack=False) as t:
+    with tables.subtable(ms, "SPECTRAL_WINDOW") as t:
         freq = [np.asarray(t.getcell("CHAN_FREQ", int(w)), np.float64) for w in spws]
         width = [np.asarray(t.getcell("CHAN_WIDTH", int(w)), np.float64) for w in spws]
         total = [float(t.getcell("TOTAL_BANDWIDTH", int(w))) for w in spws]
@@ -123,14 +120,12 @@ def read_windows(ms: str, ddids: np.ndarray):
 
 def read_setup(ms: str, main: MainRows, role: str) -> Setup:
     """The data descriptions' windows (as IFs) and correlations, the field, the stations."""
-    from casacore import tables as pt
-
     from .stations import read_stations
 
     field_id = single_value(main.cols["FIELD_ID"], "fields", ms)
     ddids, chan_freq, chan_width, total_bw, sideband, pol = read_windows(
         ms, np.unique(main.cols["DATA_DESC_ID"]))
-    sub = lambda name: pt.table(f"{ms}::{name}", ack=False)  # noqa: E731
+    sub = lambda name: tables.subtable(ms, name)  # noqa: E731
     with sub("POLARIZATION") as t:
         corr_types = [int(c) for c in t.getcell("CORR_TYPE", pol)]
     with sub("FIELD") as t:
