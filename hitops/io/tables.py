@@ -12,9 +12,7 @@ writes are hitops/io/read.py's).  What it offers, by what the caller does:
   each returns python-casacore's table, a context manager, read-only unless
   ``writable=True``;
 * read without holding: :func:`read_columns` (whole columns of a table or subtable),
-  :func:`read_cells` (one column row by row: CHAN_FREQ of windows of different
-  sizes), :func:`first_cell_shape`, :func:`row_count`, :func:`column_names`,
-  :func:`table_info`;
+  :func:`row_count`, :func:`column_names`;
 * create: :func:`new_measurement_set` (casacore's ``default_ms`` with a description and data
   managers, :func:`array_column` / :func:`table_description` for the description).
 
@@ -70,18 +68,6 @@ def read_columns(path: str, columns: Sequence[str]) -> Dict[str, np.ndarray]:
         return {c: (t.getcol(c) if t.nrows() else np.array([])) for c in columns}
 
 
-def read_cells(path: str, column: str, dtype=float) -> List[np.ndarray]:
-    """``column`` row by row as arrays of ``dtype`` (cells whose shapes differ per row)."""
-    with open_table(path) as t:
-        return [np.asarray(t.getcell(column, i), dtype) for i in range(t.nrows())]
-
-
-def first_cell_shape(ms: str, column: str) -> tuple:
-    """Shape of ``column``'s cell in the main table's first row; () for a table of no rows."""
-    with main_table(ms) as t:
-        return tuple(t.getcell(column, 0).shape) if t.nrows() else ()
-
-
 def row_count(path: str) -> int:
     """Rows of the table at ``path``."""
     with open_table(path) as t:
@@ -94,18 +80,12 @@ def column_names(path: str) -> List[str]:
         return list(t.colnames())
 
 
-def table_info(path: str) -> Dict[str, str]:
-    """The table's info record (``type``, ``subType``: 'Calibration', 'Fringe Jones', ...)."""
-    with open_table(path) as t:
-        return dict(t.info())
-
-
-def array_column(name: str, value, shape: Sequence[int], valuetype: str, comment: str,
-                 fixed: bool = True) -> dict:
-    """Description of an array column (casacore ``makearrcoldesc``), fixed shape by default."""
+def array_column(name: str, value, shape: Sequence[int], valuetype: str, comment: str) -> dict:
+    """Description of a fixed-shape array column (casacore ``makearrcoldesc``): every cell
+    ``shape``, so the tiled storage managers hitops gives them can lay out whole rows."""
     fixed_shape = 4  # casacore ColumnDesc::FixedShape (tables/Tables/ColumnDesc.h)
     return _tables().makearrcoldesc(name, value, shape=list(shape), valuetype=valuetype,
-                                    options=fixed_shape if fixed else 0, comment=comment)
+                                    options=fixed_shape, comment=comment)
 
 
 def column_description(name: str, description: dict) -> dict:
