@@ -1,7 +1,8 @@
 """A Measurement Set's metadata, read once per set per run: :class:`SetMetadata`.
 
-Antennas (NAME, STATION, POSITION), fields (NAME, PHASE_DIR), spectral windows
-(CHAN_FREQ, CHAN_WIDTH, REF_FREQUENCY, NUM_CHAN), data descriptions (-> window
+Antennas (NAME, STATION, POSITION, DISH_DIAMETER, MOUNT), fields (NAME, PHASE_DIR),
+spectral windows (CHAN_FREQ, CHAN_WIDTH, REF_FREQUENCY, NUM_CHAN, TOTAL_BANDWIDTH,
+NET_SIDEBAND), data descriptions (-> window
 and polarization) and polarizations (CORR_TYPE, and CORR_PRODUCT: the receptor
 of ANTENNA1 and of ANTENNA2 of each correlation), in one pass: one open per
 subtable.  A run calls :func:`read_metadata` once per set and passes the frozen
@@ -33,6 +34,8 @@ class Antennas:
     names: Tuple[str, ...]              # ANTENNA::NAME, as stored
     stations: Tuple[str, ...]           # ANTENNA::STATION ('' per row when absent)
     positions: Optional[np.ndarray]     # (n_ant, 3) ITRF metres, float64
+    dish_diameters: Optional[np.ndarray] = None   # DISH_DIAMETER (m); None when absent
+    mounts: Optional[Tuple[str, ...]] = None      # MOUNT ('alt-az', ...); None when absent
 
     @property
     def n_ant(self) -> int:
@@ -56,6 +59,8 @@ class Window:
     chan_width: np.ndarray              # (n_chan,) Hz, float64, as stored (may be negative)
     ref_frequency: float                # Hz
     num_chan: int
+    total_bandwidth: float = 0.0        # Hz
+    net_sideband: int = 1               # NET_SIDEBAND (1 upper) ; 1 when absent
 
 
 @dataclass(frozen=True)
@@ -130,7 +135,11 @@ def read_antennas(ms: str) -> Antennas:
                     if n_ant and "STATION" in present else ("",) * n_ant)
         positions = (np.asarray(t.getcol("POSITION"), dtype=np.float64)
                      if n_ant and "POSITION" in present else None)
-    return Antennas(names=names, stations=stations, positions=positions)
+        diameters = t.getcol("DISH_DIAMETER") if n_ant and "DISH_DIAMETER" in present else None
+        mounts = (tuple(str(m) for m in t.getcol("MOUNT"))
+                  if n_ant and "MOUNT" in present else None)
+    return Antennas(names=names, stations=stations, positions=positions,
+                    dish_diameters=diameters, mounts=mounts)
 
 
 def _fields(ms: str) -> Fields:
@@ -145,10 +154,13 @@ def _fields(ms: str) -> Fields:
 
 def _windows(ms: str) -> Tuple[Window, ...]:
     with tables.subtable(ms, "SPECTRAL_WINDOW") as t:
+        sideband = "NET_SIDEBAND" in t.colnames()
         return tuple(Window(chan_freq=_array_cell(t, "CHAN_FREQ", i, np.float64),
                             chan_width=_array_cell(t, "CHAN_WIDTH", i, np.float64),
                             ref_frequency=float(t.getcell("REF_FREQUENCY", i)),
-                            num_chan=int(t.getcell("NUM_CHAN", i)))
+                            num_chan=int(t.getcell("NUM_CHAN", i)),
+                            total_bandwidth=float(t.getcell("TOTAL_BANDWIDTH", i)),
+                            net_sideband=int(t.getcell("NET_SIDEBAND", i)) if sideband else 1)
                      for i in range(t.nrows()))
 
 
