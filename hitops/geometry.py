@@ -81,14 +81,16 @@ def sin_elevation(positions: np.ndarray, ra: float, dec: float,
     return geodetic_up(positions) @ src
 
 
-def station_sin_elevation(ms: str, times: np.ndarray) -> Optional[np.ndarray]:
+def station_sin_elevation(ms: str, times: np.ndarray, meta=None) -> Optional[np.ndarray]:
     """:func:`sin_elevation` of the first phase centre of ``ms`` at its ANTENNA positions;
-    None when the set has no usable geometry (positions off the Earth's surface, no field)."""
-    from .io import read as msio   # casacore only when a set is read
-
-    positions = np.asarray(msio.read_subtable(ms, "ANTENNA", ["POSITION"])["POSITION"], float)
-    phase_dir = np.asarray(msio.read_subtable(ms, "FIELD", ["PHASE_DIR"])["PHASE_DIR"], float)
-    if phase_dir.size == 0:
+    None when the set has no usable geometry (positions off the Earth's surface, no field).
+    ``meta``: the run's ``hitops.io.metadata.SetMetadata`` of ``ms``, read here when None."""
+    if meta is None:
+        from .io.metadata import read_metadata   # casacore only when a set is read
+        meta = read_metadata(ms)
+    positions = meta.antennas.positions
+    positions = np.zeros((0, 3)) if positions is None else positions
+    if meta.fields.phase_dirs.size == 0:
         return None
-    ra, dec = phase_dir.reshape(-1, 2)[0]
+    ra, dec = meta.fields.phase_dirs[0]
     return sin_elevation(positions, ra, dec, np.asarray(times, dtype=np.float64))

@@ -166,3 +166,83 @@ def test_wrap_tracking_lives_in_hitops_tracking():
     calibrate_side = [n for n in graph if n.startswith(("hitops.calibrate", "hitops.tracking"))]
     assert not [n for n in calibrate_side if "hitops.simulate.geometry" in graph[n]]
     assert "hitops.geometry" in graph["hitops.simulate.geometry"]
+
+
+# issue 36: one Measurement Set access layer.  casacore tables (Measurement Sets v2 and CASA
+# calibration tables) are opened only in hitops/io/ (hitops/io/tables.py for everything
+# outside its own readers), so that a second backend (MSv4 processing sets) has one seam to
+# stand beside; the CASA task wrappers and the test support are outside the rule.
+TABLE_OPENERS_ALLOWED = ("io", "casa", "testing")
+#: casacore.tables (and dask-ms, which opens casacore tables) functions that open or make a table
+TABLE_CALLS = {"table", "taql", "tablecommand", "tableexists", "default_ms", "default_ms_subtable",
+               "tablefromascii", "msconcat", "makearrcoldesc", "maketabdesc",
+               "xds_from_ms", "xds_from_table", "xds_to_table"}
+#: modules another helper of issue 36 rewrites (the run skeleton): their opens move onto
+#: hitops/io/tables.py and hitops/io/metadata.py with that rewrite.  The lead removes this
+#: allowlist at merge.
+_PENDING_SKELETON = {"calibrate/from_table.py", "calibrate/phaseref/step.py",
+                     "calibrate/phaseref/bridge.py"}
+
+
+def table_opens(path):
+    """'line: what' of every casacore table open (import or call) in the module at ``path``."""
+    imports, calls = [], []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            names = [f"{node.module}.{a.name}" for a in node.names] if node.module else []
+        elif isinstance(node, ast.Call):
+            func = node.func
+            called = func.attr if isinstance(func, ast.Attribute) else getattr(func, "id", "")
+            if called in TABLE_CALLS:
+                calls.append((node.lineno, f"{called}()"))
+            continue
+        else:
+            continue
+        imports += [(node.lineno, f"import {n}") for n in names
+                    if n.startswith(("casacore.tables", "daskms")) or n == "casacore"]
+    # a bare table(...) or x.table(...) is casacore's only where casacore is imported; the
+    # other names are casacore's or dask-ms's alone
+    calls = [(line, what) for line, what in calls if what != "table()" or imports]
+    return [f"{line}: {what}" for line, what in sorted(imports + calls)]
+
+
+def test_the_open_finder_sees_an_open(tmp_path):
+    module = tmp_path / "m.py"
+    module.write_text("def f(ms):\n    from casacore import tables as pt\n"
+                      "    with pt.table(ms) as t:\n        return t.nrows()\n"
+                      "def g(ms):\n    import daskms\n    return daskms.xds_from_ms(ms)\n")
+    assert table_opens(module) == ["2: import casacore.tables", "3: table()",
+                                   "6: import daskms", "7: xds_from_ms()"]
+    module.write_text("from casacore import measures\ndef f(x):\n    return x.table(1)\n")
+    assert table_opens(module) == []
+
+
+def test_casacore_tables_are_opened_only_in_hitops_io():
+    opens = {}
+    for path in sorted(ROOT.rglob("*.py")):
+        relative = path.relative_to(ROOT).as_posix()
+        if relative.split("/")[0] in TABLE_OPENERS_ALLOWED:
+            continue
+        found = table_opens(path)
+        if found and relative not in _PENDING_SKELETON:
+            opens[relative] = found
+        # the allowlist names only modules that still open tables: it shrinks, never hides
+        assert found or relative not in _PENDING_SKELETON, f"{relative}: take it off the list"
+    assert opens == {}, "open casacore tables through hitops/io/tables.py or metadata.py"
+
+
+def test_inside_hitops_io_one_module_opens_casacore_tables_and_one_opens_dask_ms():
+    """hitops/io/tables.py holds python-casacore's table calls, hitops/io/read.py dask-ms's:
+    the two places a second backend stands beside."""
+    daskms = ("import daskms", "xds_from_ms()", "xds_from_table()", "xds_to_table()")
+    opens = {}
+    for path in sorted((ROOT / "io").rglob("*.py")):
+        relative = path.relative_to(ROOT).as_posix()
+        for found in table_opens(path):
+            is_daskms = found.split(": ", 1)[1].startswith(daskms)
+            if relative != ("io/read.py" if is_daskms else "io/tables.py"):
+                opens.setdefault(relative, []).append(found)
+    assert table_opens(ROOT / "io" / "tables.py")
+    assert opens == {}

@@ -29,7 +29,7 @@ from typing import Dict, List, Tuple
 import numpy as np
 
 from ..errors import MeasurementSetError
-from ..io import read as msio
+from ..io.metadata import SetMetadata
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -59,25 +59,22 @@ class GroupPair:
         return f"field {self.tgt.field}, spectral windows {self.ref.spw} -> {self.tgt.spw}"
 
 
-def describe_groups(ms: str, keys, role: str) -> List[BandGroup]:
+def describe_groups(meta: SetMetadata, keys, role: str) -> List[BandGroup]:
     """The :class:`BandGroup` of each (FIELD_ID, DATA_DESC_ID) key; channels checked."""
-    ddt = msio.read_subtable(ms, "DATA_DESCRIPTION", ["SPECTRAL_WINDOW_ID", "POLARIZATION_ID"])
-    spw_t = msio.read_subtable(ms, "SPECTRAL_WINDOW", ["CHAN_FREQ", "NUM_CHAN"])
-    corr_t = msio.read_subtable(ms, "POLARIZATION", ["CORR_TYPE"])["CORR_TYPE"]
-    names = msio.read_subtable(ms, "FIELD", ["NAME"])["NAME"]
+    ms, names = meta.ms, meta.fields.names
     groups = []
     for field_id, ddid in sorted(keys):
-        if ddid >= len(ddt["SPECTRAL_WINDOW_ID"]) or field_id >= max(len(names), 1):
+        if ddid >= len(meta.data_descriptions) or field_id >= max(len(names), 1):
             raise MeasurementSetError(
                 f"{role} '{ms}': rows refer to DATA_DESC_ID {ddid} / FIELD_ID {field_id}, "
                 "which the DATA_DESCRIPTION / FIELD tables do not hold; the set is damaged")
-        spw = int(ddt["SPECTRAL_WINDOW_ID"][ddid])
-        n_chan = int(spw_t["NUM_CHAN"][spw])
-        chan_freq = _channels(ms, role, spw, n_chan, spw_t["CHAN_FREQ"][spw])
+        spw = meta.window_of(ddid)
+        window = meta.windows[spw]
+        chan_freq = _channels(ms, role, spw, window.num_chan, window.chan_freq)
         freq = float(np.mean(chan_freq))
-        corr = tuple(int(c) for c in corr_t[int(ddt["POLARIZATION_ID"][ddid])])
-        field = str(names[field_id]) if len(names) else ""
-        groups.append(BandGroup((field_id, ddid), field, spw, freq, n_chan, corr,
+        corr = meta.corr_types_of(ddid)
+        field = names[field_id] if len(names) else ""
+        groups.append(BandGroup((field_id, ddid), field, spw, freq, window.num_chan, corr,
                                 tuple(float(f) for f in chan_freq)))
     return groups
 

@@ -21,6 +21,7 @@ from ..errors import RollbackError
 from ..io import access
 from ..io import read as msio
 from ..kernels.wideband import rotate_channels
+from ..io import tables
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -89,12 +90,10 @@ def dm_names(table) -> set:
 
 def drop_stale_columns(target_ms: str) -> None:
     """Remove staging columns left by a run that was killed (they never hold a result)."""
-    from casacore import tables as pt
-
-    with pt.table(target_ms, ack=False) as t:
+    with tables.main_table(target_ms) as t:
         stale = [c for c in t.colnames() if c.startswith(STAGING_PREFIX)]
     if stale:
-        with pt.table(target_ms, readonly=False, ack=False) as t:
+        with tables.main_table(target_ms, writable=True) as t:
             t.removecols(stale)
         log.warning("removed %s from %s: unfinished columns of an earlier run that was "
                     "stopped", ", ".join(stale), target_ms)
@@ -119,8 +118,7 @@ class OutputTransaction:
         self.staging = {m: STAGING_PREFIX + col for m, col in outputs.items()}
         self.created = list(self.staging.values()) + [STAGING_FLAG]
         if n_rows is None:   # every row of the table (a run may cover several groups)
-            from casacore import tables as pt
-            with pt.table(target_ms, ack=False) as t:
+            with tables.main_table(target_ms) as t:
                 n_rows = t.nrows()
         self.rows_written = np.zeros(int(n_rows), dtype=bool)
         # rows whose new flags are staged: a chunk whose new flags equal FLAG stages none
@@ -134,9 +132,7 @@ class OutputTransaction:
 
     def check_space(self) -> None:
         """Refuse before writing when the staging columns (and a backup) cannot fit."""
-        from casacore import tables as pt
-
-        with pt.table(self.target_ms, ack=False) as t:
+        with tables.main_table(self.target_ms) as t:
             n_row = t.nrows()
             cell = t.getcell(self.target_column, 0) if n_row else np.zeros((1, 1))
             backup_needed = FLAG_BACKUP not in t.colnames()
@@ -177,14 +173,12 @@ class OutputTransaction:
 
     def _add_columns(self, new) -> None:
         """Add the columns (name, the column it copies) to the target set."""
-        from casacore import tables as pt
-
-        with pt.table(self.target_ms, readonly=False, ack=False) as t:
+        with tables.main_table(self.target_ms, writable=True) as t:
             t.lock(write=True)
             for name, like in new:
                 desc = t.getcoldesc(like)
                 desc["name"] = name
-                t.addcols(pt.makecoldesc(name, desc),
+                t.addcols(tables.column_description(name, desc),
                           like_dminfo(t.getdminfo(like), name, dm_names(t), self.scattered,
                                       fixed_shape=fixed_cell_shape(desc)))
 
@@ -277,10 +271,8 @@ class OutputTransaction:
         none); each staging column takes its final name (an existing column of that
         name, kept until now, is removed first).
         """
-        from casacore import tables as pt
-
         written, step = self.flags_staged, self.chunk_rows
-        with pt.table(self.target_ms, readonly=False, ack=False) as t:
+        with tables.main_table(self.target_ms, writable=True) as t:
             t.lock(write=True)
             n_row = t.nrows()
             changed = []
@@ -297,7 +289,7 @@ class OutputTransaction:
             if changed and FLAG_BACKUP not in t.colnames():
                 desc = t.getcoldesc("FLAG")
                 desc["name"] = FLAG_BACKUP
-                t.addcols(pt.makecoldesc(FLAG_BACKUP, desc),
+                t.addcols(tables.column_description(FLAG_BACKUP, desc),
                           like_dminfo(t.getdminfo("FLAG"), FLAG_BACKUP, dm_names(t),
                                       fixed_shape=fixed_cell_shape(desc)))
                 for start in range(0, n_row, step):
@@ -320,10 +312,8 @@ class OutputTransaction:
 
     def rollback(self) -> None:
         """After a failure or an interrupt: drop the staging columns (nothing else changed)."""
-        from casacore import tables as pt
-
         try:
-            with pt.table(self.target_ms, readonly=False, ack=False) as t:
+            with tables.main_table(self.target_ms, writable=True) as t:
                 t.lock(write=True)
                 drop = [c for c in self.created if c in t.colnames()]
                 if drop:

@@ -23,7 +23,8 @@ import numpy as np
 from ..errors import InputError, MeasurementSetError
 from ..io import read as msio
 from ..io.match import parse_antenna_map
-from ..io.stations import Stations, read_stations
+from ..io.metadata import SetMetadata, read_metadata
+from ..io.stations import Stations, stations_of
 from ..tracking.grid import ScanAxis, TrackGrid
 from ..tracking.options import TrackingSetup
 from .band_index import INDEX_COLUMNS, ROW_COLUMNS, BandSource, index_bands
@@ -31,6 +32,7 @@ from .chunks import ChunkMatch, ChunkRows, MatchCheck
 from .channels import ChannelPlan, channel_plan, check_channel_counts
 from .groups import GroupPair, describe_groups, pair_groups
 from .inputs import CalibrateOptions, Columns
+from ..io import tables
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -82,6 +84,9 @@ class RunPlan:
     budget: int                     # --memory-budget in bytes (auto resolved once)
     groups: List[GroupPlan] = field(default_factory=list)
     timings: Dict[str, float] = field(default_factory=dict)
+    #: each set's subtables, read once (hitops/io/metadata.py) for every later stage
+    ref_meta: Optional[SetMetadata] = None
+    tgt_meta: Optional[SetMetadata] = None
 
 
 def split_ratio(ratio: float):
@@ -113,20 +118,17 @@ def rows_from_budget(budget: int, ref_ms: str, target_ms: str, columns: Columns,
 
     ``time_ordered``: both sets are stored in time order; ``strict``: the budget was
     given (not the default), so a budget too small is an error; ``local``: no cluster,
-    the sets are read without dask-ms (hitops/io/read.py, open_for_reading).
+    the sets are read without dask-ms (hitops/io/read.py, open_for_reading), and neither
+    set mixes fields or windows (those are still read through dask-ms's datasets).
     """
-    from casacore import tables as pt
-
     from .memory import min_chunk_rows, rows_for_budget
     n_rows, n_corr, n_chan = 0, 1, 1
     for ms, column in ((ref_ms, columns.ref_data), (target_ms, columns.target_data)):
-        with pt.table(ms, ack=False) as t:
+        with tables.main_table(ms) as t:
             n_rows += t.nrows()
             if t.nrows():
                 shape = t.getcell(column, 0).shape
                 n_chan, n_corr = max(n_chan, int(shape[0])), max(n_corr, int(shape[-1]))
-    # sets of several fields or windows are still read through dask-ms's datasets
-    local = local and not any(msio.selection_columns(ms) for ms in (ref_ms, target_ms))
     rows = rows_for_budget(budget, n_rows, n_corr, n_chan, n_methods, time_ordered, strict,
                            local)
     if rows == min_chunk_rows(n_chan) and not strict:
@@ -148,6 +150,8 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
     budget = parse_budget(opts.memory_budget)
     antenna_map = parse_antenna_map(opts.antenna_map)
     stage = time.perf_counter()
+    # each set's subtables, read once for the run and passed down
+    ref_meta, tgt_meta = read_metadata(ref_ms), read_metadata(target_ms)
     # a table stored in time order is read in that order; any other is sorted by dask-ms
     ordered = {ms: msio.is_time_ordered(ms) for ms in (ref_ms, target_ms)}
     chunk_rows = int(opts.chunk_rows)
@@ -155,7 +159,10 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
         explicit = str(opts.memory_budget or "auto").strip().lower() != "auto"
         chunk_rows = rows_from_budget(budget, ref_ms, target_ms, columns, len(methods),
                                       all(ordered.values()), strict=explicit,
-                                      local=not opts.scheduler)
+                                      # sets of several fields or windows are still read
+                                      # through dask-ms's datasets
+                                      local=not (opts.scheduler or ref_meta.has_groups()
+                                                 or tgt_meta.has_groups()))
     # dask row chunks of chunk_rows rows: the metadata blocks of the first pass are
     # slices of these datasets (no dataset per block); a field/spectral-window group is a
     # dataset of its own, so FIELD_ID and DATA_DESC_ID are not read per row
@@ -169,22 +176,22 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
     direct = one_chunk and not opts.scheduler
     ref_groups = msio.open_for_reading(ref_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.ref + columns.snr)),
                                        io_rows, ordered[ref_ms] or one_chunk, direct,
-                                       local=not opts.scheduler)
+                                       local=not opts.scheduler, mixed=ref_meta.has_groups())
     tgt_groups = msio.open_for_reading(target_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.tgt)),
                                        io_rows, ordered[target_ms] or one_chunk, direct,
-                                       local=not opts.scheduler)
+                                       local=not opts.scheduler, mixed=tgt_meta.has_groups())
     timings["open"] = time.perf_counter() - stage
-    ref_stations = read_stations(ref_ms, "reference-band Measurement Set")
-    tgt_stations = read_stations(target_ms, "target-band Measurement Set")
-    pairs = pair_groups(ref_ms, target_ms,
-                        describe_groups(ref_ms, ref_groups, "reference-band Measurement Set"),
-                        describe_groups(target_ms, tgt_groups, "target-band Measurement Set"))
+    ref_role, tgt_role = "reference-band Measurement Set", "target-band Measurement Set"
+    ref_stations = stations_of(ref_ms, ref_meta.antennas, ref_role)
+    tgt_stations = stations_of(target_ms, tgt_meta.antennas, tgt_role)
+    pairs = pair_groups(ref_ms, target_ms, describe_groups(ref_meta, ref_groups, ref_role),
+                        describe_groups(tgt_meta, tgt_groups, tgt_role))
     if len(pairs) > 1:
         log.info("%d (field, spectral window) groups calibrated one by one: %s", len(pairs),
                  "; ".join(p.label for p in pairs))
     run = RunPlan(opts=opts, methods=methods, outputs=outputs, ref_ms=ref_ms,
                   target_ms=target_ms, columns=columns, chunk_rows=chunk_rows, budget=budget,
-                  timings=timings)
+                  timings=timings, ref_meta=ref_meta, tgt_meta=tgt_meta)
     for pair in pairs:
         ref_band = _band(ref_ms, ref_groups, pair.ref.key, ref_stations.n_ant, ordered[ref_ms],
                          in_time_order[ref_ms])
@@ -275,7 +282,8 @@ def plan_group(run: RunPlan, pair: GroupPair, ref_source: BandSource, tgt_source
                                             float(opts.coherence_time)))
     timings["match"] = time.perf_counter() - stage
     from .tracking_setup import tracking_setup
-    setup = tracking_setup(opts, grid, run.target_ms, tgt_stations.codes, columns.snr_from)
+    setup = tracking_setup(opts, grid, run.target_ms, tgt_stations.codes, columns.snr_from,
+                           run.tgt_meta)
     _log_match(run, match, grid, checked, tgt_band.n_row)
     return GroupPlan(pair=pair, label=label, match=match, grid=grid, bounds=bounds,
                      first_chunk=checked.first_chunk, ratio=ratio, r=r, eps=eps,

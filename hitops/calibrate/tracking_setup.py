@@ -27,9 +27,10 @@ ROBUST_OPTIONS = ("half_window", "coherence_time", "snr", "max_gap", "jump_thres
 
 
 def tracking_setup(opts: CalibrateOptions, grid: TrackGrid, target_ms: str, antenna_names,
-                   snr_from: str) -> Optional[TrackingSetup]:
+                   snr_from: str, target_meta=None) -> Optional[TrackingSetup]:
     """The TrackingSetup of ``--tracker smooth|antenna`` (None for count, which has no
-    parameters); checks --refant."""
+    parameters); checks --refant.  ``target_meta``: the run's SetMetadata of the target
+    set (its ANTENNA positions and phase centre for the elevations)."""
     if opts.tracker == "count":
         defaults = {f.name: f.default for f in fields(CalibrateOptions)}
         changed = [k for k in ROBUST_OPTIONS
@@ -45,7 +46,7 @@ def tracking_setup(opts: CalibrateOptions, grid: TrackGrid, target_ms: str, ante
     fixed = float(opts.snr) > 0 or int(opts.half_window) > 0
     sin_el = None
     if not opts.no_elevation_scaling:
-        sin_el = station_sin_elevation(target_ms, grid.times)
+        sin_el = station_sin_elevation(target_ms, grid.times, target_meta)
         if sin_el is None:
             log.info("no station geometry in %s (ANTENNA positions off the Earth's surface): "
                      "--coherence-time is used without elevation scaling", target_ms)

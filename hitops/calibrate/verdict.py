@@ -263,9 +263,12 @@ def window_variances(phi_t, phi_r, valid, segment, n_window: int, ratio: float):
 
 
 def predict(ref_ms: str, target_ms: str, ratio: float, ref_column: str = "DATA",
-            target_column: str = "DATA", interval: float = 60.0) -> Verdict:
+            target_column: str = "DATA", interval: float = 60.0,
+            ref_meta=None, tgt_meta=None) -> Verdict:
     """The prediction per baseline (parallel hands) and the reference closure check, from
-    blocks of times spread over the track (:mod:`hitops.calibrate.verdict_sample`)."""
+    blocks of times spread over the track (:mod:`hitops.calibrate.verdict_sample`).
+    ``ref_meta``/``tgt_meta``: the run's SetMetadata of each set (``RunPlan``), read
+    again when None."""
     from .verdict_sample import (choose_blocks, distinct_times, read_sampled, read_times,
                                  sampling_interval)
 
@@ -280,8 +283,8 @@ def predict(ref_ms: str, target_ms: str, ratio: float, ref_column: str = "DATA",
                        sampled={"times_read": 0, "times": int(tgt_times.size), "blocks": 0})
     n_window = int(round(interval / dt["tgt"]))
     blocks = choose_blocks(tgt_times, n_window, MAX_PAIRS)
-    tgt = read_sampled(target_ms, target_column, tgt_time, blocks)
-    ref = read_sampled(ref_ms, ref_column, ref_time, blocks)
+    tgt = read_sampled(target_ms, target_column, tgt_time, blocks, tgt_meta)
+    ref = read_sampled(ref_ms, ref_column, ref_time, blocks, ref_meta)
     verdict = Verdict(interval=float(interval), ratio=float(ratio), sampled=blocks.as_dict())
     sig_t, _, s_t = thermal_phase_noise(tgt.vis, tgt.flag, tgt.segment)
     sig_r, _, s_r = thermal_phase_noise(ref.vis, ref.flag, ref.segment)

@@ -22,14 +22,16 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass
-from typing import List
+from typing import List, Optional
 
 import numpy as np
 
 from ..errors import ColumnError, MeasurementSetError
 from ..io.layout import baseline_time_layout
 from ..io.read import rows_reader
-from ..io.stations import read_stations
+from ..io.metadata import SetMetadata, read_metadata
+from ..io.stations import stations_of
+from ..io import tables
 
 #: casacore Stokes codes of the parallel hands, the only correlations the verdict uses
 PARALLEL_CODES = {5: "RR", 8: "LL", 9: "XX", 12: "YY", 1: "I"}
@@ -131,15 +133,9 @@ def _rows_in_blocks(time: np.ndarray, blocks: TimeBlocks) -> np.ndarray:
     return np.flatnonzero(inside)
 
 
-def _parallel_hands(ms: str, table, first_row: int):
+def _parallel_hands(meta: SetMetadata, table, first_row: int):
     """(indices, names) of the parallel-hand correlations of the row's data description."""
-    from casacore import tables as pt
-
-    ddid = int(table.getcell("DATA_DESC_ID", first_row))
-    with pt.table(f"{ms}::DATA_DESCRIPTION", ack=False) as dd:
-        pol_id = int(dd.getcell("POLARIZATION_ID", ddid))
-    with pt.table(f"{ms}::POLARIZATION", ack=False) as pol:
-        corr = [int(c) for c in pol.getcell("CORR_TYPE", pol_id)]
+    corr = list(meta.corr_types_of(int(table.getcell("DATA_DESC_ID", first_row))))
     index = [i for i, c in enumerate(corr) if c in PARALLEL_CODES]
     if not index:   # no parallel hand: every correlation (as diagnose does)
         from ..io.ms_create import CORR_NAMES
@@ -149,27 +145,26 @@ def _parallel_hands(ms: str, table, first_row: int):
 
 def read_times(ms: str) -> np.ndarray:
     """The TIME column of a main table (storage order)."""
-    from casacore import tables as pt
-
-    with pt.table(ms, ack=False) as table:
+    with tables.main_table(ms) as table:
         return table.getcol("TIME") if table.nrows() else np.zeros(0)
 
 
-def read_sampled(ms: str, column: str, time: np.ndarray, blocks: TimeBlocks) -> SampledBand:
+def read_sampled(ms: str, column: str, time: np.ndarray, blocks: TimeBlocks,
+                 meta: Optional[SetMetadata] = None) -> SampledBand:
     """The rows of ``ms`` in ``blocks`` (``time``: its TIME column) on a (baseline, time) grid.
 
     Several channels are vector-averaged over their unflagged channels (the verdict
-    needs each sample's phase); autocorrelations are left out.
+    needs each sample's phase); autocorrelations are left out.  ``meta``: the run's
+    :class:`SetMetadata` of ``ms`` (``RunPlan.ref_meta``/``tgt_meta``), read here when None.
     """
-    from casacore import tables as pt
-
+    meta = read_metadata(ms) if meta is None else meta
     rows = _rows_in_blocks(time, blocks)
     if rows.size == 0:
         raise MeasurementSetError(f"{ms}: no row at the times the verdict samples")
-    with pt.table(ms, ack=False) as table:
+    with tables.main_table(ms) as table:
         if column not in table.colnames():
             raise ColumnError(f"{ms} has no column {column}")
-        corr_idx, corr_names = _parallel_hands(ms, table, int(rows[0]))
+        corr_idx, corr_names = _parallel_hands(meta, table, int(rows[0]))
         read = rows_reader(table, rows)
         ant1, ant2 = read("ANTENNA1"), read("ANTENNA2")
         flag_row = read("FLAG_ROW") if "FLAG_ROW" in table.colnames() else None
@@ -193,7 +188,7 @@ def read_sampled(ms: str, column: str, time: np.ndarray, blocks: TimeBlocks) -> 
     # the blocks are far apart: a sample pair or a step between two blocks is no increment
     block = _block_of(row_time, blocks)
     segment = scan[cross].astype(np.int64) * int(blocks.lo.size) + block
-    return SampledBand(ms=ms, antenna_names=read_stations(ms).codes, ant1=layout.ant1,
+    return SampledBand(ms=ms, antenna_names=stations_of(ms, meta.antennas).codes, ant1=layout.ant1,
                        ant2=layout.ant2, times=layout.times,
                        segment=layout.to_grid(segment, -1),
                        flag=layout.to_grid(flag, True), vis=layout.to_grid(vis, 0),

@@ -17,10 +17,11 @@ from ..errors import InputError
 from ..io import flag_versions
 from . import tables
 from .metrics import compute_coherence, parse_intervals, run_lengths
-from .read import read_grid
+from .read import check_ms, read_grid
 from .spectral import SPECTRAL_CSV, spectral_coherence, summary_section
 from .spectral import render_text as spectral_text, write_csv as spectral_csv
-from .spectral_read import band_average, is_spectral, read_spectral
+from ..io.metadata import read_metadata
+from .spectral_read import band_average, read_spectral, spectral
 
 log = logging.getLogger("hitops.diagnose")
 
@@ -92,13 +93,16 @@ def diagnose(ms, columns="DATA,CORRECTED_DATA", metric="coherence-factor", inter
         flag_versions.restore_versions(str(ms), versions)
 
     spectral_grid = None
-    if is_spectral(str(ms)):
+    check_ms(str(ms))   # a clear line for a path that is not a set, before any open
+    meta = read_metadata(str(ms))   # the set's subtables, once for the run
+    if spectral(meta):
         spectral_grid = read_spectral(str(ms), cols, correlations=correlations,
-                                      baselines=baselines, want_uvw="uv" in plot_kinds)
+                                      baselines=baselines, want_uvw="uv" in plot_kinds,
+                                      meta=meta)
         data = band_average(spectral_grid)
     else:
         data = read_grid(str(ms), cols, correlations=correlations, baselines=baselines,
-                         want_uvw="uv" in plot_kinds)
+                         want_uvw="uv" in plot_kinds, meta=meta)
     warnings = list(data.warnings)
     if spectral_grid is None and set(plot_kinds) & set(SPECTRAL_PLOTS):
         warnings.append(f"{ms} has one channel in one spectral window: no waterfall or "

@@ -27,9 +27,11 @@ import numpy as np
 
 from ..errors import ColumnError, InputError, MeasurementSetError
 from ..io.access import raise_if_damaged, require_subtables
-from ..io.stations import read_stations
+from ..io.metadata import SetMetadata, read_metadata
+from ..io.stations import stations_of
 from ..io import read as msio
 from ..io.layout import baseline_time_layout
+from ..io import tables
 
 log = logging.getLogger("hitops.diagnose")
 
@@ -85,15 +87,9 @@ def check_ms(ms: str) -> None:
     require_subtables(ms, "Measurement Set")
 
 
-def _subtable(ms: str, name: str, columns: Sequence[str]):
-    return msio.read_subtable(ms, name, columns)
-
-
 def data_columns(ms: str) -> List[str]:
     """Complex visibility-like columns of the main table."""
-    from casacore import tables as pt
-
-    with pt.table(ms, ack=False) as tab:
+    with tables.main_table(ms) as tab:
         names = []
         for name in tab.colnames():
             desc = tab.getcoldesc(name)
@@ -185,9 +181,7 @@ def sampling_interval(ms: str, times: np.ndarray) -> float:
     if times.size > 1:
         dt = float(np.median(np.diff(times)))
     else:
-        from casacore import tables as pt
-
-        with pt.table(ms, ack=False) as tab:   # one time step only: fall back on INTERVAL
+        with tables.main_table(ms) as tab:   # one time step only: fall back on INTERVAL
             dt = float(np.median(tab.getcol("INTERVAL")))
     if not dt > 0:
         raise MeasurementSetError(f"{ms}: cannot find a positive sampling interval "
@@ -197,21 +191,20 @@ def sampling_interval(ms: str, times: np.ndarray) -> float:
 
 def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = None,
               baselines: Optional[str] = None, want_uvw: bool = False,
-              row_chunk: int = 400_000) -> GridData:
+              row_chunk: int = 400_000, meta: Optional[SetMetadata] = None) -> GridData:
     """Read ``columns`` of ``ms`` for the selected baselines and correlations."""
     ms = str(ms)
     check_columns(ms, columns)
 
     # station codes (ANTENNA::STATION where NAME is only a number, as after importuvfits)
-    ant_names = read_stations(ms).codes
-    pol = _subtable(ms, "POLARIZATION", ["CORR_TYPE"])["CORR_TYPE"]
-    spw = _subtable(ms, "SPECTRAL_WINDOW", ["REF_FREQUENCY"])["REF_FREQUENCY"]
+    meta = read_metadata(ms) if meta is None else meta   # the caller's, read once
+    ant_names = stations_of(ms, meta.antennas).codes
 
     wanted_cols = ["TIME", "ANTENNA1", "ANTENNA2", "FLAG", "FLAG_ROW", "SCAN_NUMBER"]
     if want_uvw:
         wanted_cols.append("UVW")
     wanted_cols += list(dict.fromkeys(columns))
-    selection = msio.selection_columns(ms)
+    selection = ["DATA_DESC_ID", "FIELD_ID"] if meta.has_groups() else []
     xds = msio.open_main(ms, wanted_cols + selection, chunk_rows=row_chunk)
     # the threaded scheduler passed as a function (inside compute_columns): named or
     # default schedulers make dask look for a distributed client, whose import alone
@@ -232,9 +225,8 @@ def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = 
             raise MeasurementSetError(f"{ms} holds several fields or spectral windows ({text}); "
                                       "split them (e.g. CASA split by field/spw) and diagnose each")
         ddid = int(groups[0][1])
-    dd = _subtable(ms, "DATA_DESCRIPTION", ["SPECTRAL_WINDOW_ID", "POLARIZATION_ID"])
-    corr_types = pol[int(dd["POLARIZATION_ID"][ddid])]
-    freq_hz = float(spw[int(dd["SPECTRAL_WINDOW_ID"][ddid])])
+    corr_types = meta.corr_types_of(ddid)
+    freq_hz = meta.windows[meta.window_of(ddid)].ref_frequency
     corr_idx, corr_names = select_correlations(corr_types, correlations, ms)
 
     time = values["TIME"]

@@ -21,9 +21,10 @@ import numpy as np
 from ..errors import MeasurementSetError
 from ..io import read as msio
 from ..io.layout import unique_times
-from ..io.stations import read_stations
-from .read import (BaselineNames, GridData, check_columns, read_grid, sampling_interval,
-                   select_baselines, select_correlations)
+from ..io.metadata import SetMetadata, read_metadata
+from ..io.stations import stations_of
+from .read import (BaselineNames, GridData, check_columns, check_ms, read_grid,
+                   sampling_interval, select_baselines, select_correlations)
 
 
 @dataclass
@@ -53,40 +54,42 @@ class SpectralGrid(BaselineNames):
 
 def is_spectral(ms: str) -> bool:
     """More than one channel or more than one spectral window in the DATA_DESCRIPTION table."""
-    dd = msio.read_subtable(ms, "DATA_DESCRIPTION", ["SPECTRAL_WINDOW_ID"])
-    spw = msio.read_subtable(ms, "SPECTRAL_WINDOW", ["NUM_CHAN"])["NUM_CHAN"]
-    used = np.unique(dd["SPECTRAL_WINDOW_ID"]) if dd["SPECTRAL_WINDOW_ID"].size else []
-    return len(used) > 1 or any(int(spw[s]) > 1 for s in used)
+    return spectral(read_metadata(ms))
+
+
+def spectral(meta: SetMetadata) -> bool:
+    """:func:`is_spectral` of a set's metadata already read."""
+    used = sorted({d.window for d in meta.data_descriptions})
+    return len(used) > 1 or any(meta.windows[s].num_chan > 1 for s in used)
 
 
 def read_spectral(ms: str, columns: Sequence[str], *, correlations: Optional[str] = None,
                   baselines: Optional[str] = None, want_uvw: bool = False,
-                  row_chunk: int = 400_000) -> SpectralGrid:
+                  row_chunk: int = 400_000, meta: Optional[SetMetadata] = None) -> SpectralGrid:
     """Every channel of ``columns`` of ``ms`` for the selected baselines and correlations."""
     ms = str(ms)
     cols = list(dict.fromkeys(columns))
     check_columns(ms, cols)
-    ant_names = read_stations(ms).codes
+    meta = read_metadata(ms) if meta is None else meta   # the caller's, read once
+    ant_names = stations_of(ms, meta.antennas).codes
     wanted = ["TIME", "ANTENNA1", "ANTENNA2", "FLAG", "FLAG_ROW", "SCAN_NUMBER"] + cols
     if want_uvw:
         wanted.append("UVW")
-    groups = msio.open_groups(ms, wanted, row_chunk)
+    groups = msio.open_groups(ms, wanted, row_chunk, mixed=meta.has_groups())
     fields = sorted({f for f, _ in groups})
     if len(fields) > 1:
         raise MeasurementSetError(f"{ms} holds several fields (FIELD_ID {fields}); split them "
                                   "(e.g. CASA split by field) and diagnose each")
     keys = sorted(groups)
     values = msio.compute_columns([(groups[k], wanted, None) for k in keys])
-    dd = msio.read_subtable(ms, "DATA_DESCRIPTION", ["SPECTRAL_WINDOW_ID", "POLARIZATION_ID"])
-    spw = msio.read_subtable(ms, "SPECTRAL_WINDOW", ["CHAN_FREQ"])["CHAN_FREQ"]
-    pol = msio.read_subtable(ms, "POLARIZATION", ["CORR_TYPE"])["CORR_TYPE"]
-    spw_ids = [int(dd["SPECTRAL_WINDOW_ID"][ddid]) for _, ddid in keys]
-    pol_ids = {int(dd["POLARIZATION_ID"][ddid]) for _, ddid in keys}
+    spw_ids = [meta.window_of(ddid) for _, ddid in keys]
+    pol_ids = {meta.data_descriptions[ddid].polarization for _, ddid in keys}
     if len(pol_ids) > 1:
         raise MeasurementSetError(f"{ms}: the spectral windows use different polarization "
                                   f"setups (POLARIZATION_ID {sorted(pol_ids)}); split them by spw")
-    corr_idx, corr_names = select_correlations(pol[pol_ids.pop()], correlations, ms)
-    freqs = [np.asarray(spw[s], dtype=np.float64).ravel() for s in spw_ids]
+    corr_idx, corr_names = select_correlations(meta.polarizations[pol_ids.pop()].corr_types,
+                                               correlations, ms)
+    freqs = [meta.windows[s].chan_freq for s in spw_ids]
     order = np.argsort([f.min() for f in freqs], kind="stable")
     values = [values[i] for i in order]
     spw_ids = [spw_ids[i] for i in order]
@@ -175,6 +178,8 @@ def band_average(grid: SpectralGrid) -> GridData:
 def read_band(ms: str, columns: Sequence[str], **selection) -> GridData:
     """One phase per sample whatever the layout: one channel as it is, several channels or
     windows vector-averaged (:func:`band_average`)."""
-    if is_spectral(str(ms)):
-        return band_average(read_spectral(str(ms), columns, **selection))
-    return read_grid(str(ms), columns, **selection)
+    check_ms(str(ms))
+    meta = read_metadata(str(ms))
+    if spectral(meta):
+        return band_average(read_spectral(str(ms), columns, meta=meta, **selection))
+    return read_grid(str(ms), columns, meta=meta, **selection)

@@ -19,12 +19,11 @@ from pathlib import Path
 import numpy as np
 
 from . import model
+from ..io import tables
 
 
 def _read(ms, *cols):
-    from casacore import tables as pt
-
-    with pt.table(str(ms), ack=False) as t:
+    with tables.main_table(str(ms)) as t:
         return [t.getcol(c) for c in cols]
 
 

@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Iterable, List, Optional
 
 from ..errors import MeasurementSetError
+from . import tables
 
 log = logging.getLogger("hitops")
 
@@ -47,8 +48,6 @@ def require_subtables(ms: str, role: str, names: Iterable[str] = REQUIRED_SUBTAB
 
 def require_writable(ms: str, role: str) -> None:
     """Raise unless ``ms`` can be opened for writing (read-only mount, permissions)."""
-    from casacore import tables as pt
-
     problem = None
     for path in [Path(ms), *sorted(Path(ms).glob("table.*"))]:
         if not os.access(path, os.W_OK):
@@ -56,7 +55,7 @@ def require_writable(ms: str, role: str) -> None:
             break
     if problem is None:
         try:
-            with pt.table(ms, readonly=False, ack=False, lockoptions="user"):
+            with tables.main_table(ms, writable=True, user_locks=True):
                 pass
         except RuntimeError as err:
             problem = " ".join(str(err).split())
@@ -157,11 +156,9 @@ def wait_for_table_lock(ms: str, write: bool, timeout_s: float, role: str) -> No
     and a writer then waits forever without a word; here the wait is said and
     ends after ``timeout_s`` with one line naming the holder.
     """
-    from casacore import tables as pt
-
     deadline = time.monotonic() + float(timeout_s)
     announced = False
-    with pt.table(ms, readonly=not write, ack=False, lockoptions="user") as t:
+    with tables.main_table(ms, writable=write, user_locks=True) as t:
         while True:
             t.lock(write=write, nattempts=1)
             if t.haslock(write):
@@ -210,10 +207,8 @@ def locate_damage(ms: str, columns: Optional[Iterable[str]],
     Reads each column in blocks with python-casacore; used only after an
     unexpected error, to name what is damaged.  None when everything reads.
     """
-    from casacore import tables as pt
-
     try:
-        t = pt.table(ms, ack=False)
+        t = tables.main_table(ms)
     except RuntimeError as err:
         return f"the table itself: {' '.join(str(err).split())}"
     with t:

@@ -37,6 +37,7 @@ import numpy as np
 
 from ..errors import InputError, MeasurementSetError, OutputExistsError
 from .atomic import replaced_directory
+from . import tables
 
 log = logging.getLogger("hitops.io")
 
@@ -46,9 +47,7 @@ RECEPTOR = {"RR": 0, "LL": 1, "XX": 0, "YY": 1}
 
 def scan_of_times(ms: str, time: np.ndarray) -> np.ndarray:
     """SCAN_NUMBER of the Measurement Set at each solution time (the nearest row's)."""
-    from casacore import tables as pt
-
-    with pt.table(ms, ack=False) as t:
+    with tables.main_table(ms) as t:
         ms_time = t.getcol("TIME")
         ms_scan = t.getcol("SCAN_NUMBER")
     order = np.argsort(ms_time, kind="stable")
@@ -90,8 +89,6 @@ def write_gain_table(path, ms, time, antenna_phase, valid, corr_names: Sequence[
     The table is built under a temporary name beside ``path`` and renamed into
     place last, so a failure leaves nothing that looks like a result.
     """
-    from casacore import tables as pt
-
     path = Path(str(path).rstrip("/"))
     ms = str(ms).rstrip("/")
     if not (Path(ms) / "table.dat").is_file():
@@ -107,7 +104,7 @@ def write_gain_table(path, ms, time, antenna_phase, valid, corr_names: Sequence[
         raise InputError(f"caltable: antenna_phase has shape {phase.shape}; expected "
                          f"(n_time={time.size}, n_ant, n_corr={len(corr_names)})")
     n_time, n_ant, _ = phase.shape
-    with pt.table(f"{ms}::ANTENNA", ack=False) as t:
+    with tables.subtable(ms, "ANTENNA") as t:
         n_ms_ant = t.nrows()
     if n_ant != n_ms_ant:
         raise InputError(f"caltable: {n_ant} antennas in the solutions, {n_ms_ant} in "
@@ -144,7 +141,7 @@ def write_gain_table(path, ms, time, antenna_phase, valid, corr_names: Sequence[
 
     with replaced_directory(path) as partial:
         _create_empty(ms, str(partial))
-        with pt.table(str(partial), readonly=False, ack=False) as t:
+        with tables.open_table(str(partial), writable=True) as t:
             t.addrows(n_row)
             t.putcol("TIME", np.repeat(time, n_ant))
             t.putcol("FIELD_ID", np.full(n_row, int(field), np.int32))

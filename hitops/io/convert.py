@@ -52,6 +52,7 @@ from ..errors import ExternalToolError, InputError, MeasurementSetError
 from .detect import check_fitsidi, check_uvfits, detect_format, hdus_of
 from .flag_versions import keep_original
 from .uvfits_read import NeedsCasa, import_uvfits_direct
+from . import tables
 
 log = logging.getLogger("hitops.io")
 
@@ -98,9 +99,7 @@ def assign_scans(ms: str, gap_integrations: float = SCAN_GAP_INTEGRATIONS) -> Sc
     The integration is the median INTERVAL (or the median step between distinct
     times when INTERVAL is 0).  Scans CASA already distinguished stay separate.
     """
-    from casacore import tables as pt
-
-    with pt.table(ms, readonly=False, ack=False) as t:
+    with tables.main_table(ms, writable=True) as t:
         if t.nrows() == 0:
             return Scans(0, 0, 0.0)
         time_ = t.getcol("TIME")

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..errors import InputError, OutputExistsError
 from .atomic import replaced_directory
+from . import tables
 
 #: Stokes enumeration of casacore (casacore/measures/Measures/Stokes.h)
 CORR_CODES = {"RR": 5, "RL": 6, "LR": 7, "LL": 8, "XX": 9, "XY": 10, "YX": 11, "YY": 12}
@@ -52,20 +53,15 @@ class Field:
 
 
 def _main_table_desc(n_corr: int):
-    from casacore import tables as pt
-
-    fixed = 4  # casacore ColumnDesc::FixedShape
-    cols = [
-        pt.makearrcoldesc("DATA", 0j, shape=[1, n_corr], valuetype="complex", options=fixed,
-                          comment="The data column"),
-        pt.makearrcoldesc("FLAG", False, shape=[1, n_corr], valuetype="boolean", options=fixed,
-                          comment="The data flags, array of bools with same shape as data"),
-        pt.makearrcoldesc("SIGMA", 0.0, shape=[n_corr], valuetype="float", options=fixed,
-                          comment="Estimated rms noise for channel with unity bandpass response"),
-        pt.makearrcoldesc("WEIGHT", 0.0, shape=[n_corr], valuetype="float", options=fixed,
-                          comment="Weight for each polarization spectrum"),
-    ]
-    return pt.maketabdesc(cols)
+    return tables.table_description([
+        tables.array_column("DATA", 0j, [1, n_corr], "complex", "The data column"),
+        tables.array_column("FLAG", False, [1, n_corr], "boolean",
+                            "The data flags, array of bools with same shape as data"),
+        tables.array_column("SIGMA", 0.0, [n_corr], "float",
+                            "Estimated rms noise for channel with unity bandpass response"),
+        tables.array_column("WEIGHT", 0.0, [n_corr], "float",
+                            "Weight for each polarization spectrum"),
+    ])
 
 
 #: scalar main-table columns that are written row by row (one StandardStMan each)
@@ -103,9 +99,7 @@ def _main_dminfo(n_corr: int) -> dict:
 
 def _put_rows(ms: str, subtable: str, n_rows: int, columns: Mapping[str, object]) -> None:
     """Add ``n_rows`` rows to a subtable of ``ms`` and fill ``columns`` (name -> values)."""
-    from casacore import tables as pt
-
-    with pt.table(f"{ms}::{subtable}", readonly=False, ack=False) as t:
+    with tables.subtable(ms, subtable, writable=True) as t:
         t.addrows(n_rows)
         for name, values in columns.items():
             t.putcol(name, values)
@@ -222,8 +216,6 @@ def create_ms(path: str | Path, layout: ArrayLayout, band: Band, field: Field,
     hence the default "VLBA" (a VLBI array CASA knows; only used by CASA to
     look up an array reference position).
     """
-    from casacore import tables as pt
-
     path = Path(path)
     missing = [c for c in REQUIRED_COLUMNS if c not in main]
     if missing:
@@ -265,7 +257,7 @@ def create_ms(path: str | Path, layout: ArrayLayout, band: Band, field: Field,
             columns[name] = np.asarray(value)
 
     with replaced_directory(path) as partial:
-        ms = pt.default_ms(str(partial), _main_table_desc(n_corr), _main_dminfo(n_corr))
+        ms = tables.new_measurement_set(str(partial), _main_table_desc(n_corr), _main_dminfo(n_corr))
         ms.addrows(n_row)
         for name, value in columns.items():
             ms.putcol(name, value)

@@ -10,8 +10,9 @@ no dask graph: in storage order (:class:`StorageRows`, hitops/io/table_rows.py) 
 for a table not in time order cut into chunks, in time order through an index of its
 row runs (hitops/io/time_sorted.py).  Writes go back through ``ROWID`` so any row
 subset can be written.  Small subtables (SPECTRAL_WINDOW, POLARIZATION,
-ANTENNA) are read with python-casacore directly: they are a few rows and
-dask-ms adds only overhead there.
+ANTENNA) are read with python-casacore (hitops/io/tables.py; a run's whole
+metadata: hitops/io/metadata.py): they are a few rows and dask-ms adds only
+overhead there.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 import numpy as np
 
 from ..errors import ColumnError, MeasurementSetError
+from . import tables
 from .table_rows import MAX_RUNS, MainTable, StorageRows, rows_reader  # noqa: F401 (re-exported)
 
 
@@ -38,10 +40,7 @@ def check_ms(ms: str | Path, role: str = "Measurement Set") -> str:
 
 def column_names(ms: str) -> List[str]:
     """Names of the main-table columns."""
-    from casacore import tables as pt
-
-    with pt.table(ms, ack=False) as t:
-        return list(t.colnames())
+    return tables.column_names(ms)
 
 
 def require_columns(ms: str, columns: Iterable[str], role: str = "Measurement Set",
@@ -57,10 +56,7 @@ def require_columns(ms: str, columns: Iterable[str], role: str = "Measurement Se
 
 def read_subtable(ms: str, subtable: str, columns: Sequence[str]) -> Dict[str, np.ndarray]:
     """Whole columns of a subtable (``ANTENNA``, ``SPECTRAL_WINDOW``, ...)."""
-    from casacore import tables as pt
-
-    with pt.table(f"{ms}::{subtable}", ack=False) as t:
-        return {c: (t.getcol(c) if t.nrows() else np.array([])) for c in columns}
+    return tables.read_columns(f"{ms}::{subtable}", columns)
 
 
 def selection_columns(ms: str) -> List[str]:
@@ -69,12 +65,8 @@ def selection_columns(ms: str) -> List[str]:
     With one DATA_DESCRIPTION row and one FIELD row every row has the same
     values, so reading 2 x n_row integers to check them is skipped.
     """
-    from casacore import tables as pt
-
-    with pt.table(f"{ms}::DATA_DESCRIPTION", ack=False) as t:
-        n_dd = t.nrows()
-    with pt.table(f"{ms}::FIELD", ack=False) as t:
-        n_field = t.nrows()
+    n_dd = tables.row_count(f"{ms}::DATA_DESCRIPTION")
+    n_field = tables.row_count(f"{ms}::FIELD")
     return ["DATA_DESC_ID", "FIELD_ID"] if (n_dd > 1 or n_field > 1) else []
 
 
@@ -93,14 +85,12 @@ def open_main(ms: str, columns: Sequence[str], chunk_rows: int = 1 << 21):
 
 def row_count(ms: str) -> int:
     """Rows of the main table."""
-    from casacore import tables as pt
-
-    with pt.table(ms, ack=False) as t:
-        return int(t.nrows())
+    return tables.row_count(ms)
 
 
 def open_for_reading(ms: str, columns: Sequence[str], chunks, time_ordered: bool,
-                     direct: bool, local: bool = False) -> Dict[tuple, object]:
+                     direct: bool, local: bool = False,
+                     mixed: Optional[bool] = None) -> Dict[tuple, object]:
     """What calibrate reads a set through, keyed by (FIELD_ID, DATA_DESC_ID).
 
     A set of one field and one spectral window (:func:`selection_columns`) is read
@@ -114,9 +104,13 @@ def open_for_reading(ms: str, columns: Sequence[str], chunks, time_ordered: bool
       :class:`hitops.io.time_sorted.TimeSortedRows` (read in time order without
       dask-ms's sort held for the run; ``chunks``: the rows of a read block).
 
-    Any other set opens through :func:`open_groups`.
+    Any other set opens through :func:`open_groups`.  ``mixed``: the set may mix
+    fields or windows (:func:`selection_columns`; ``SetMetadata.has_groups`` of a run
+    that read its metadata), read from the subtables when None.
     """
-    if (direct and time_ordered or local) and not selection_columns(ms):
+    if mixed is None:
+        mixed = bool(selection_columns(ms))
+    if (direct and time_ordered or local) and not mixed:
         block = chunks if isinstance(chunks, int) else max(chunks)
         with MainTable(ms) as table:
             # rows naming another FIELD/DATA_DESCRIPTION row than the one there is: the
@@ -135,7 +129,7 @@ def open_for_reading(ms: str, columns: Sequence[str], chunks, time_ordered: bool
             reader = sort_by_time(ms, int(block))
             if reader is not None:   # else a TIME that is not finite: the index pass names it
                 return {(0, 0): reader}
-    return open_groups(ms, columns, chunks, time_ordered=time_ordered)
+    return open_groups(ms, columns, chunks, time_ordered=time_ordered, mixed=mixed)
 
 
 def is_time_ordered(ms: str, block_rows: int = 1 << 20) -> bool:
@@ -144,10 +138,8 @@ def is_time_ordered(ms: str, block_rows: int = 1 << 20) -> bool:
     Correlators and CASA write Measurement Sets in time order; such a table needs
     no sort to be read time chunk by time chunk.
     """
-    from casacore import tables as pt
-
     last = -np.inf
-    with pt.table(ms, ack=False) as t:
+    with tables.main_table(ms) as t:
         n_row = t.nrows()
         for start in range(0, n_row, block_rows):
             times = t.getcol("TIME", start, min(block_rows, n_row - start))
@@ -160,7 +152,8 @@ def is_time_ordered(ms: str, block_rows: int = 1 << 20) -> bool:
 
 def open_groups(ms: str, columns: Sequence[str], chunks,
                 time_ordered: Optional[bool] = None,
-                only: Optional[Tuple[int, int]] = None) -> Dict[tuple, object]:
+                only: Optional[Tuple[int, int]] = None,
+                mixed: Optional[bool] = None) -> Dict[tuple, object]:
     """Lazy dask-ms datasets of the main table, one per (FIELD_ID, DATA_DESC_ID), in time order.
 
     dask-ms's own grouping and ordering (``xds_from_ms`` with ``group_cols``
@@ -171,7 +164,7 @@ def open_groups(ms: str, columns: Sequence[str], chunks,
     block, or a tuple of block sizes (one block per time chunk).
     ``time_ordered``: the table is stored in time order (:func:`is_time_ordered`;
     checked when None), so the storage order is already the time order and
-    dask-ms's sort is skipped.
+    dask-ms's sort is skipped.  ``mixed``: as in :func:`open_for_reading`.
 
     Which dask-ms query (measured on 10^7 rows per band, docs/performance.md):
     in storage order the grouping query costs less than the plain one (0.7 s
@@ -186,7 +179,8 @@ def open_groups(ms: str, columns: Sequence[str], chunks,
 
     if time_ordered is None:
         time_ordered = is_time_ordered(ms)
-    mixed = bool(selection_columns(ms))
+    if mixed is None:
+        mixed = bool(selection_columns(ms))
     grouped = time_ordered or mixed
     # ``only`` (FIELD_ID, DATA_DESC_ID): that group alone, e.g. when ``chunks`` are one
     # group's time chunks (dask-ms would apply them to every group and refuse the others)
@@ -281,14 +275,12 @@ def _single_block(value: np.ndarray, prefix: str = "hitops-write"):
 def _put_rows(ms: str, rows: np.ndarray, arrays: Dict[str, np.ndarray]) -> None:
     """``arrays`` into existing columns at ``rows`` with python-casacore: one putcol per run
     of consecutive rows (a chunk of a table read in storage order is one run)."""
-    from casacore import tables as pt
-
     order = np.argsort(rows, kind="stable")
     rows = rows[order]
     breaks = np.flatnonzero(np.diff(rows) != 1) + 1
     starts = np.concatenate([[0], breaks])
     stops = np.concatenate([breaks, [rows.size]])
-    with pt.table(ms, readonly=False, ack=False) as table:
+    with tables.main_table(ms, writable=True) as table:
         table.lock(write=True)
         for name, value in arrays.items():
             value = np.asarray(value)[order]

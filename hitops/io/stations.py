@@ -16,6 +16,7 @@ from typing import List, Optional
 import numpy as np
 
 from ..errors import StationError
+from .metadata import Antennas, read_antennas
 
 #: paired stations farther apart than this are not the same station (JCMT and SMA,
 #: 160 m apart on Maunakea, are; KVN Yonsei and Pyeongchang, ~20 km, are not)
@@ -42,15 +43,15 @@ def _is_placeholder(name: str) -> bool:
 
 def read_stations(ms: str, role: str = "Measurement Set") -> Stations:
     """Station codes (NAME, or STATION where NAME is empty or a number) and positions."""
-    from casacore import tables as pt
+    return stations_of(ms, read_antennas(ms), role)
 
-    with pt.table(f"{ms}::ANTENNA", ack=False) as t:
-        n_ant = t.nrows()
-        names = [str(n).strip() for n in t.getcol("NAME")] if n_ant else []
-        stations = ([str(s).strip() for s in t.getcol("STATION")]
-                    if n_ant and "STATION" in t.colnames() else [""] * n_ant)
-        positions = (np.asarray(t.getcol("POSITION"), dtype=np.float64)
-                     if n_ant and "POSITION" in t.colnames() else None)
+
+def stations_of(ms: str, antennas: Antennas, role: str = "Measurement Set") -> Stations:
+    """:func:`read_stations` of antennas already read (a run's :class:`SetMetadata`)."""
+    n_ant = antennas.n_ant
+    names = [n.strip() for n in antennas.names]
+    stations = [s.strip() for s in antennas.stations]
+    positions = antennas.positions
     if n_ant == 0:
         raise StationError(f"{role} '{ms}' has an empty ANTENNA table; the set has no stations")
     column = "NAME"

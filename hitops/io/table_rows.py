@@ -17,6 +17,8 @@ from typing import Dict, Sequence
 
 import numpy as np
 
+from . import tables
+
 
 class MainTable:
     """One main table held open to read row ranges of columns in storage order.
@@ -27,10 +29,8 @@ class MainTable:
     """
 
     def __init__(self, ms: str):
-        from casacore import tables as pt
-
         self.ms = ms
-        self._table = pt.table(ms, ack=False)
+        self._table = tables.main_table(ms)
 
     @property
     def n_rows(self) -> int:

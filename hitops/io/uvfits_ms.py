@@ -13,6 +13,9 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from ..errors import ColumnError, MeasurementSetError
+from . import tables
+from .metadata import SetMetadata, read_metadata
+from .stations import stations_of
 
 #: casacore Stokes code -> AIPS STOKES axis value
 AIPS_STOKES = {1: 1, 2: 2, 3: 3, 4: 4, 5: -1, 8: -2, 6: -3, 7: -4, 9: -5, 12: -6, 10: -7, 11: -8}
@@ -64,9 +67,7 @@ class Setup:
 
 
 def read_main(ms: str, column: str, role: str) -> MainRows:
-    from casacore import tables as pt
-
-    with pt.table(ms, ack=False) as t:
+    with tables.main_table(ms) as t:
         names = t.colnames()
         if column not in names:
             raise ColumnError(f"{role} '{ms}' has no column {column} to export (columns: "
@@ -91,23 +92,19 @@ def single_value(values: np.ndarray, what: str, ms: str) -> int:
     return int(unique[0]) if unique.size else 0
 
 
-def read_windows(ms: str, ddids: np.ndarray):
+def read_windows(meta: SetMetadata, ddids: np.ndarray):
     """(ddids in frequency order, chan_freq, chan_width, total_bw, sideband, pol) of the
     set's data descriptions, which UVFITS writes as IFs: one channel count, width and
     polarisation setup for all of them, or a one-line error."""
-    from casacore import tables as pt
-
-    with pt.table(f"{ms}::DATA_DESCRIPTION", ack=False) as t:
-        spws = t.getcol("SPECTRAL_WINDOW_ID")[ddids]
-        pols = t.getcol("POLARIZATION_ID")[ddids]
-    with pt.table(f"{ms}::POLARIZATION", ack=False) as t:
-        corrs = {tuple(int(c) for c in t.getcell("CORR_TYPE", int(p))) for p in pols}
-    with pt.table(f"{ms}::SPECTRAL_WINDOW", ack=False) as t:
-        freq = [np.asarray(t.getcell("CHAN_FREQ", int(w)), np.float64) for w in spws]
-        width = [np.asarray(t.getcell("CHAN_WIDTH", int(w)), np.float64) for w in spws]
-        total = [float(t.getcell("TOTAL_BANDWIDTH", int(w))) for w in spws]
-        side = [int(t.getcell("NET_SIDEBAND", int(w))) if "NET_SIDEBAND" in t.colnames() else 1
-                for w in spws]
+    ms = meta.ms
+    spws = np.array([meta.window_of(int(d)) for d in ddids], int)
+    pols = [meta.data_descriptions[int(d)].polarization for d in ddids]
+    corrs = {meta.polarizations[p].corr_types for p in pols}
+    windows = [meta.windows[w] for w in spws]
+    freq = [w.chan_freq for w in windows]
+    width = [w.chan_width for w in windows]
+    total = [w.total_bandwidth for w in windows]
+    side = [w.net_sideband for w in windows]
     shapes = {f.size for f in freq}
     steps = {round(float(w[0]), 3) for w in width if w.size}
     if len(shapes) > 1 or len(steps) > 1 or len(corrs) > 1:
@@ -123,30 +120,25 @@ def read_windows(ms: str, ddids: np.ndarray):
 
 def read_setup(ms: str, main: MainRows, role: str) -> Setup:
     """The data descriptions' windows (as IFs) and correlations, the field, the stations."""
-    from casacore import tables as pt
-
-    from .stations import read_stations
-
+    meta = read_metadata(ms)
     field_id = single_value(main.cols["FIELD_ID"], "fields", ms)
     ddids, chan_freq, chan_width, total_bw, sideband, pol = read_windows(
-        ms, np.unique(main.cols["DATA_DESC_ID"]))
-    sub = lambda name: pt.table(f"{ms}::{name}", ack=False)  # noqa: E731
-    with sub("POLARIZATION") as t:
-        corr_types = [int(c) for c in t.getcell("CORR_TYPE", pol)]
-    with sub("FIELD") as t:
-        direction = np.asarray(t.getcell("PHASE_DIR", field_id), np.float64).reshape(-1, 2)[0]
-        source = str(t.getcell("NAME", field_id)) or "SOURCE"
-    with sub("ANTENNA") as t:
-        n_ant = t.nrows()
-        positions = t.getcol("POSITION")
-        diameters = t.getcol("DISH_DIAMETER") if "DISH_DIAMETER" in t.colnames() else np.zeros(n_ant)
-        mounts = [str(m).lower() for m in t.getcol("MOUNT")] if "MOUNT" in t.colnames() else ["alt-az"] * n_ant
+        meta, np.unique(main.cols["DATA_DESC_ID"]))
+    corr_types = list(meta.polarizations[pol].corr_types)
+    direction = meta.fields.phase_dirs[field_id]
+    source = meta.fields.names[field_id] or "SOURCE"
+    antennas = meta.antennas
+    n_ant = antennas.n_ant
+    positions = antennas.positions
+    diameters = antennas.dish_diameters if antennas.dish_diameters is not None else np.zeros(n_ant)
+    mounts = ([m.lower() for m in antennas.mounts] if antennas.mounts is not None
+              else ["alt-az"] * n_ant)
     telescope, observer = "VLBA", "hitops"
-    with sub("OBSERVATION") as t:
+    with tables.subtable(ms, "OBSERVATION") as t:
         if t.nrows():
             telescope = str(t.getcell("TELESCOPE_NAME", 0)) or telescope
             observer = str(t.getcell("OBSERVER", 0)) or observer
-    codes = read_stations(ms, role).codes
+    codes = stations_of(ms, antennas, role).codes
     if n_ant > 255:
         raise MeasurementSetError(f"{role} '{ms}' has {n_ant} antennas; the UVFITS BASELINE "
                                   "parameter holds at most 255")

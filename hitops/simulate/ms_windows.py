@@ -24,6 +24,7 @@ import numpy as np
 from ..io.atomic import replaced_directory
 from ..io.ms_create import ArrayLayout, Band, Field, _CONSTANT_SCALARS, _fill_subtables, create_ms
 from .scene_parts import BandSpec
+from ..io import tables
 
 #: rows per tile of the array columns (~1 MB tiles for 64 channels x 2 correlations)
 _TILE_BYTES = 1 << 20
@@ -52,9 +53,7 @@ def write_band_ms(path: Path, layout: ArrayLayout, band: BandSpec, corr_types, f
 
 def _add_field(path: Path, field: Field) -> None:
     """FIELD row 1: the calibrator, its directions in the layout of row 0."""
-    from casacore import tables as pt
-
-    with pt.table(f"{path}::FIELD", readonly=False, ack=False) as t:
+    with tables.subtable(path, "FIELD", writable=True) as t:
         t.addrows(1)
         direction = np.array([[field.ra_rad, field.dec_rad]])
         for name in ("DELAY_DIR", "PHASE_DIR", "REFERENCE_DIR"):
@@ -65,18 +64,13 @@ def _add_field(path: Path, field: Field) -> None:
 
 
 def _table_desc(n_chan: int, n_corr: int):
-    from casacore import tables as pt
-
-    fixed = 4  # casacore ColumnDesc::FixedShape
-    return pt.maketabdesc([
-        pt.makearrcoldesc("DATA", 0j, shape=[n_chan, n_corr], valuetype="complex",
-                          options=fixed, comment="The data column"),
-        pt.makearrcoldesc("FLAG", False, shape=[n_chan, n_corr], valuetype="boolean",
-                          options=fixed, comment="The data flags"),
-        pt.makearrcoldesc("SIGMA", 0.0, shape=[n_corr], valuetype="float", options=fixed,
-                          comment="Estimated rms noise for channel with unity bandpass response"),
-        pt.makearrcoldesc("WEIGHT", 0.0, shape=[n_corr], valuetype="float", options=fixed,
-                          comment="Weight for each polarization spectrum"),
+    return tables.table_description([
+        tables.array_column("DATA", 0j, [n_chan, n_corr], "complex", "The data column"),
+        tables.array_column("FLAG", False, [n_chan, n_corr], "boolean", "The data flags"),
+        tables.array_column("SIGMA", 0.0, [n_corr], "float",
+                            "Estimated rms noise for channel with unity bandpass response"),
+        tables.array_column("WEIGHT", 0.0, [n_corr], "float",
+                            "Weight for each polarization spectrum"),
     ])
 
 
@@ -119,11 +113,10 @@ def _main_columns(columns: Mapping[str, np.ndarray], n_chan: int, n_corr: int) -
 
 def _create_wideband(path: Path, layout: ArrayLayout, band: BandSpec, corr_types,
                      field: Field, blocks, n_row: int, time_range: tuple, telescope: str) -> Path:
-    from casacore import tables as pt
-
     n_chan, n_corr = band.n_chan, len(corr_types)
     with replaced_directory(path) as partial:
-        ms = pt.default_ms(str(partial), _table_desc(n_chan, n_corr), _dminfo(n_chan, n_corr))
+        ms = tables.new_measurement_set(str(partial), _table_desc(n_chan, n_corr),
+                                        _dminfo(n_chan, n_corr))
         ms.addrows(n_row)
         start = 0
         for block in blocks:
@@ -144,12 +137,10 @@ def _create_wideband(path: Path, layout: ArrayLayout, band: BandSpec, corr_types
 def _fill_windows(ms: str, band: BandSpec) -> None:
     """SPECTRAL_WINDOW and DATA_DESCRIPTION: one row per window (replacing the one row
     ms_create wrote)."""
-    from casacore import tables as pt
-
     chan_freq = band.chan_freq()
     n_win, n_chan = chan_freq.shape
     width = band.channel_width_hz
-    with pt.table(f"{ms}::SPECTRAL_WINDOW", readonly=False, ack=False) as t:
+    with tables.subtable(ms, "SPECTRAL_WINDOW", writable=True) as t:
         t.addrows(n_win - t.nrows())
         for w in range(n_win):
             t.putcell("NUM_CHAN", w, n_chan)
@@ -165,7 +156,7 @@ def _fill_windows(ms: str, band: BandSpec) -> None:
             t.putcell("FREQ_GROUP_NAME", w, "Group 1")
             t.putcell("IF_CONV_CHAIN", w, 0)
             t.putcell("FLAG_ROW", w, False)
-    with pt.table(f"{ms}::DATA_DESCRIPTION", readonly=False, ack=False) as t:
+    with tables.subtable(ms, "DATA_DESCRIPTION", writable=True) as t:
         t.addrows(n_win - t.nrows())
         t.putcol("SPECTRAL_WINDOW_ID", np.arange(n_win, dtype=np.int32))
         t.putcol("POLARIZATION_ID", np.zeros(n_win, np.int32))

@@ -22,6 +22,8 @@ from .errors import TableMismatchError, TransferOptionError
 from .read import SolutionTable, WindowSolutions, _ms_time_range, read_solutions
 from .transfer import TargetWindow, UnwrappedWindow, check_interval, transfer_window, unwrap_window
 from .wraps import UNBRIDGED
+from ..io import tables
+from ..io.metadata import read_metadata
 
 log = logging.getLogger("hitops.solutions")
 
@@ -62,18 +64,13 @@ class TransferReport:
 
 def _target_windows(target_ms: str):
     """(spw id, centre Hz) of every spectral window the target's data use; field names."""
-    from casacore import tables as pt
-
-    with pt.table(f"{target_ms}::DATA_DESCRIPTION", ack=False) as t:
-        used = sorted(set(t.getcol("SPECTRAL_WINDOW_ID").tolist()))
-    with pt.table(f"{target_ms}::SPECTRAL_WINDOW", ack=False) as t:
-        windows = []
-        for spw in used:
-            freq = np.asarray(t.getcell("CHAN_FREQ", spw), float)
-            windows.append((spw, 0.5 * (freq.min() + freq.max())))
-    with pt.table(f"{target_ms}::FIELD", ack=False) as t:
-        fields = [str(n) for n in t.getcol("NAME")]
-    with pt.table(target_ms, ack=False) as t:
+    meta = read_metadata(target_ms)
+    windows = []
+    for spw in sorted({d.window for d in meta.data_descriptions}):
+        freq = meta.windows[spw].chan_freq
+        windows.append((spw, 0.5 * (freq.min() + freq.max())))
+    fields = list(meta.fields.names)
+    with tables.main_table(target_ms) as t:
         ant1, ant2 = t.getcol("ANTENNA1"), t.getcol("ANTENNA2")
     return windows, fields, ant1, ant2
 

@@ -27,6 +27,8 @@ from typing import Tuple
 import numpy as np
 
 from .errors import NoSolutionsError, SolutionTableError, TableMismatchError, UnsupportedTableError
+from ..io import tables
+from ..io.metadata import read_metadata
 
 SUPPORTED = ("Fringe Jones", "G Jones", "T Jones")
 #: the remedy every TableMismatchError ends with
@@ -63,12 +65,10 @@ class SolutionTable:
 
 
 def _table_kind(path: str) -> str:
-    from casacore import tables as pt
-
     if not (Path(path) / "table.dat").is_file():
         raise SolutionTableError(f"reference table '{path}' does not exist or is not a CASA "
                                  "table; give the table fringefit or gaincal wrote on REF_MS")
-    with pt.table(path, ack=False) as t:
+    with tables.open_table(path) as t:
         info = t.info()
         kind = info.get("subType", "") if info.get("type") == "Calibration" else ""
         if kind not in SUPPORTED:
@@ -82,33 +82,25 @@ def _table_kind(path: str) -> str:
 
 
 def _ms_meta(ms: str):
-    from casacore import tables as pt
-
-    with pt.table(f"{ms}::ANTENNA", ack=False) as t:
-        names = tuple(str(n) for n in t.getcol("NAME"))
-    with pt.table(f"{ms}::FIELD", ack=False) as t:
-        fields = tuple(str(n) for n in t.getcol("NAME"))
-    with pt.table(f"{ms}::SPECTRAL_WINDOW", ack=False) as t:
-        chan_freq = [np.asarray(t.getcell("CHAN_FREQ", i), float) for i in range(t.nrows())]
-        ref_freq = t.getcol("REF_FREQUENCY")
-    return names, fields, chan_freq, ref_freq
+    meta = read_metadata(ms)
+    chan_freq = [w.chan_freq for w in meta.windows]
+    ref_freq = np.array([w.ref_frequency for w in meta.windows], np.float64)
+    return meta.antennas.names, meta.fields.names, chan_freq, ref_freq
 
 
 def _check_subtables(path: str, ms: str, names, fields, ms_chan_freq, ms_ref_freq):
     """Antennas, fields and windows of the table must be REF_MS's (CASA copies them)."""
-    from casacore import tables as pt
-
-    with pt.table(f"{path}/ANTENNA", ack=False) as t:
+    with tables.calibration_subtable(path, "ANTENNA") as t:
         tab_names = tuple(str(n) for n in t.getcol("NAME"))
     if tab_names != names:
         raise TableMismatchError(f"reference table '{path}' was solved on another set: its "
                                  f"antennas {list(tab_names)} are not {ms}'s {list(names)}; {SAME_SET}")
-    with pt.table(f"{path}/FIELD", ack=False) as t:
+    with tables.calibration_subtable(path, "FIELD") as t:
         tab_fields = tuple(str(n) for n in t.getcol("NAME"))
     if tab_fields != fields:
         raise TableMismatchError(f"reference table '{path}' was solved on another set: its "
                                  f"fields {list(tab_fields)} are not {ms}'s {list(fields)}; {SAME_SET}")
-    with pt.table(f"{path}/SPECTRAL_WINDOW", ack=False) as t:
+    with tables.calibration_subtable(path, "SPECTRAL_WINDOW") as t:
         tab_ref = t.getcol("REF_FREQUENCY")
         centres = [np.asarray(t.getcell("CHAN_FREQ", i), float) for i in range(t.nrows())]
     if tab_ref.size != ms_ref_freq.size or not np.allclose(tab_ref, ms_ref_freq, rtol=1e-9):
@@ -182,9 +174,7 @@ def _window(t, kind, rows, spw, field, field_name, ref_freq_hz, n_ant) -> Window
 
 
 def _ms_time_range(ms: str):
-    from casacore import tables as pt
-
-    with pt.table(ms, ack=False) as t:
+    with tables.main_table(ms) as t:
         time = t.getcol("TIME")
         interval = t.getcol("INTERVAL")
     return float(time.min()), float(time.max()), float(np.max(interval)) if interval.size else 0.0
@@ -204,9 +194,7 @@ def _check_times(path: str, ms: str, windows) -> None:
 
 
 def _observed_antennas(ms: str, n_ant: int) -> np.ndarray:
-    from casacore import tables as pt
-
-    with pt.table(ms, ack=False) as t:
+    with tables.main_table(ms) as t:
         keep = ~t.getcol("FLAG_ROW")
         a1, a2 = t.getcol("ANTENNA1")[keep], t.getcol("ANTENNA2")[keep]
     seen = np.zeros(n_ant, bool)
@@ -217,8 +205,6 @@ def _observed_antennas(ms: str, n_ant: int) -> np.ndarray:
 
 def read_solutions(path, ref_ms) -> SolutionTable:
     """Read a fringefit/gaincal table solved on ``ref_ms``; refuse one solved on another set."""
-    from casacore import tables as pt
-
     path, ms = str(path).rstrip("/"), str(ref_ms).rstrip("/")
     if not (Path(ms) / "table.dat").is_file():
         raise SolutionTableError(f"REF_MS '{ms}' does not exist or is not a Measurement Set")
@@ -226,7 +212,7 @@ def read_solutions(path, ref_ms) -> SolutionTable:
     names, fields, ms_chan_freq, ms_ref_freq = _ms_meta(ms)
     centres = _check_subtables(path, ms, names, fields, ms_chan_freq, ms_ref_freq)
     windows = []
-    with pt.table(path, ack=False) as t:
+    with tables.open_table(path) as t:
         spw_col, field_col = t.getcol("SPECTRAL_WINDOW_ID"), t.getcol("FIELD_ID")
         for spw, field in sorted(set(zip(spw_col.tolist(), field_col.tolist()))):
             rows = np.flatnonzero((spw_col == spw) & (field_col == field))

@@ -30,6 +30,8 @@ from ..io.atomic import replaced_directory
 from ..io.caltable import _create_empty
 from .read import FRINGE_PARS
 from .transfer import TargetWindow
+from ..io import tables
+from ..io.metadata import read_metadata
 
 #: receptors of a CASA Fringe Jones table (applycal aborts on a one-receptor table)
 N_RECEPTOR = 2
@@ -41,12 +43,10 @@ def _set_centres(path: str, ms: str) -> None:
     createcaltable leaves one channel per window at the MS's channel n_chan/2 (227.1625
     GHz for 16 channels centred on 227.1 GHz), so the centre comes from the MS itself.
     """
-    from casacore import tables as pt
-
-    with pt.table(f"{ms}::SPECTRAL_WINDOW", ack=False) as t:
-        freqs = [np.asarray(t.getcell("CHAN_FREQ", i), float) for i in range(t.nrows())]
-        widths = [np.abs(np.asarray(t.getcell("CHAN_WIDTH", i), float)) for i in range(t.nrows())]
-    with pt.table(f"{path}/SPECTRAL_WINDOW", readonly=False, ack=False) as t:
+    windows = read_metadata(ms).windows
+    freqs = [w.chan_freq for w in windows]
+    widths = [np.abs(w.chan_width) for w in windows]
+    with tables.calibration_subtable(path, "SPECTRAL_WINDOW", writable=True) as t:
         for row, (freq, width) in enumerate(zip(freqs, widths)):
             centre = 0.5 * (freq.min() + freq.max())
             total = float(width.sum())
@@ -94,8 +94,6 @@ def _rows(windows: Sequence[TargetWindow], n_ant: int):
 def write_fringe_table(path, target_ms, windows: Sequence[TargetWindow], n_ant: int,
                        overwrite: bool = False) -> int:
     """Write the target-band Fringe Jones table; returns its number of rows."""
-    from casacore import tables as pt
-
     path = Path(str(path).rstrip("/"))
     ms = str(target_ms).rstrip("/")
     if not (Path(ms) / "table.dat").is_file():
@@ -107,7 +105,7 @@ def write_fringe_table(path, target_ms, windows: Sequence[TargetWindow], n_ant: 
     with replaced_directory(path) as partial:
         _create_empty(ms, str(partial), par_type="Float", vis_cal="Fringe Jones")
         _set_centres(str(partial), ms)
-        with pt.table(str(partial), readonly=False, ack=False) as t:
+        with tables.open_table(str(partial), writable=True) as t:
             t.addrows(n_row)
             for name, values in cols.items():
                 t.putcol(name, values)

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..errors import InputError, StationError
 from . import theory
+from ..io import tables
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -136,9 +137,7 @@ def sigma_source(ref_ms: str) -> str:
     At most :data:`SIGMA_SAMPLE_ROWS` rows, spread evenly over the table, are
     looked at, so the check stays within the run's memory budget.
     """
-    from casacore import tables as pt
-
-    with pt.table(ref_ms, ack=False) as t:
+    with tables.main_table(ref_ms) as t:
         names = set(t.colnames())
         n_rows = t.nrows()
         step = max(1, -(-n_rows // SIGMA_SAMPLE_ROWS))
