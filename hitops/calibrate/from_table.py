@@ -37,6 +37,7 @@ from typing import Dict, List, Tuple
 import numpy as np
 
 from ..errors import InputError
+from ..io import tables
 from ..kernels.wideband import rotate_channels
 from ..solutions.api import PreparedTransfer, prepare_transfer, transfer_report, write_target_table
 from ..solutions.apply import all_fields, gains_at
@@ -92,14 +93,12 @@ class TargetLayout:
 
 
 def read_layout(target_ms: str) -> TargetLayout:
-    from casacore import tables as pt
-
-    with pt.table(f"{target_ms}::DATA_DESCRIPTION", ack=False) as t:
+    with tables.subtable(target_ms, "DATA_DESCRIPTION") as t:
         spw = t.getcol("SPECTRAL_WINDOW_ID")
         pol = t.getcol("POLARIZATION_ID")
-    with pt.table(f"{target_ms}::POLARIZATION", ack=False) as t:
+    with tables.subtable(target_ms, "POLARIZATION") as t:
         corr = [np.asarray(t.getcell("CORR_TYPE", int(p)), int) for p in pol]
-    with pt.table(f"{target_ms}::SPECTRAL_WINDOW", ack=False) as t:
+    with tables.subtable(target_ms, "SPECTRAL_WINDOW") as t:
         freq = tuple(np.asarray(t.getcell("CHAN_FREQ", i), float) for i in range(t.nrows()))
     receptors = []
     for ddid, types in enumerate(corr):
@@ -178,13 +177,11 @@ def _chunk_columns(t, columns, start: int, n: int, offset_column=None) -> Dict:
 
 def _chunks(target_ms: str, columns, chunk_rows: int, offset_column=None):
     """(start, n, columns) of every chunk of the target set, read with python-casacore."""
-    from casacore import tables as pt
-
-    with pt.table(target_ms, ack=False) as t:
+    with tables.main_table(target_ms) as t:
         n_total = t.nrows()
     for start in range(0, n_total, chunk_rows):
         n = min(chunk_rows, n_total - start)
-        with pt.table(target_ms, ack=False) as t:
+        with tables.main_table(target_ms) as t:
             yield start, n, _chunk_columns(t, columns, start, n, offset_column)
 
 
@@ -217,9 +214,7 @@ def offset_step(prepared: PreparedTransfer, layout: TargetLayout, columns, chunk
 
 
 def _antenna_names(ms: str):
-    from casacore import tables as pt
-
-    with pt.table(f"{ms}::ANTENNA", ack=False) as t:
+    with tables.subtable(ms, "ANTENNA") as t:
         return [str(n) for n in t.getcol("NAME")]
 
 
@@ -244,9 +239,7 @@ def _write_outputs(tx: OutputTransaction, transfers, layout, columns, chunk_rows
 def _chunk_rows(opts: CalibrateOptions, target_ms: str, target_column: str) -> int:
     if int(opts.chunk_rows) > 0:
         return int(opts.chunk_rows)
-    from casacore import tables as pt
-
-    with pt.table(target_ms, ack=False) as t:
+    with tables.main_table(target_ms) as t:
         cell = t.getcell(target_column, 0) if t.nrows() else np.zeros((1, 1))
     return max(1, CHUNK_VISIBILITIES // int(np.prod(cell.shape)))
 

@@ -248,7 +248,8 @@ def _verdict(run: RunPlan, group: GroupPlan, report_path: str) -> Dict:
     started = time.perf_counter()
     try:
         verdict = predict(run.ref_ms, run.target_ms, group.ratio, opts.ref_column,
-                          opts.target_column, float(opts.verdict_interval))
+                          opts.target_column, float(opts.verdict_interval),
+                          ref_meta=run.ref_meta, tgt_meta=run.tgt_meta)
     except HitopsError as err:   # the columns are written: say why there is no verdict
         log.warning("no verdict: %s", err)
         return {"error": str(err)}

@@ -29,6 +29,7 @@ from typing import List, Sequence
 import numpy as np
 
 from ..errors import InputError
+from . import tables
 
 log = logging.getLogger("hitops.flags")
 
@@ -81,8 +82,6 @@ def _check_name(name: str) -> str:
 
 def save_version(ms: str | Path, name: str, comment: str) -> FlagVersion:
     """Keep the set's FLAG and FLAG_ROW as version ``name`` (an existing one is replaced)."""
-    from casacore import tables as pt
-
     name = _check_name(name)
     comment = " ".join(str(comment).split())
     folder = versions_dir(ms)
@@ -90,14 +89,15 @@ def save_version(ms: str | Path, name: str, comment: str) -> FlagVersion:
     final = folder / f"flags.{name}"
     staging = folder / f".flags.{name}.writing"
     shutil.rmtree(staging, ignore_errors=True)
-    with pt.table(str(ms), ack=False) as main:
-        flag_desc = pt.makearrcoldesc("FLAG", False, ndim=2, valuetype="boolean")
-        row_desc = pt.makescacoldesc("FLAG_ROW", False, valuetype="boolean")
-        dminfo = {"*1": {"TYPE": "TiledShapeStMan", "NAME": "TiledFlag", "SPEC": {},
-                         "COLUMNS": ["FLAG"]}}
+    # CASA's layout: FLAG in a TiledShapeStMan, FLAG_ROW in the standard manager
+    description = tables.table_description([
+        tables.variable_array_column("FLAG", False, 2, "boolean"),
+        tables.scalar_column("FLAG_ROW", False, "boolean")])
+    managers = {"*1": {"TYPE": "TiledShapeStMan", "NAME": "TiledFlag", "SPEC": {},
+                       "COLUMNS": ["FLAG"]}}
+    with tables.main_table(str(ms)) as main:
         n_row = main.nrows()
-        with pt.table(str(staging), pt.maketabdesc([flag_desc, row_desc]), nrow=n_row,
-                      dminfo=dminfo, ack=False) as copy:
+        with tables.new_table(str(staging), description, n_row, managers) as copy:
             for start in range(0, n_row, _BLOCK_ROWS):
                 n = min(_BLOCK_ROWS, n_row - start)
                 copy.putcol("FLAG", main.getcol("FLAG", start, n), start, n)
@@ -127,14 +127,11 @@ def _require(ms: str | Path, name: str) -> Path:
 
 def read_version(ms: str | Path, names: Sequence[str]) -> tuple:
     """(FLAG, FLAG_ROW) of the union of the versions ``names``, checked against the set."""
-    from casacore import tables as pt
-
-    tables = [_require(ms, _check_name(n)) for n in names]
-    with pt.table(str(ms), ack=False) as main:
-        n_row = main.nrows()
+    kept = [_require(ms, _check_name(n)) for n in names]
+    n_row = tables.row_count(str(ms))
     flag = flag_row = None
-    for table in tables:
-        with pt.table(str(table), ack=False) as saved:
+    for table in kept:
+        with tables.open_table(str(table)) as saved:
             if saved.nrows() != n_row:
                 raise InputError(f"{table} has {saved.nrows()} rows but {ms} has {n_row}: the "
                                  "version belongs to an earlier set; rerun the step that saves it")
@@ -146,13 +143,11 @@ def read_version(ms: str | Path, names: Sequence[str]) -> tuple:
 
 def restore_versions(ms: str | Path, names: Sequence[str]) -> None:
     """Set FLAG and FLAG_ROW to the union of the saved versions ``names``."""
-    from casacore import tables as pt
-
     names = [n for n in names if str(n).strip()]
     if not names:
         raise InputError("no flag version named to restore")
     flag, flag_row = read_version(ms, names)
-    with pt.table(str(ms), readonly=False, ack=False) as main:
+    with tables.main_table(str(ms), writable=True) as main:
         if main.getcol("FLAG", 0, 1).shape[1:] != flag.shape[1:]:
             raise InputError(f"{ms}: FLAG's shape differs from flag version "
                              f"'{names[0]}'s; rerun the step that saves it")
@@ -183,9 +178,7 @@ def split_names(text) -> List[str]:
 
 def count_flagged(ms: str | Path) -> float:
     """Fraction of FLAG set (FLAG_ROW folded in), for logs and the run's page."""
-    from casacore import tables as pt
-
-    with pt.table(str(ms), ack=False) as main:
+    with tables.main_table(str(ms)) as main:
         flag = main.getcol("FLAG") | main.getcol("FLAG_ROW")[:, None, None]
     return float(np.mean(flag)) if flag.size else 0.0
 

@@ -102,3 +102,20 @@ def new_measurement_set(path: str, description: dict, data_managers: Mapping[str
     """A new Measurement Set at ``path`` (casacore ``default_ms``: the standard columns and
     subtables, plus ``description``'s columns), open for writing; close it when done."""
     return _tables().default_ms(str(path), description, dict(data_managers))
+
+
+def variable_array_column(name: str, value, ndim: int, valuetype: str) -> dict:
+    """Description of an array column whose cells have ``ndim`` axes of any length (a CASA
+    flag version's FLAG, as flagmanager writes it)."""
+    return _tables().makearrcoldesc(name, value, ndim=ndim, valuetype=valuetype)
+
+
+def scalar_column(name: str, value, valuetype: str) -> dict:
+    """Description of a scalar column (casacore ``makescacoldesc``)."""
+    return _tables().makescacoldesc(name, value, valuetype=valuetype)
+
+
+def new_table(path: str, description: dict, n_rows: int, data_managers: Mapping[str, dict]):
+    """A new plain table at ``path`` with ``n_rows`` rows, open for writing; use in ``with``."""
+    return _tables().table(str(path), description, nrow=int(n_rows), dminfo=dict(data_managers),
+                           ack=False)

@@ -20,6 +20,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
+from ..io import tables
 from ..io.flag_versions import ORIGINAL, versions_dir
 
 #: the distributions whose versions decide a run's numbers
@@ -117,10 +118,8 @@ def parameters(run_dir: Path, recipe_file: Optional[Path]) -> List[Parameter]:
 
 
 def _digest_set(ms: Path) -> Optional[SetChecksum]:
-    from casacore import tables as pt
-
     try:
-        with pt.table(str(ms), ack=False) as t:
+        with tables.main_table(str(ms)) as t:
             sha = hashlib.sha256()
             n_row = t.nrows()
             for start in range(0, n_row, 262_144):
@@ -128,7 +127,7 @@ def _digest_set(ms: Path) -> Optional[SetChecksum]:
         kept = versions_dir(ms) / f"flags.{ORIGINAL}"
         what = "DATA"
         if (kept / "table.dat").is_file():
-            with pt.table(str(kept), ack=False) as t:
+            with tables.open_table(str(kept)) as t:
                 sha.update(t.getcol("FLAG").tobytes())
                 sha.update(t.getcol("FLAG_ROW").tobytes())
             what = f"DATA + flags as kept in {ORIGINAL}"

@@ -25,6 +25,7 @@ from typing import Dict, List, Tuple
 import numpy as np
 
 from ...io import read as msio
+from ...io import tables
 from ...io.match import correlation_map, parse_antenna_map
 from ...io.stations import read_stations
 from ..channels import reduce_rows
@@ -48,10 +49,8 @@ class SwitchCounts:
 def _reference_series(run, groups, ref_rows: np.ndarray) -> Tuple[Dict, np.ndarray, np.ndarray]:
     """The reference set's rows of the groups' window: columns and (n_row, n_corr) phase
     (the channels reduced to one phase as the transfer does) and its validity."""
-    from casacore import tables as pt
-
     pair = groups[0].pair
-    with pt.table(run.ref_ms, ack=False) as table:
+    with tables.main_table(run.ref_ms) as table:
         read = msio.rows_reader(table, ref_rows)
         meta = {c: read(c) for c in ("TIME", "ANTENNA1", "ANTENNA2")}
         data = read(run.columns.ref_data)
@@ -106,11 +105,9 @@ def switch_counts(run, groups: List, tgt_meta: Dict[str, np.ndarray],
                   tgt_rows: np.ndarray) -> SwitchCounts:
     """N per target row (``tgt_rows``: ascending rows of one target window, every field
     of ``groups``) and correlation, from the reference set's rows of the same fields."""
-    from casacore import tables as pt
-
     pair = groups[0].pair
     ref_fields = [g.pair.ref.key[0] for g in groups]
-    with pt.table(run.ref_ms, ack=False) as table:
+    with tables.main_table(run.ref_ms) as table:
         ref_ddid, ref_field = table.getcol("DATA_DESC_ID"), table.getcol("FIELD_ID")
     ref_rows = np.flatnonzero((ref_ddid == pair.ref.key[1]) & np.isin(ref_field, ref_fields))
     meta, phase, ok = _reference_series(run, groups, ref_rows)

@@ -47,6 +47,7 @@ import numpy as np
 
 from ...errors import InputError
 from ...io import read as msio
+from ...io import tables
 from ...io.ms_create import CORR_NAMES
 from ...kernels.phase_ref import antenna_phasors, baseline_sums, model_residuals, phase_and_delay
 from ...kernels.wideband import rotate_channels
@@ -317,8 +318,6 @@ def _reference_window(run, tx, table, column, meta, cal, ddid, groups, bridge) -
 def phase_reference(run, tx, cal: Optional[CalibratorField]) -> Optional[Dict]:
     """Bridge the scans, solve on the calibrator's, apply to the other fields' rows, in
     every staged output column of ``tx``; the report's entry (None without a calibrator)."""
-    from casacore import tables as pt
-
     from .bridge import switch_counts
     from .report import log_summary
 
@@ -333,7 +332,7 @@ def phase_reference(run, tx, cal: Optional[CalibratorField]) -> Optional[Dict]:
                         "its rows are left as transferred", cal.name, groups[0].pair.tgt.spw)
     entry: Dict = {"calibrator_field": cal.name, "field_id": cal.field_id,
                    "target_field_ids": list(cal.target_field_ids), "methods": {}}
-    with pt.table(run.target_ms, ack=False) as table:
+    with tables.main_table(run.target_ms) as table:
         meta = {c: table.getcol(c) for c in ("TIME", "ANTENNA1", "ANTENNA2", "FIELD_ID",
                                              "DATA_DESC_ID", "SCAN_NUMBER")}
         bridges = {}
