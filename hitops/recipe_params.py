@@ -47,6 +47,10 @@ UNSET_MARK = "<unset>"
 #: The cab of the step that writes the parameter files (it has no file of its own)
 PARAMS_CAB = "hitops.params"
 
+#: The image-fit sub-recipe's step that restores a branch's flag version before WSClean
+#: (recipes/fpt-lib.yml): it always runs, and is bookkeeping rather than work
+RESTORE_STEP = "restore_flags"
+
 _RECIPE_REF = re.compile(r"\brecipe\.([A-Za-z_]\w*)")
 
 

@@ -46,13 +46,11 @@ from typing import Dict, List, Optional, Sequence, TextIO
 import yaml
 
 from .errors import HitopsError
-from .recipe_params import PARAMS_CAB, RecipeFile, load_recipe
+from .recipe_params import PARAMS_CAB, RESTORE_STEP, RecipeFile, load_recipe
 
 _STEP_START = re.compile(r"STIMELA\.(?P<logger>[\w.-]+) INFO: processing step '(?P<step>[^']+)'")
 #: cabs of the bookkeeping steps: the parameter files and the run's page
 BOOKKEEPING_CABS = (PARAMS_CAB, "hitops.report")
-#: the sub-recipe step that restores a branch's flag version before imaging
-RESTORE_STEP = "restore_flags"
 _SKIP_FRESH = "all required outputs are OK, skipping this step"
 _SKIP_COND = "skipping step based on conditonal settings"   # sic, Stimela 2.1.4
 _PARAMS_NOTE = re.compile(r"parameters changed for: [\w, -]+")

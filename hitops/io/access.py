@@ -183,15 +183,15 @@ def wait_for_table_lock(ms: str, write: bool, timeout_s: float, role: str) -> No
             time.sleep(1.0)
 
 
-def raise_if_damaged(err: Exception, tables) -> None:
+def raise_if_damaged(err: Exception, read) -> None:
     """Turn an unexpected casacore error into one naming the damaged table and column.
 
-    ``tables``: (ms, columns) pairs that were being read (columns None: every column,
+    ``read``: (ms, columns) pairs that were being read (columns None: every column,
     as for a calibration table, whose remedy is to rerun the step that wrote it).
     Returns without raising when every column reads (the error had another cause, and
     is re-raised by the caller).
     """
-    for ms, columns in tables:
+    for ms, columns in read:
         damage = locate_damage(ms, None if columns is None else list(dict.fromkeys(columns)))
         if damage:
             remedy = ("restore the set from its source or a backup" if columns is not None

@@ -16,6 +16,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import List, Optional, Sequence
 
+from ..recipe_params import RESTORE_STEP
+
 _STAMP = r"(?P<when>\d{4}-\d\d-\d\d \d\d:\d\d:\d\d)"
 _START = re.compile(_STAMP + r" STIMELA\.(?P<recipe>[\w-]+) INFO: processing step '(?P<step>[^']+)'")
 _SKIP = "all required outputs are OK, skipping this step"
@@ -24,8 +26,6 @@ _WARN = re.compile(_STAMP + r" STIMELA\.[\w.-]+ (?P<level>WARNING|ERROR): (?P<te
 _CHANGED = re.compile(r"parameters changed for: (?P<steps>[\w, -]+)")
 #: bookkeeping steps that run every time and are not work
 BOOKKEEPING = {"params", "report"}
-#: a sub-recipe's inner step that always runs (recipes/fpt-lib.yml) and is not work
-RESTORE_STEP = "restore_flags"
 _INNER = re.compile(r"INFO: processing step '(?P<step>[^']+)'")
 
 
