@@ -141,8 +141,9 @@ def read_version(ms: str | Path, names: Sequence[str]) -> tuple:
     return flag, flag_row
 
 
-def restore_versions(ms: str | Path, names: Sequence[str]) -> None:
-    """Set FLAG and FLAG_ROW to the union of the saved versions ``names``."""
+def restore_versions(ms: str | Path, names: Sequence[str]) -> float:
+    """Set FLAG and FLAG_ROW to the union of the saved versions ``names``; return the
+    fraction of samples now flagged."""
     names = [n for n in names if str(n).strip()]
     if not names:
         raise InputError("no flag version named to restore")
@@ -155,6 +156,7 @@ def restore_versions(ms: str | Path, names: Sequence[str]) -> None:
         main.putcol("FLAG_ROW", flag_row)
     log.info("FLAG of %s restored from flag version%s %s", ms, "s" if len(names) > 1 else "",
              " | ".join(f"'{n}'" for n in names))
+    return flagged_fraction(flag, flag_row)
 
 
 def drop_all(ms: str | Path) -> None:
@@ -176,16 +178,13 @@ def split_names(text) -> List[str]:
     return [str(i).strip() for i in items if str(i).strip()]
 
 
-def count_flagged(ms: str | Path) -> float:
-    """Fraction of FLAG set (FLAG_ROW folded in), for logs and the run's page."""
-    with tables.main_table(str(ms)) as main:
-        flag = main.getcol("FLAG") | main.getcol("FLAG_ROW")[:, None, None]
-    return float(np.mean(flag)) if flag.size else 0.0
+def flagged_fraction(flag: np.ndarray, flag_row: np.ndarray) -> float:
+    """Fraction of samples flagged, FLAG_ROW folded into FLAG (for logs and the run's page)."""
+    merged = flag | flag_row[:, None, None]
+    return float(merged.mean()) if merged.size else 0.0
 
 
 def restore_step(vis: str, versions) -> dict:
     """The recipes' flag step (cab hitops.flags.restore): FLAG set to the union of
     ``versions`` before a step that reads FLAG but cannot be told a version (WSClean)."""
-    names = split_names(versions)
-    restore_versions(vis, names)
-    return {"flagged_fraction": count_flagged(vis)}
+    return {"flagged_fraction": restore_versions(vis, split_names(versions))}

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Dict, Optional
 
 from ..errors import InputError
-from ..io.flag_versions import read_version
+from ..io.flag_versions import flagged_fraction, read_version
 from .collect import RunFacts, collect
 from .images import render_row
 from .page import verdict, write_page
@@ -21,19 +21,17 @@ log = logging.getLogger("hitops.report")
 ASSETS = "report"
 
 
-def _version_fractions(facts: RunFacts) -> Dict[str, Dict[str, float]]:
+def _version_fractions(facts: RunFacts) -> Dict[Path, Dict[str, float]]:
     """Fraction of each kept flag version's samples that are flagged, per set."""
-    out: Dict[str, Dict[str, float]] = {}
-    for ms_name, versions in facts.flag_versions.items():
-        ms = facts.dir / ms_name
+    out: Dict[Path, Dict[str, float]] = {}
+    for ms, versions in facts.flag_versions.items():
         for version in versions:
             try:
-                flag, flag_row = read_version(ms, [version.name])
+                fraction = flagged_fraction(*read_version(ms, [version.name]))
             except InputError as err:
                 log.warning("report: %s", err)
                 continue
-            merged = flag | flag_row[:, None, None]
-            out.setdefault(ms_name, {})[version.name] = float(merged.mean()) if merged.size else 0.0
+            out.setdefault(ms, {})[version.name] = fraction
     return out
 
 
@@ -65,8 +63,7 @@ def report(dir, recipe=None, logs=None, title=None) -> dict:
     images = sorted(facts.images, key=lambda i: (order.index(i.label) if i.label in order
                                                   else len(order), i.label))
     pictures = render_row(images, run_dir / ASSETS, facts.input_peak)
-    sets = sorted(p for p in run_dir.glob("*.ms") if p.is_dir())
-    prov = gather(run_dir, recipe_path, sets)
+    prov = gather(run_dir, recipe_path, facts.sets)
     page = run_dir / "index.html"
     heading = title or (f"HITOPS run: {name}" if name else "HITOPS run")
     write_page(page, heading, facts, pictures, steps, prov, _version_fractions(facts),

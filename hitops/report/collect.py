@@ -63,7 +63,8 @@ class RunFacts:
     images: List[ImageFit]
     plots: List[Path]
     calibrate_reports: List[CalibrateReport]
-    flag_versions: Dict[str, List[FlagVersion]] = field(default_factory=dict)
+    sets: List[Path]                   # the Measurement Sets of the run
+    flag_versions: Dict[Path, List[FlagVersion]] = field(default_factory=dict)
     receipts: Dict[str, Dict] = field(default_factory=dict)
 
 
@@ -110,10 +111,10 @@ def _summary_dirs(run_dir: Path) -> List[Path]:
 
 def _calibrate_reports(run_dir: Path) -> List[CalibrateReport]:
     out = []
-    for path in sorted(run_dir.glob("*.json")) + sorted(run_dir.glob("*.hitops-calibrate.json")):
+    for path in sorted(run_dir.glob("*.json")):     # SET.hitops-calibrate.json included
         body = _load(path) if path.name not in TABLE_NAMES else None
         # a calibrate report names both sets and its methods; nothing else here does
-        if body and "target_ms" in body and "methods" in body and path not in [r.path for r in out]:
+        if body and "target_ms" in body and "methods" in body:
             out.append(CalibrateReport(path=path, body=body))
     return out
 
@@ -121,20 +122,13 @@ def _calibrate_reports(run_dir: Path) -> List[CalibrateReport]:
 def _sets(run_dir: Path, reports: List[CalibrateReport]) -> List[Path]:
     sets = {Path(r.body["target_ms"]) for r in reports} | {Path(r.body["ref_ms"]) for r in reports}
     sets |= set(run_dir.glob("*.ms"))
-    return sorted(s if s.is_dir() else run_dir / s.name for s in sets)
+    # a report may name a set relative to where the run started: one path per set
+    found = {(s if s.is_dir() else run_dir / s.name).resolve() for s in sets}
+    return sorted(s for s in found if s.is_dir())
 
 
 #: the compare step's table: the demo and wideband recipes name it peak-flux, the paper's summary
 TABLE_NAMES = ("peak-flux.json", "summary.json")
-
-
-def _peak_table(run_dir: Path) -> Optional[Dict]:
-    for name in TABLE_NAMES:
-        if (run_dir / name).is_file():
-            table = _load(run_dir / name)
-            if table and "rows" in table:
-                return table
-    return None
 
 
 def peak_table_path(run_dir: Path) -> Optional[Path]:
@@ -143,7 +137,10 @@ def peak_table_path(run_dir: Path) -> Optional[Path]:
 
 def collect(run_dir: Path) -> RunFacts:
     """The facts of the run in ``run_dir``."""
-    table = _peak_table(run_dir)
+    table_path = peak_table_path(run_dir)
+    table = _load(table_path) if table_path else None
+    if table is not None and "rows" not in table:
+        table, table_path = None, None
     summaries = _summary_dirs(run_dir)
     diagnose_dir = summaries[0] if summaries else None
     diagnose = _load(diagnose_dir / "summary.json") if diagnose_dir else None
@@ -152,14 +149,15 @@ def collect(run_dir: Path) -> RunFacts:
     rows = _peak_rows(table)
     input_peak = next((r.get("input_peak_jy") for r in (table or {}).get("rows", [])
                        if r.get("input_peak_jy")), None)
-    versions = {s.name: list_versions(s) for s in _sets(run_dir, reports) if list_versions(s)}
+    sets = _sets(run_dir, reports)
+    versions = {s: list_versions(s) for s in sets if list_versions(s)}
     receipts = {}
     for receipt in sorted(run_dir.glob("*/applycal.json")):
         body = _load(receipt)
         if body:
             receipts[str(receipt.relative_to(run_dir))] = body
-    return RunFacts(dir=run_dir, peak_table=peak_table_path(run_dir), peak_rows=rows, input_peak=input_peak,
+    return RunFacts(dir=run_dir, peak_table=table_path, peak_rows=rows, input_peak=input_peak,
                     coherence=(table or {}).get("coherence"), diagnose=diagnose,
                     diagnose_dir=diagnose_dir, images=_images(run_dir / "images"),
-                    plots=plots, calibrate_reports=reports, flag_versions=versions,
+                    plots=plots, calibrate_reports=reports, sets=sets, flag_versions=versions,
                     receipts=receipts)

@@ -316,7 +316,7 @@ def _warnings_section(steps: StepLog, facts: RunFacts) -> str:
     return f"<section id='warnings'><h2>Warnings ({len(items)})</h2><ul>{text}</ul></section>"
 
 
-def _flags_section(facts: RunFacts, fractions: Dict[str, Dict[str, float]]) -> str:
+def _flags_section(facts: RunFacts, fractions: Dict[Path, Dict[str, float]]) -> str:
     if not facts.flag_versions:
         return ""
     out = ["<section id='flags'><h2>Flag versions</h2><p class='muted'>CASA flag versions kept "
@@ -327,8 +327,8 @@ def _flags_section(facts: RunFacts, fractions: Dict[str, Dict[str, float]]) -> s
            "the branches it compares, so a rerun gives a fresh run's numbers (docs/recipes.md).</p>"]
     for ms, versions in facts.flag_versions.items():
         rows = [(v.name, _Raw(_e(v.comment)), fractions.get(ms, {}).get(v.name)) for v in versions]
-        out.append(f"<h3>{_e(ms)}</h3>" + _table(["version", "comment", "flagged fraction"], rows,
-                                                "left"))
+        out.append(f"<h3>{_e(ms.name)}</h3>"
+                   + _table(["version", "comment", "flagged fraction"], rows, "left"))
     out.append("</section>")
     return "".join(out)
 
@@ -351,7 +351,7 @@ def _provenance_section(prov: Provenance) -> str:
 
 
 def write_page(path: Path, title: str, facts: RunFacts, pictures: List[Picture], steps: StepLog,
-               prov: Provenance, fractions: Dict[str, Dict[str, float]],
+               prov: Provenance, fractions: Dict[Path, Dict[str, float]],
                subtitle: Optional[str] = None) -> Path:
     base = path.parent
     sections = [_peak_section(facts), _images_section(pictures, base),
