@@ -36,7 +36,7 @@ def residual_rms_deg(truth, out):
 def main():
     from casacore import tables as pt
 
-    from hitops.calibrate import calibrate
+    from hitops.calibrate import calibrate_flat
     from hitops.testing import PairSpec, Signal, Troposphere, make_pair
 
     rows = []
@@ -50,7 +50,7 @@ def main():
                 truth = make_pair(Path(tmp), spec)
                 out = {}
                 for tracker in ("count", "smooth", "antenna"):
-                    calibrate(truth.ref_ms, truth.target_ms, tracker=tracker, overwrite=True,
+                    calibrate_flat(truth.ref_ms, truth.target_ms, tracker=tracker, overwrite=True,
                               no_verdict=True)
                     with pt.table(str(truth.target_ms), ack=False) as t:
                         out[tracker] = residual_rms_deg(truth, t.getcol("PWC_DATA"))

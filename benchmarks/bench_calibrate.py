@@ -71,7 +71,7 @@ def figure(path: Path) -> Path:
     import numpy as np
     from casacore import tables as pt
 
-    from hitops.calibrate import calibrate
+    from hitops.calibrate import calibrate_flat
     from hitops.testing import PairSpec, Signal, Troposphere, make_pair, wrap
     from hitops.tracking.count import count_wraps
 
@@ -80,7 +80,7 @@ def figure(path: Path) -> Path:
         n_ant=3, n_time=1800, seed=5,
         troposphere=Troposphere(step_rad=0.04, drift_rad=0.03, phase_offset_rad=1.0),
         signal=Signal(sigma_ref=0.03, sigma_target=0.08)))
-    calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt")
+    calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc,cfpt")
     with pt.table(str(truth.target_ms), ack=False) as t:
         cfpt = np.angle(t.getcol("CFPT_DATA")[:, 0, 0])
         pwc = np.angle(t.getcol("PWC_DATA")[:, 0, 0])
@@ -146,7 +146,7 @@ of 1 s, {len(CORRS)} correlations, {28 * N_TIME} rows per band, one chunk), `hit
 --method pwc --tracker antenna{" --no-verdict" if quiet else ""}`, whole processes, warm numba
 cache, the two runs interleaved {repeats} times.
 
-| run | wall, median (s) | runs (s) | inside `calibrate()`, last run (s) |
+| run | wall, median (s) | runs (s) | inside `calibrate_flat()`, last run (s) |
 |---|---|---|---|
 | no offset step | {wall["none"]:.2f} | {", ".join(f"{x:.2f}" for x in runs["none"])} | {inside["none"]:.2f} |
 | `--offset-model point` | {wall["point"]:.2f} | {", ".join(f"{x:.2f}" for x in runs["point"])} | {inside["point"]:.2f} |

@@ -86,7 +86,7 @@ def classify(rep_series, d_truth, z_of, flagged):
 
 
 def run_cell(workdir: Path, n_ant: int, rho: float, n_scans: int, seed: int) -> dict:
-    from hitops.calibrate import calibrate
+    from hitops.calibrate import calibrate_flat
     from hitops.calibrate import offset_step as offsets
 
     from .bench_offsets import antenna_scene, capture_antenna_model
@@ -106,7 +106,7 @@ def run_cell(workdir: Path, n_ant: int, rho: float, n_scans: int, seed: int) -> 
     try:
         with capture_antenna_model(captured):
             t0 = time.perf_counter()
-            rep = calibrate(truth.ref_ms, truth.target_ms, tracker="antenna",
+            rep = calibrate_flat(truth.ref_ms, truth.target_ms, tracker="antenna",
                             offset_model="MODEL_DATA", overwrite=True, no_verdict=True)
             wall = time.perf_counter() - t0
     finally:

@@ -69,8 +69,8 @@ def simulate(scene: str, workdir: Path):
     if not (tgt / "table.dat").exists():
         subprocess.run([sys.executable, "-m", "hitops.cli", "simulate", scene, "--outdir",
                         str(outdir), "--overwrite"], check=True)
-        from hitops.calibrate import calibrate
-        calibrate(str(ref), str(tgt), method="cfpt", output_column=OFFSET_REFERENCE,
+        from hitops.calibrate import calibrate_flat
+        calibrate_flat(str(ref), str(tgt), method="cfpt", output_column=OFFSET_REFERENCE,
                   no_verdict=True, report=str(outdir / "offset-reference.json"))
     return ref, tgt
 
@@ -97,7 +97,7 @@ def stable(report):
 
 
 def run_case(ref: Path, tgt: Path, kwargs: dict, workdir: Path, client_address):
-    from hitops.calibrate import calibrate
+    from hitops.calibrate import calibrate_flat
 
     # one copy path per scene: dask-ms keeps a table handle of a path open while a cluster
     # client refers to it, and a table copied to the same path later would be read through
@@ -109,7 +109,7 @@ def run_case(ref: Path, tgt: Path, kwargs: dict, workdir: Path, client_address):
     if kwargs.get("scheduler") == "local":
         kwargs["scheduler"] = client_address
     started = time.perf_counter()
-    report = calibrate(str(ref), str(copy), report=str(workdir / "case.json"), **kwargs)
+    report = calibrate_flat(str(ref), str(copy), report=str(workdir / "case.json"), **kwargs)
     elapsed = time.perf_counter() - started
     digests = column_digests(copy, ["PWC_DATA", "CFPT_DATA", "CWU_DATA", "FLAG",
                                     "FLAG_HITOPS_BACKUP"])

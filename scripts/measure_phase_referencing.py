@@ -60,7 +60,7 @@ def main() -> None:
     parser.add_argument("--scan-gap", type=float, default=0.0)
     parser.add_argument("--seed", type=int, default=11)
     args = parser.parse_args()
-    from hitops.calibrate import calibrate
+    from hitops.calibrate import calibrate_flat
     from hitops.simulate import simulate
 
     out = Path(args.outdir)
@@ -76,7 +76,7 @@ def main() -> None:
         ref, tgt = work / "ref.ms", work / "tgt.ms"
         shutil.copytree(pair["86"], ref)
         shutil.copytree(pair["230"], tgt)
-        report = calibrate(str(ref), str(tgt), no_verdict=True, **extra)
+        report = calibrate_flat(str(ref), str(tgt), no_verdict=True, **extra)
         coh = coherence(str(tgt), "PWC_DATA")
         results[label] = {"coherence_min": float(coh.min()),
                           "coherence_median": float(np.median(coh)),

@@ -64,13 +64,13 @@ def main():
 
     from casacore import tables as pt
 
-    from hitops.calibrate import calibrate
+    from hitops.calibrate import calibrate_flat
     from hitops.calibrate import verdict as V
     from hitops.diagnose.closures import closure_change
 
     reports = {}
     for column, method, tracker in RUNS:
-        reports[column] = calibrate(str(ref), str(tgt), method=method, tracker=tracker,
+        reports[column] = calibrate_flat(str(ref), str(tgt), method=method, tracker=tracker,
                                     output_column=column, no_verdict=column != "PWC_DATA")
     with pt.table(str(tgt), ack=False) as t:
         flag = t.getcol("FLAG")

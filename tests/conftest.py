@@ -12,6 +12,12 @@ costs a small part of that, and simulating a scene far more.  So:
   calibrate run does).  Equal specs are built once in the whole suite.
 * ``shared_pair(spec)``: the session's build itself, for tests that only read
   it (a test that writes into it spoils it for every later test).
+* stage fixtures of ``hitops calibrate`` (hitops/calibrate/stages.py), so one stage can
+  be tested without a whole run: ``calibrate_options(ref_ms, target_ms, **flags)`` is
+  stage 1's typed options from the command line's flags; ``planned_run(spec, **flags)``
+  runs stages 1-3 on the session's build of ``spec`` (nothing is written) and gives the
+  ``RunPlan`` with the pair's truth (:class:`PlannedRun`); ``planned_copy`` the same on a
+  private copy, for a test that goes on to stage 4 and writes.
 * ``eht_imported``: the EHT's public M87 pair (tests/data/eht2017-m87) through
   CASA importuvfits, once for the suite (tests/test_realdata.py and
   tests/test_verdict.py both start from it); read it, or copy it to write.
@@ -85,6 +91,59 @@ def new_pair(pair_store, tmp_path):
 def shared_pair(pair_store):
     """``shared_pair(spec)``: the session's build of the pair, read-only."""
     return pair_store.built
+
+
+@dataclasses.dataclass(frozen=True)
+class PlannedRun:
+    """Stages 1-3 of a calibrate run on a synthetic pair: the plan, and what the pair is."""
+
+    plan: object          # hitops.calibrate.plan.RunPlan
+    truth: PairTruth
+
+
+@pytest.fixture
+def calibrate_options():
+    """``calibrate_options(ref_ms, target_ms, **flags)``: stage 1's ``CalibrateOptions`` in
+    sections, made from the command line's flags (underscored), the rest the schema's."""
+    from hitops.calibrate.inputs import CalibrateOptions
+
+    def make(ref_ms, target_ms, **flags):
+        return CalibrateOptions.from_flat(dict(ref_ms=str(ref_ms), target_ms=str(target_ms),
+                                               **flags))
+    return make
+
+
+def _plan(truth: PairTruth, opts) -> PlannedRun:
+    """Stages 1-3 (options and mode, columns, plan) on a pair: nothing is written."""
+    from hitops.calibrate.inputs import check_inputs, parse_methods
+    from hitops.calibrate.modes import check_options
+    from hitops.calibrate.plan import build_plan
+
+    methods = parse_methods(opts.output.method)
+    check_options(opts, methods)
+    outputs, columns = check_inputs(opts, methods, opts.ref_ms, opts.target_ms)
+    return PlannedRun(build_plan(opts, methods, outputs, opts.ref_ms, opts.target_ms, columns,
+                                 {}), truth)
+
+
+@pytest.fixture
+def planned_run(shared_pair, calibrate_options):
+    """``planned_run(spec, **flags)``: stages 1-3 on the session's build of ``spec``, read
+    only (a :class:`PlannedRun`)."""
+    def plan(spec: PairSpec, **flags) -> PlannedRun:
+        truth = shared_pair(spec)
+        return _plan(truth, calibrate_options(truth.ref_ms, truth.target_ms, **flags))
+    return plan
+
+
+@pytest.fixture
+def planned_copy(new_pair, calibrate_options):
+    """``planned_copy(spec, **flags)``: stages 1-3 on a private copy of ``spec``'s pair, for
+    a test that goes on to write (stage 4 and after)."""
+    def plan(spec: PairSpec, **flags) -> PlannedRun:
+        truth = new_pair(spec)
+        return _plan(truth, calibrate_options(truth.ref_ms, truth.target_ms, **flags))
+    return plan
 
 
 def importuvfits(fits: Path, ms: Path) -> Path:

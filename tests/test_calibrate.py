@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from casacore import tables as pt
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate_flat
 from hitops.testing import (DEFAULT_NAMES, PairSpec, Signal, Storage, Troposphere, add_column,
                             expected_pwc_phase, wrap)
 from ms_columns import col  # tests/ is on sys.path (rootdir-relative)
@@ -40,7 +40,7 @@ def series(truth, values, bl_ant=(0, 1), corr=0):
 @pytest.mark.parametrize("ratio,jump_deg", [(230 / 86, -117.209), (2.5, 180.0), (340 / 255, 120.0)])
 def test_cfpt_jumps_by_2pi_eps_at_every_reference_wrap(new_pair, ratio, jump_deg):
     truth = new_pair(PairSpec(ratio=ratio, n_time=400, seed=3))
-    calibrate(truth.ref_ms, truth.target_ms, method="cfpt")
+    calibrate_flat(truth.ref_ms, truth.target_ms, method="cfpt")
     residual = wrap(out_phase(truth.target_ms, "CFPT_DATA") - truth.source_phase)
     n = true_wraps(truth)
     eps = ratio - math.floor(ratio)
@@ -64,7 +64,7 @@ def test_cfpt_jumps_by_2pi_eps_at_every_reference_wrap(new_pair, ratio, jump_deg
 def test_pwc_is_truth_up_to_n0_and_the_offset_step_removes_it(tmp_path, new_pair):
     truth = new_pair(PairSpec(n_time=300, seed=1, troposphere=Troposphere(phase_offset_rad=2.5)))
     n0_expected = expected_pwc_phase(truth)
-    calibrate(truth.ref_ms, truth.target_ms, method="pwc")
+    calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc")
     pwc = out_phase(truth.target_ms)
     assert np.max(np.abs(wrap(pwc - n0_expected))) < 1e-5
     # the constant offset is really there on some baselines (n0 != 0) ...
@@ -74,7 +74,7 @@ def test_pwc_is_truth_up_to_n0_and_the_offset_step_removes_it(tmp_path, new_pair
     reference = np.exp(1j * (truth.source_phase + rng.normal(0, 0.3, truth.source_phase.shape)))
     add_column(truth.target_ms, "CORRECTED_DATA", reference)
     report_path = tmp_path / "offsets.json"
-    calibrate(truth.ref_ms, truth.target_ms, method="pwc", overwrite=True,
+    calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc", overwrite=True,
               offset_reference_column="CORRECTED_DATA", report=str(report_path))
     pwc = out_phase(truth.target_ms)
     assert np.max(np.abs(wrap(pwc - truth.source_phase))) < 1e-5
@@ -93,7 +93,7 @@ def test_pwc_is_truth_up_to_n0_and_the_offset_step_removes_it(tmp_path, new_pair
 def test_offset_step_k_is_bounded(new_pair):
     truth = new_pair(PairSpec(n_time=200, seed=1, troposphere=Troposphere(phase_offset_rad=2.5)))
     add_column(truth.target_ms, "CORRECTED_DATA", np.exp(1j * truth.source_phase))
-    report = calibrate(truth.ref_ms, truth.target_ms, offset_reference_column="CORRECTED_DATA",
+    report = calibrate_flat(truth.ref_ms, truth.target_ms, offset_reference_column="CORRECTED_DATA",
                        max_offset_wraps=0)
     assert all(e["k"] == 0 for e in report["offset_step"]["series"])
 
@@ -101,7 +101,7 @@ def test_offset_step_k_is_bounded(new_pair):
 def test_cwu_equals_pwc(new_pair):
     truth = new_pair(PairSpec(n_time=300, seed=5, troposphere=Troposphere(phase_offset_rad=1.7),
                               signal=Signal(sigma_target=0.4)))
-    calibrate(truth.ref_ms, truth.target_ms, method="pwc,cwu")
+    calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc,cwu")
     pwc = col(truth.target_ms, "PWC_DATA")
     cwu = col(truth.target_ms, "CWU_DATA")
     assert np.max(np.abs(wrap(np.angle(pwc) - np.angle(cwu)))) < 1e-5
@@ -111,7 +111,7 @@ def test_cwu_equals_pwc(new_pair):
 def test_integer_ratio_all_three_agree(new_pair):
     truth = new_pair(PairSpec(ratio=3.0, n_time=300, seed=2,
                               troposphere=Troposphere(phase_offset_rad=2.5)))
-    report = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu")
+    report = calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu")
     assert report["eps"] == 0.0 and report["r"] == 3
     for name in ("PWC_DATA", "CFPT_DATA", "CWU_DATA"):
         assert np.max(np.abs(wrap(out_phase(truth.target_ms, name) - truth.source_phase))) < 1e-4
@@ -123,7 +123,7 @@ def test_thermal_noise_residual_variance(new_pair):
                               troposphere=Troposphere(step_rad=0.05, drift_rad=0.02),
                               signal=Signal(sigma_ref=sigma_r_cpt, sigma_target=sigma_t_cpt,
                                             ref_amp=ref_amp, target_amp=tgt_amp)))
-    calibrate(truth.ref_ms, truth.target_ms, method="pwc")
+    calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc")
     residual = wrap(out_phase(truth.target_ms) - expected_pwc_phase(truth))
     # n0 may differ from the noise-free count where a series starts near +-pi: take out
     # each series' circular mean before measuring the scatter
@@ -148,8 +148,8 @@ def test_reordered_rows_and_swapped_antennas_give_the_same_answer(tmp_path, new_
     mixed = new_pair(replace(spec, storage=Storage(shuffle_ref=True, shuffle_target=True,
                                                    swap_ref_baselines=(0, 3, 5))),
                      tmp_path / "mixed")
-    calibrate(plain.ref_ms, plain.target_ms, method="pwc,cfpt")
-    calibrate(mixed.ref_ms, mixed.target_ms, method="pwc,cfpt")
+    calibrate_flat(plain.ref_ms, plain.target_ms, method="pwc,cfpt")
+    calibrate_flat(mixed.ref_ms, mixed.target_ms, method="pwc,cfpt")
     for name in ("PWC_DATA", "CFPT_DATA"):
         a = out_phase(plain.target_ms, name)
         b = out_phase(mixed.target_ms, name)
@@ -184,7 +184,7 @@ def test_flags_nans_and_zero_amplitudes(new_pair):
     ref_flag_cells[bad[20:40], 1] = True
     ref_flag_cells[bad[40:], :] = True
     before = {c: col(truth.target_ms, c) for c in ("DATA", "FLAG", "FLAG_ROW", "UVW", "TIME", "WEIGHT")}
-    report = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cwu")
+    report = calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc,cwu")
     flag = col(truth.target_ms, "FLAG")[:, 0, :]
     expected_flag = before["FLAG"][:, 0, :] | before["FLAG_ROW"][:, None] | ref_flag_cells
     assert np.array_equal(flag, expected_flag)
@@ -199,7 +199,7 @@ def test_flags_nans_and_zero_amplitudes(new_pair):
     s = report["samples"]
     assert s["reference_invalid"] + s["target_invalid"] == int(expected_flag.sum())
     # a second run (--overwrite) is idempotent and keeps the first backup
-    calibrate(truth.ref_ms, truth.target_ms, method="pwc,cwu", overwrite=True)
+    calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc,cwu", overwrite=True)
     assert np.array_equal(col(truth.target_ms, "FLAG")[:, 0, :], expected_flag)
     assert np.array_equal(col(truth.target_ms, "FLAG_HITOPS_BACKUP"), before["FLAG"])
 
@@ -216,7 +216,7 @@ def test_unmatched_rows_are_flagged_and_other_columns_untouched(new_pair):
     with pt.table(str(truth.target_ms), ack=False) as t:
         names = [c for c in t.colnames() if c != "FLAG"]
         before = {c: t.getcol(c) for c in names if c != "FLAG_CATEGORY"}
-    report = calibrate(truth.ref_ms, truth.target_ms)
+    report = calibrate_flat(truth.ref_ms, truth.target_ms)
     flag = col(truth.target_ms, "FLAG")[:, 0, :]
     missing = (truth.ant1 == 1) & (truth.ant2 == 2) & (truth.time > np.median(truth.time))
     assert np.array_equal(flag, np.repeat(missing[:, None], 2, axis=1))
@@ -230,14 +230,14 @@ def test_antenna_map_pairs_differently_named_stations(new_pair):
     truth = new_pair(PairSpec(n_time=150, seed=8, ref_names=("AP", "JC", "PV", "GL"),
                               target_names=("AP", "SM", "PV", "GL")))
     # without the map SM is a station of the target band only: its baselines are left out
-    report = calibrate(truth.ref_ms, truth.target_ms)
+    report = calibrate_flat(truth.ref_ms, truth.target_ms)
     sm_rows = (truth.ant1 == 1) | (truth.ant2 == 1)
     assert np.all(col(truth.target_ms, "FLAG")[sm_rows])
     assert not np.any(col(truth.target_ms, "FLAG")[~sm_rows])
     assert report["samples"]["no_reference_row"] == 2 * int(sm_rows.sum())
     assert {"reference": None, "reference_antenna": None, "target": "SM",
             "target_antenna": 1} in report["stations"]
-    calibrate(truth.ref_ms, truth.target_ms, antenna_map="JC=SM", overwrite=True)
+    calibrate_flat(truth.ref_ms, truth.target_ms, antenna_map="JC=SM", overwrite=True)
     assert np.max(np.abs(wrap(out_phase(truth.target_ms) - expected_pwc_phase(truth)))) < 1e-5
 
 
@@ -247,7 +247,7 @@ THREE_SCANS = PairSpec(n_time=600, n_scans=3, seed=9, troposphere=Troposphere(dr
 
 def test_scans_restart_wrap_counting(new_pair, shared_pair):
     truth = new_pair(THREE_SCANS)
-    report = calibrate(truth.ref_ms, truth.target_ms)
+    report = calibrate_flat(truth.ref_ms, truth.target_ms)
     pwc = out_phase(truth.target_ms)
     assert np.max(np.abs(wrap(pwc - expected_pwc_phase(truth)))) < 1e-5
     # the per-scan restart matters: counting through the scans would give another answer
@@ -269,7 +269,7 @@ def test_reported_wrap_events_are_the_wraps_inside_scans(new_pair):
         steps = np.abs(np.diff(ref_wrapped[sel], axis=0)) > np.pi
         expected[(p, q)] = steps[same_scan].sum(axis=0)
     for chunk_rows in (2_000_000, 97):
-        report = calibrate(truth.ref_ms, truth.target_ms, overwrite=True, chunk_rows=chunk_rows)
+        report = calibrate_flat(truth.ref_ms, truth.target_ms, overwrite=True, chunk_rows=chunk_rows)
         names = list(DEFAULT_NAMES)
         got = {}
         for entry in report["wraps"]:
@@ -284,10 +284,10 @@ def test_time_chunks_carry_the_wrap_count(new_pair):
     truth = new_pair(PairSpec(n_time=500, n_scans=2, seed=10,
                               troposphere=Troposphere(phase_offset_rad=1.0)))
     add_column(truth.target_ms, "CORRECTED_DATA", np.exp(1j * truth.source_phase))
-    calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu",
+    calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu",
               offset_reference_column="CORRECTED_DATA")
     whole = {c: col(truth.target_ms, c) for c in ("PWC_DATA", "CFPT_DATA", "CWU_DATA", "FLAG")}
-    report = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu", overwrite=True,
+    report = calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu", overwrite=True,
                        offset_reference_column="CORRECTED_DATA", chunk_rows=97)
     for c, value in whole.items():
         assert np.array_equal(col(truth.target_ms, c), value), c
@@ -313,11 +313,11 @@ def test_chunked_run_reads_at_most_chunk_rows_at_once(new_pair, order, monkeypat
     add_column(truth.target_ms, "CORRECTED_DATA", np.exp(1j * truth.source_phase))
     kw = dict(method="pwc,cfpt", offset_reference_column="CORRECTED_DATA")
     with record_reads(monkeypatch) as whole_reads:
-        whole_report = calibrate(truth.ref_ms, truth.target_ms, **kw)
+        whole_report = calibrate_flat(truth.ref_ms, truth.target_ms, **kw)
     whole = {c: col(truth.target_ms, c) for c in ("PWC_DATA", "CFPT_DATA", "FLAG")}
     chunk_rows = 120
     with record_reads(monkeypatch) as reads:
-        report = calibrate(truth.ref_ms, truth.target_ms, overwrite=True, chunk_rows=chunk_rows,
+        report = calibrate_flat(truth.ref_ms, truth.target_ms, overwrite=True, chunk_rows=chunk_rows,
                            **kw)
     for c, value in whole.items():
         assert np.array_equal(col(truth.target_ms, c), value), c
@@ -347,14 +347,14 @@ def test_ref_model_column_removes_source_structure(new_pair):
     with pt.table(str(truth.ref_ms), readonly=False, ack=False) as t:
         t.putcol("DATA", t.getcol("DATA") * np.exp(1j * structure[:, None, :]).astype(np.complex64))
     add_column(truth.ref_ms, "MODEL_DATA", 0.7 * np.exp(1j * structure))
-    calibrate(truth.ref_ms, truth.target_ms, ref_model_column="MODEL_DATA")
+    calibrate_flat(truth.ref_ms, truth.target_ms, ref_model_column="MODEL_DATA")
     assert np.max(np.abs(wrap(out_phase(truth.target_ms) - expected_pwc_phase(truth)))) < 1e-4
 
 
 def test_report_and_log(tmp_path, new_pair, caplog):
     truth = new_pair(PairSpec(n_time=100, seed=13))
     with caplog.at_level("INFO", logger="hitops"):
-        report = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt")
+        report = calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc,cfpt")
     text = caplog.text
     assert "R = 2.674418605" in text and "eps = 0.674418604" in text
     assert "matched 600 of 600 target rows" in text
@@ -370,16 +370,16 @@ def test_distributed_local_cluster_gives_identical_output(new_pair):
     from distributed import LocalCluster
 
     truth = new_pair(PairSpec(n_time=300, seed=14, n_scans=2))
-    calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu")
-    calibrate(truth.ref_ms, truth.target_ms, tracker="antenna", output_column="PWC_ANT")
+    calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu")
+    calibrate_flat(truth.ref_ms, truth.target_ms, tracker="antenna", output_column="PWC_ANT")
     threads = {c: col(truth.target_ms, c)
                for c in ("PWC_DATA", "CFPT_DATA", "CWU_DATA", "FLAG", "PWC_ANT")}
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                       dashboard_address=None) as cluster:
         # the robust trackers run in the client, the transfer tasks on the cluster
-        calibrate(truth.ref_ms, truth.target_ms, tracker="antenna", output_column="PWC_ANT",
+        calibrate_flat(truth.ref_ms, truth.target_ms, tracker="antenna", output_column="PWC_ANT",
                   overwrite=True, scheduler=cluster.scheduler_address, chunk_rows=400)
-        report = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu",
+        report = calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu",
                            overwrite=True, scheduler=cluster.scheduler_address, chunk_rows=400)
         # the kernel tasks went to the cluster, the table reads and writes did not (a
         # scheduler that unpickles dask-ms handles keeps the table open after the run)
@@ -412,7 +412,7 @@ def test_command_line_with_a_cluster_creates_new_columns_first(tmp_path, new_pai
     threads_ms = threads_dir / "target.ms"
     import shutil
     shutil.copytree(truth.target_ms, threads_ms)
-    calibrate(truth.ref_ms, threads_ms, method="pwc,cfpt")
+    calibrate_flat(truth.ref_ms, threads_ms, method="pwc,cfpt")
     hitops = Path(sys.executable).with_name("hitops")
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                       dashboard_address=None) as cluster:
@@ -457,7 +457,7 @@ def test_cluster_run_that_fails_drops_the_columns_it_created(new_pair, monkeypat
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
                       dashboard_address=None) as cluster:
         with pytest.raises(OSError, match="simulated"):
-            calibrate(truth.ref_ms, truth.target_ms, scheduler=cluster.scheduler_address)
+            calibrate_flat(truth.ref_ms, truth.target_ms, scheduler=cluster.scheduler_address)
     with pt.table(str(truth.target_ms), ack=False) as t:
         assert "PWC_DATA" not in t.colnames() and "FLAG_HITOPS_BACKUP" not in t.colnames()
     for c, value in before.items():
@@ -469,7 +469,7 @@ def test_all_reference_flagged_flags_everything_without_failing(new_pair):
     with pt.table(str(truth.ref_ms), readonly=False, ack=False) as t:
         t.putcol("FLAG", np.ones_like(t.getcol("FLAG")))
     add_column(truth.target_ms, "CORRECTED_DATA", np.exp(1j * truth.source_phase))
-    report = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu",
+    report = calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc,cfpt,cwu",
                        offset_reference_column="CORRECTED_DATA")
     assert col(truth.target_ms, "FLAG").all()
     assert not np.any(col(truth.target_ms, "PWC_DATA"))
@@ -485,7 +485,7 @@ def test_one_sample_baseline_and_ratio_below_one(new_pair):
         move = np.flatnonzero((a1 == 0) & (a2 == 1) & (tm != tm.min()))
         tm[move] += 86400.0
         t.putcol("TIME", tm)
-    report = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cwu")
+    report = calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc,cwu")
     assert report["r"] == 0 and report["eps"] == pytest.approx(0.6)
     flag = col(truth.target_ms, "FLAG")[:, 0, 0]
     one = (truth.ant1 == 0) & (truth.ant2 == 1)
@@ -537,7 +537,7 @@ def test_average_channels(tmp_path, shared_pair):
     _two_channel_copy(truth.ref_ms, ref2, flag_second=np.arange(0, 600, 7))
     data, flag = _two_channel_copy(truth.target_ms, tgt2, flag_second=np.arange(3, 600, 5))
     # (without --average-channels each channel gets its own ratio: tests/test_calibrate_wideband.py)
-    calibrate(ref2, tgt2, average_channels=True)
+    calibrate_flat(ref2, tgt2, average_channels=True)
     out = col(tgt2, "PWC_DATA")
     assert out.shape == (600, 2, 2)
     expected = expected_pwc_phase(truth)
@@ -596,7 +596,7 @@ def test_failure_while_writing_rolls_back(new_pair, monkeypatch):
 
     monkeypatch.setattr(msio, "write_main_columns", failing)
     with pytest.raises(OSError, match="simulated"):
-        calibrate(truth.ref_ms, truth.target_ms, chunk_rows=150)
+        calibrate_flat(truth.ref_ms, truth.target_ms, chunk_rows=150)
     with pt.table(str(truth.target_ms), ack=False) as t:
         names = t.colnames()
     assert "PWC_DATA" not in names and "FLAG_HITOPS_BACKUP" not in names
@@ -618,7 +618,7 @@ def test_a_time_gap_inside_one_scan_restarts_the_count(new_pair, caplog):
             t.putcol("SCAN_NUMBER", np.ones_like(scan))
     truth.time[second] += 120.0
     with caplog.at_level("INFO", logger="hitops"):
-        calibrate(truth.ref_ms, truth.target_ms)
+        calibrate_flat(truth.ref_ms, truth.target_ms)
     assert "1 time gap(s) longer than" in caplog.text and "SCAN_NUMBER 1" in caplog.text
     # the truth of the two-scan pair: the count restarts after the gap
     assert np.max(np.abs(wrap(out_phase(truth.target_ms) - expected_pwc_phase(truth)))) < 1e-5
@@ -633,10 +633,10 @@ def test_cluster_rerun_with_overwrite_of_its_own_output(new_pair):
     truth = new_pair(PairSpec(n_time=100, seed=33))
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
                       dashboard_address=None) as cluster:
-        calibrate(truth.ref_ms, truth.target_ms, method="pwc", no_verdict=True,
+        calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc", no_verdict=True,
                   scheduler=cluster.scheduler_address)
         first = col(truth.target_ms, "PWC_DATA")
-        calibrate(truth.ref_ms, truth.target_ms, method="pwc", no_verdict=True, overwrite=True,
+        calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc", no_verdict=True, overwrite=True,
                   scheduler=cluster.scheduler_address)
     np.testing.assert_array_equal(col(truth.target_ms, "PWC_DATA"), first)
     with pt.table(str(truth.target_ms), ack=False) as t:
@@ -666,7 +666,7 @@ def test_staging_columns_take_the_target_columns_storage(new_pair):
     assert like_dminfo({"TYPE": "StandardStMan"}, "X")["TYPE"] == "StandardStMan"
     # a baseline-major pair cut into chunks: the output is tiled with short tiles
     truth = new_pair(PairSpec(n_time=400, seed=5))
-    report = calibrate(truth.ref_ms, truth.target_ms, method="pwc", chunk_rows=500)
+    report = calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc", chunk_rows=500)
     assert report["chunks"] > 2
     with pt.table(str(truth.target_ms), ack=False) as t:
         info = next(v for v in t.getdminfo().values() if "PWC_DATA" in v["COLUMNS"])

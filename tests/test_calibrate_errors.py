@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from casacore import tables as pt
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate_flat
 from hitops.testing import PairSpec, Storage, add_column
 from hitops.errors import (ColumnError, InputError, MeasurementSetError, OutputExistsError,
                            StationError)
@@ -42,7 +42,7 @@ def check(pair, error, match, **kwargs):
     tgt = kwargs.pop("target_ms", pair.target_ms)
     before = snapshot(pair.ref_ms, pair.target_ms)
     with pytest.raises(error, match=match):
-        calibrate(ref, tgt, **kwargs)
+        calibrate_flat(ref, tgt, **kwargs)
     assert snapshot(pair.ref_ms, pair.target_ms) == before
     assert not Path(str(pair.target_ms) + ".hitops-calibrate.json").exists()
 
@@ -82,7 +82,7 @@ def test_existing_output_column_needs_overwrite(new_pair):
     truth = new_pair(PairSpec(n_time=40, seed=22))
     add_column(truth.target_ms, "PWC_DATA", np.ones((truth.time.size, 2)))
     check(truth, OutputExistsError, r"column PWC_DATA already exists in .*target\.ms; pass --overwrite")
-    calibrate(truth.ref_ms, truth.target_ms, overwrite=True)
+    calibrate_flat(truth.ref_ms, truth.target_ms, overwrite=True)
     with pt.table(str(truth.target_ms), ack=False) as t:
         assert not np.allclose(t.getcol("PWC_DATA"), 1)
 
@@ -199,6 +199,6 @@ def test_two_rows_in_one_cell_are_refused_whole_or_chunked(new_pair, chunk_rows,
         names = set(t.colnames())
     with pytest.raises(MeasurementSetError,
                        match=rf"{changed}: 1 rows share a \(baseline, time\) cell"):
-        calibrate(truth.ref_ms, truth.target_ms, method="pwc", chunk_rows=chunk_rows)
+        calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc", chunk_rows=chunk_rows)
     with pt.table(str(truth.target_ms), ack=False) as t:
         assert set(t.colnames()) == names

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from casacore import tables as pt
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate_flat
 from hitops.testing import PairSpec, Troposphere
 from hitops.errors import MeasurementSetError
 
@@ -99,7 +99,7 @@ def test_each_group_gets_its_own_ratio_and_the_truth_back(merged, tmp_path):
     truths, ref, tgt, _ = merged
     work = str(tmp_path / "target.ms")
     shutil.copytree(tgt, work)
-    report = calibrate(ref, work, method="pwc,cfpt")
+    report = calibrate_flat(ref, work, method="pwc,cfpt")
     groups = report["groups"]
     assert len(groups) == 4
     seen = {(g["field"], round(g["ref_freq_hz"])): g for g in groups}
@@ -132,14 +132,14 @@ def test_groups_never_mix(merged, tmp_path):
     truths, ref, tgt, _ = merged
     work = str(tmp_path / "target.ms")
     shutil.copytree(tgt, work)
-    calibrate(ref, work, method="pwc,cfpt,cwu", offset_model="point")
+    calibrate_flat(ref, work, method="pwc,cfpt,cwu", offset_model="point")
     with pt.table(work, ack=False) as t:
         field_id, ddid = t.getcol("FIELD_ID"), t.getcol("DATA_DESC_ID")
     names, freqs = {"B": 0, "A": 1}, {88e9: 0, 86e9: 1}
     for k, (name, freq, _) in enumerate(GROUPS):
         alone = str(tmp_path / f"alone{k}.ms")
         shutil.copytree(truths[k].target_ms, alone)
-        calibrate(str(truths[k].ref_ms), alone, method="pwc,cfpt,cwu", offset_model="point")
+        calibrate_flat(str(truths[k].ref_ms), alone, method="pwc,cfpt,cwu", offset_model="point")
         rows = (field_id == names[name]) & (ddid == freqs[freq])
         for column in ("PWC_DATA", "CFPT_DATA", "CWU_DATA", "FLAG"):
             np.testing.assert_array_equal(col(work, column)[rows], col(alone, column),
@@ -172,8 +172,8 @@ def test_several_groups_cut_into_chunks_write_what_one_chunk_writes(two_fields, 
     with pt.table(whole, ack=False) as t:
         sizes = np.bincount(t.getcol("FIELD_ID"))
     assert sizes.size == 2 and sizes[0] != sizes[1]
-    calibrate(ref, whole, method="pwc,cfpt", tracker=tracker, no_verdict=True)
-    report = calibrate(ref, chunked, method="pwc,cfpt", tracker=tracker, chunk_rows=500,
+    calibrate_flat(ref, whole, method="pwc,cfpt", tracker=tracker, no_verdict=True)
+    report = calibrate_flat(ref, chunked, method="pwc,cfpt", tracker=tracker, chunk_rows=500,
                        no_verdict=True)
     assert all(g["chunks"] > 1 for g in report["groups"]), report["groups"]
     for column in ("PWC_DATA", "CFPT_DATA", "FLAG"):
@@ -188,7 +188,7 @@ def test_window_counts_that_cannot_pair_are_refused(merged, tmp_path):
     before = json.dumps(sorted(pt.table(tgt, ack=False).colnames()))
     with pytest.raises(MeasurementSetError, match=r"field A: 2 spectral windows in .*ref.ms"
                                                   r".*and 1 in .*one-window.ms"):
-        calibrate(ref, tgt, method="pwc")
+        calibrate_flat(ref, tgt, method="pwc")
     assert json.dumps(sorted(pt.table(tgt, ack=False).colnames())) == before
 
 
@@ -205,7 +205,7 @@ def test_one_group_of_a_set_with_two_field_rows_in_several_chunks(tmp_path, new_
         _copy_row(ms, ms, "FIELD", NAME="M87")
         with pt.table(ms, readonly=False, ack=False) as t:
             t.putcol("FIELD_ID", np.ones(t.nrows(), np.int32))
-    plain = calibrate(truth.ref_ms, truth.target_ms, method="pwc", chunk_rows=1000)
-    moved = calibrate(ref, tgt, method="pwc", chunk_rows=1000)
+    plain = calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc", chunk_rows=1000)
+    moved = calibrate_flat(ref, tgt, method="pwc", chunk_rows=1000)
     assert plain["chunks"] == moved["chunks"] > 2
     np.testing.assert_array_equal(col(tgt, "PWC_DATA"), col(truth.target_ms, "PWC_DATA"))

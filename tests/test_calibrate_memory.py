@@ -7,7 +7,7 @@ import shutil
 import numpy as np
 import pytest
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate_flat
 from hitops.calibrate.memory import bytes_per_row, parse_budget, rows_for_budget
 from hitops.testing import PairSpec, Troposphere
 from hitops.errors import InputError
@@ -34,10 +34,10 @@ def test_a_small_budget_chunks_the_run_and_changes_nothing(tmp_path, new_pair):
                               troposphere=Troposphere(phase_offset_rad=1.0)))
     other = tmp_path / "copy.ms"
     shutil.copytree(truth.target_ms, other)
-    whole = calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt")
+    whole = calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc,cfpt")
     # 15 baselines x 4000 times = 60 000 rows per band: a 310 MB budget leaves room for a
     # few thousand rows per chunk (hitops/calibrate/memory.py)
-    small = calibrate(truth.ref_ms, str(other), method="pwc,cfpt", memory_budget="310MB")
+    small = calibrate_flat(truth.ref_ms, str(other), method="pwc,cfpt", memory_budget="310MB")
     assert whole["chunks"] == 1 and small["chunks"] > 3
     for column in ("PWC_DATA", "CFPT_DATA", "FLAG"):
         np.testing.assert_array_equal(col(str(other), column), col(truth.target_ms, column))

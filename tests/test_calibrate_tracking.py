@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 from casacore import tables as pt
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate_flat
 from hitops.testing import PairSpec, Signal, Troposphere, add_column, wrap
 from hitops.errors import InputError, StationError
 from hitops.tracking.antenna_kernel import closure_phases
@@ -120,7 +120,7 @@ NOISY = PairSpec(n_ant=4, n_time=1500, seed=3,
 
 
 def run(truth, column="OUT", **kw):
-    rep = calibrate(truth.ref_ms, truth.target_ms, output_column=column, overwrite=True, **kw)
+    rep = calibrate_flat(truth.ref_ms, truth.target_ms, output_column=column, overwrite=True, **kw)
     return col(truth.target_ms, column), rep
 
 
@@ -359,7 +359,7 @@ def test_bad_tracking_options_leave_the_ms_unchanged(new_pair, kwargs, match):
         before = (sorted(t.colnames()), t.getcol("FLAG").copy())
     error = StationError if "refant" in kwargs else InputError
     with pytest.raises(error, match=match):
-        calibrate(truth.ref_ms, truth.target_ms, **kwargs)
+        calibrate_flat(truth.ref_ms, truth.target_ms, **kwargs)
     with pt.table(str(truth.target_ms), ack=False) as t:
         assert sorted(t.colnames()) == before[0]
         assert np.array_equal(t.getcol("FLAG"), before[1])
@@ -416,9 +416,9 @@ def test_fixed_window_max_gap_and_elevation_scaling_options(tmp_path, new_pair):
     from hitops.simulate.api import simulate
     sim = simulate("paper", tmp_path / "sim", prefix="s", duration=300, stations="AP,PV,KP",
                    correlations="RR")
-    rep = calibrate(sim["86"], sim["230"], tracker="smooth")
+    rep = calibrate_flat(sim["86"], sim["230"], tracker="smooth")
     assert rep["tracking"]["setup"]["elevation_scaling"] is True
-    rep = calibrate(sim["86"], sim["230"], tracker="smooth", no_elevation_scaling=True,
+    rep = calibrate_flat(sim["86"], sim["230"], tracker="smooth", no_elevation_scaling=True,
                     overwrite=True)
     assert rep["tracking"]["setup"]["elevation_scaling"] is False
     assert rep["tracking"]["setup"]["snr_source"] == "sigma"     # the simulator writes SIGMA

@@ -16,7 +16,7 @@ import shutil
 import numpy as np
 import pytest
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate_flat
 from hitops.errors import MeasurementSetError
 
 from solutions_scene import C_LIGHT, make_solution_pair
@@ -74,7 +74,7 @@ def channel_coherence(ms, column):
 
 def test_every_channel_of_every_window_is_flat_after_pwc(pair, tmp_path):
     target = fresh_target(pair, tmp_path)
-    report = calibrate(str(pair.ref_ms), str(target), method="pwc,cfpt,cwu", tracker="antenna",
+    report = calibrate_flat(str(pair.ref_ms), str(target), method="pwc,cfpt,cwu", tracker="antenna",
                        offset_model="point", no_verdict=True)
     pwc, vector = channel_coherence(target, "PWC_DATA")
     assert len(pwc) == 12 and all(c.shape == (16, 2) for c in pwc.values())   # 6 bl x 2 windows
@@ -93,13 +93,13 @@ def test_every_channel_of_every_window_is_flat_after_pwc(pair, tmp_path):
 
 def test_one_ratio_per_window_leaves_the_edges_drifting(pair, tmp_path):
     target = fresh_target(pair, tmp_path)
-    calibrate(str(pair.ref_ms), str(target), method="pwc", tracker="count",
+    calibrate_flat(str(pair.ref_ms), str(target), method="pwc", tracker="count",
               average_channels=True, no_verdict=True)
     averaged, _ = channel_coherence(target, "PWC_DATA")
     edges = min(min(c[0].min(), c[-1].min()) for c in averaged.values())
     assert edges < 0.999
     per_channel = fresh_target(pair, tmp_path / "per-channel")
-    calibrate(str(pair.ref_ms), str(per_channel), method="pwc", tracker="count", no_verdict=True)
+    calibrate_flat(str(pair.ref_ms), str(per_channel), method="pwc", tracker="count", no_verdict=True)
     kept, _ = channel_coherence(per_channel, "PWC_DATA")
     assert min(c.min() for c in kept.values()) >= 0.999
 
@@ -113,7 +113,7 @@ def test_antenna_tracker_keeps_a_resolved_sources_closure_phases_on_every_channe
         return 1 + 0.5 * np.exp(-2j * np.pi * (u * offset + v * 0.3 * offset) * nu / C_LIGHT)
 
     target = fresh_target(pair, tmp_path, two_points)
-    calibrate(str(pair.ref_ms), str(target), method="pwc", tracker="antenna", no_verdict=True)
+    calibrate_flat(str(pair.ref_ms), str(target), method="pwc", tracker="antenna", no_verdict=True)
     before = closures(target, "DATA")
     after = closures(target, "PWC_DATA")
     assert np.abs(before).max() > 0.1                                     # not zero to begin with
@@ -140,7 +140,7 @@ def test_channels_out_of_order_are_refused_naming_the_window(pair, tmp_path):
     with pt.table(f"{target}::SPECTRAL_WINDOW", readonly=False, ack=False) as t:
         t.putcell("CHAN_FREQ", 1, t.getcell("CHAN_FREQ", 1)[::-1].copy())
     with pytest.raises(MeasurementSetError, match="spectral window 1 are decreasing or repeated"):
-        calibrate(str(pair.ref_ms), str(target), method="pwc", no_verdict=True)
+        calibrate_flat(str(pair.ref_ms), str(target), method="pwc", no_verdict=True)
     with pt.table(str(target), ack=False) as t:
         assert "PWC_DATA" not in t.colnames()
 
@@ -153,7 +153,7 @@ def test_the_fringe_jones_table_applied_by_casa_equals_the_column(pair, tmp_path
 
     target = fresh_target(pair, tmp_path)
     table = tmp_path / "fpt.fringe"
-    report = calibrate(str(pair.ref_ms), str(target), method="pwc", tracker="antenna",
+    report = calibrate_flat(str(pair.ref_ms), str(target), method="pwc", tracker="antenna",
                        offset_model="point", caltable=str(table), no_verdict=True)
     assert report["caltable"]["type"] == "Fringe Jones"
     with pt.table(str(table), ack=False) as t:
@@ -193,7 +193,7 @@ def test_uvfits_with_several_ifs_goes_in_and_comes_out_as_every_window(pair, tmp
     primary = read_headers(tgt_fits)[0][0]
     assert primary["NAXIS4"] == 16 and primary["NAXIS5"] == 2      # channels, IFs
     out = tmp_path / "pwc.uvfits"
-    report = calibrate(str(ref_fits), str(tgt_fits), method="pwc", tracker="antenna",
+    report = calibrate_flat(str(ref_fits), str(tgt_fits), method="pwc", tracker="antenna",
                        offset_model="point", workdir=str(tmp_path / "w"),
                        export_uvfits=str(out), no_verdict=True)
     assert [g["channels"]["n_chan_target"] for g in report["groups"]] == [16, 16]

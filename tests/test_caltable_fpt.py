@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from casacore import tables as pt
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate_flat
 from hitops.testing import PairSpec, Troposphere
 from hitops.errors import InputError
 from ms_columns import col  # tests/ is on sys.path (rootdir-relative)
@@ -44,7 +44,7 @@ def test_applycal_of_the_table_equals_the_pwc_column(tmp_path, new_pair, offset_
                               corr_types=("RR", "RL", "LR", "LL"),
                               troposphere=Troposphere(phase_offset_rad=1.0, ref_offset_scale=0.0)))
     table = tmp_path / "fpt.G"
-    report = calibrate(truth.ref_ms, truth.target_ms, tracker="antenna", caltable=str(table),
+    report = calibrate_flat(truth.ref_ms, truth.target_ms, tracker="antenna", caltable=str(table),
                        offset_model=offset_model, no_verdict=True)
     assert report["caltable"]["solutions"] > 0 and table.is_dir()
     pwc = col(truth.target_ms, "PWC_DATA")
@@ -66,7 +66,7 @@ def test_applycal_of_the_table_equals_the_pwc_column(tmp_path, new_pair, offset_
 def test_a_table_needs_the_antenna_tracker(tmp_path, new_pair):
     truth = new_pair(PairSpec(n_time=40, seed=3))
     with pytest.raises(InputError, match="--caltable .* needs --tracker antenna"):
-        calibrate(truth.ref_ms, truth.target_ms, tracker="count", caltable=str(tmp_path / "t.G"))
+        calibrate_flat(truth.ref_ms, truth.target_ms, tracker="count", caltable=str(tmp_path / "t.G"))
     with pt.table(str(truth.target_ms), ack=False) as t:
         assert "PWC_DATA" not in t.colnames()
     assert not (tmp_path / "t.G").exists()
@@ -83,7 +83,7 @@ def test_calibrate_leaves_no_table_open_for_casa_to_invalidate(tmp_path, new_pai
     table = tmp_path / "fpt.G"
     gc.disable()
     try:
-        calibrate(truth.ref_ms, truth.target_ms, tracker="antenna", caltable=str(table),
+        calibrate_flat(truth.ref_ms, truth.target_ms, tracker="antenna", caltable=str(table),
                   no_verdict=True)
         applycal(truth.target_ms, table)
         with pt.table(str(truth.target_ms), ack=False) as t:

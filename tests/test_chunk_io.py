@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from casacore import tables as pt
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate_flat
 from hitops.calibrate.chunk_io import ChunkIO
 from hitops.errors import MeasurementSetError
 from hitops.testing import PairSpec
@@ -156,7 +156,7 @@ def test_chunk_rows_from_the_index_are_those_a_reread_gives(new_pair):
 
     chunk_read._chunk_rows = both
     try:
-        report = calibrate(truth.ref_ms, truth.target_ms, chunk_rows=400)
+        report = calibrate_flat(truth.ref_ms, truth.target_ms, chunk_rows=400)
     finally:
         chunk_read._chunk_rows = original
     assert report["chunks"] > 2 and {"tgt", "ref"} <= set(compared)
@@ -179,7 +179,7 @@ def test_a_time_changed_after_the_index_pass_is_refused_and_nothing_is_written(n
 
     monkeypatch.setattr(chunks.ChunkMatch, "check", check_then_change)
     with pytest.raises(MeasurementSetError, match="TIME changed while it was being read"):
-        calibrate(truth.ref_ms, truth.target_ms, chunk_rows=400)
+        calibrate_flat(truth.ref_ms, truth.target_ms, chunk_rows=400)
     with pt.table(str(truth.target_ms), ack=False) as t:
         assert "PWC_DATA" not in t.colnames()
     for c, value in before.items():

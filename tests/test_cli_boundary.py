@@ -178,8 +178,8 @@ KILL_DURING_WRITE = textwrap.dedent("""
         original(*args, **kwargs)          # the first chunk's columns reach the disk ...
         os.kill(os.getpid(), signal.SIGKILL)   # ... and the process dies mid-run
     msio.write_main_columns = write_then_die
-    from hitops.calibrate import calibrate
-    calibrate(sys.argv[1], sys.argv[2], method="pwc,cfpt", chunk_rows=100)
+    from hitops.calibrate import calibrate_flat
+    calibrate_flat(sys.argv[1], sys.argv[2], method="pwc,cfpt", chunk_rows=100)
 """)
 
 
@@ -209,10 +209,10 @@ def test_interrupt_during_write_rolls_back(copy):
     """SIGTERM mid-run: the tool's clean-up runs and the set is as it was."""
     ref, tgt = copy
     script = KILL_DURING_WRITE.replace("signal.SIGKILL", "signal.SIGTERM").replace(
-        "from hitops.calibrate import calibrate\n",
-        "from hitops.cli import run_tool\nfrom hitops.calibrate import calibrate\n").replace(
-        'calibrate(sys.argv[1], sys.argv[2], method="pwc,cfpt", chunk_rows=100)',
-        'sys.exit(run_tool("calibrate", calibrate, dict(ref_ms=sys.argv[1], '
+        "from hitops.calibrate import calibrate_flat\n",
+        "from hitops.cli import run_tool\nfrom hitops.calibrate import calibrate_flat\n").replace(
+        'calibrate_flat(sys.argv[1], sys.argv[2], method="pwc,cfpt", chunk_rows=100)',
+        'sys.exit(run_tool("calibrate", calibrate_flat, dict(ref_ms=sys.argv[1], '
         'target_ms=sys.argv[2], method="pwc,cfpt", chunk_rows=100)))')
     before = snapshot(ref, tgt)
     proc = subprocess.run([sys.executable, "-c", script, str(ref), str(tgt)],
@@ -265,8 +265,8 @@ SLOW_WRITE = textwrap.dedent("""
         time.sleep(8)                       # a long write: the second run meets the lock
         return original(*args, **kwargs)
     msio.write_main_columns = slow_write
-    from hitops.calibrate import calibrate
-    calibrate(sys.argv[1], sys.argv[2], method="pwc")
+    from hitops.calibrate import calibrate_flat
+    calibrate_flat(sys.argv[1], sys.argv[2], method="pwc")
 """)
 
 

@@ -126,16 +126,16 @@ def test_slurm_without_sbatch_is_one_clear_error(monkeypatch):
 def test_calibrate_with_scheduler_slurm_matches_threads(tmp_path, new_pair, monkeypatch):
     """hitops calibrate --scheduler slurm:2 through the stand-in: the api.py hook runs
     the transfer on the cluster's workers and writes the threaded run's output."""
-    from hitops.calibrate import calibrate
+    from hitops.calibrate import calibrate_flat
 
     truth = new_pair(PairSpec(n_time=120, seed=41, n_scans=2))
     copy = tmp_path / "copy"
     copy.mkdir()
     shutil.copytree(truth.ref_ms, copy / "ref.ms")
     shutil.copytree(truth.target_ms, copy / "target.ms")
-    calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt")
+    calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc,cfpt")
     record = _stand_in_jobqueue(monkeypatch)
-    calibrate(copy / "ref.ms", copy / "target.ms", method="pwc,cfpt", scheduler="slurm:2")
+    calibrate_flat(copy / "ref.ms", copy / "target.ms", method="pwc,cfpt", scheduler="slurm:2")
     assert record["scaled"][0] == 2 and record["closed"] >= 1
     for c in ("PWC_DATA", "CFPT_DATA", "FLAG"):
         with pt.table(str(truth.target_ms), ack=False) as a, \
@@ -149,17 +149,17 @@ def test_a_default_client_of_the_caller_gets_no_work_without_scheduler(tmp_path,
     and its output is that of a run without the client."""
     from distributed import Client, LocalCluster
 
-    from hitops.calibrate import calibrate
+    from hitops.calibrate import calibrate_flat
 
     truth = new_pair(PairSpec(n_time=120, seed=43, n_scans=2))
     copy = tmp_path / "copy"
     copy.mkdir()
     shutil.copytree(truth.ref_ms, copy / "ref.ms")
     shutil.copytree(truth.target_ms, copy / "target.ms")
-    calibrate(truth.ref_ms, truth.target_ms, method="pwc", no_verdict=True)
+    calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc", no_verdict=True)
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
                       dashboard_address=None) as cluster, Client(cluster) as client:
-        calibrate(copy / "ref.ms", copy / "target.ms", method="pwc", no_verdict=True)
+        calibrate_flat(copy / "ref.ms", copy / "target.ms", method="pwc", no_verdict=True)
         # the scheduler keeps a prefix entry for every kind of task it was ever sent
         received = client.run_on_scheduler(
             lambda dask_scheduler: sorted(dask_scheduler.task_prefixes))

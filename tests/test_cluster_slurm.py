@@ -3,7 +3,7 @@ slurm-wlm and munge, as root).  Skipped where those are missing, e.g. in CI;
 `make slurm-check` runs the full demo the same way.
 
 * `stimela run --slurm -s simulate`: the step runs through a real srun;
-* `calibrate(..., scheduler="slurm:2")`: two dask workers as sbatch jobs through
+* `calibrate_flat(..., scheduler="slurm:2")`: two dask workers as sbatch jobs through
   dask-jobqueue; the output equals the threaded run's.
 """
 
@@ -59,17 +59,17 @@ def test_stimela_step_runs_through_a_real_srun(tmp_path):
 
 def test_calibrate_scheduler_slurm_matches_threads(tmp_path, new_pair):
     pytest.importorskip("dask_jobqueue", reason="dask-jobqueue missing: pip install 'hitops[hpc]'")
-    from hitops.calibrate import calibrate
+    from hitops.calibrate import calibrate_flat
 
     truth = new_pair(PairSpec(n_time=200, seed=43, n_scans=2))
     work = tmp_path / "slurm"
     work.mkdir()
     for ms in (truth.ref_ms, truth.target_ms):
         shutil.copytree(ms, work / Path(ms).name)
-    calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt")
+    calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc,cfpt")
     code = textwrap.dedent(f"""
-        from hitops.calibrate import calibrate
-        calibrate({str(work / 'ref.ms')!r}, {str(work / 'target.ms')!r}, method="pwc,cfpt",
+        from hitops.calibrate import calibrate_flat
+        calibrate_flat({str(work / 'ref.ms')!r}, {str(work / 'target.ms')!r}, method="pwc,cfpt",
                   scheduler="slurm:2")
     """)
     done = subprocess.run(["bash", str(SLURM_LOCAL), "run", "--", sys.executable, "-c", code],

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hitops.calibrate import calibrate, rules
+from hitops.calibrate import calibrate_flat, rules
 from hitops.testing import PairSpec, Signal
 from hitops.errors import InputError, OutputExistsError, StationError
 from hitops.io import convert
@@ -176,7 +176,7 @@ def test_scans_survive_a_casa_round_trip(demo, caplog):
         assert c.n_scans == n_scans, reader
     # and calibrate sees them: one tracking restart per scan, wraps not counted across gaps
     caplog.set_level(logging.INFO)
-    rep = calibrate(files["86"], files["230"], workdir=str(work / "cal"), method="pwc",
+    rep = calibrate_flat(files["86"], files["230"], workdir=str(work / "cal"), method="pwc",
                     no_verdict=True)
     assert [c["n_scans"] for c in rep["conversions"]] == [n_scans, n_scans]
     assert {c["band"] for c in rep["conversions"]} == {"ref", "target"}
@@ -294,7 +294,7 @@ def test_bad_uvfits_one_line_and_inputs_unchanged(case, demo, tmp_path):
     ref.write_bytes(files["86"].read_bytes())
     before = digest(ref, bad)
     with pytest.raises(InputError, match=BAD[case]) as err:
-        calibrate(ref, bad, workdir=str(tmp_path / "w"))
+        calibrate_flat(ref, bad, workdir=str(tmp_path / "w"))
     assert "\n" not in str(err.value)
     assert digest(ref, bad) == before
     assert not (tmp_path / "w" / bad.name).with_suffix(".uvfits.ms").exists()
@@ -310,7 +310,7 @@ def test_stations_unknown_to_the_other_band(tmp_path, new_pair, caplog):
     before = digest(ref, tgt)
     with pytest.raises(StationError, match=r"no baseline of .*tgt\.uvfits\.ms has both stations "
                                            r"in .*ref\.uvfits\.ms.*--antenna-map") as err:
-        calibrate(ref, tgt, workdir=str(tmp_path / "w"))
+        calibrate_flat(ref, tgt, workdir=str(tmp_path / "w"))
     assert "\n" not in str(err.value)
     assert digest(ref, tgt) == before
     # one station unknown: calibrate's policy is a warning naming it, its baselines flagged
@@ -318,7 +318,7 @@ def test_stations_unknown_to_the_other_band(tmp_path, new_pair, caplog):
                     tmp_path / "p")
     export_uvfits(part.ref_ms, tmp_path / "p" / "ref.uvfits", "DATA")
     export_uvfits(part.target_ms, tmp_path / "p" / "tgt.uvfits", "DATA")
-    rep = calibrate(tmp_path / "p" / "ref.uvfits", tmp_path / "p" / "tgt.uvfits", no_verdict=True)
+    rep = calibrate_flat(tmp_path / "p" / "ref.uvfits", tmp_path / "p" / "tgt.uvfits", no_verdict=True)
     assert any("target station XX of" in r.getMessage() and "tgt.uvfits.ms" in r.getMessage()
                for r in caplog.records)
     assert rep["samples"]["no_reference_row"] > 0
@@ -331,7 +331,7 @@ def test_existing_export_path_needs_overwrite(demo, tmp_path):
     before = digest(files["86"], files["230"], out)
     with pytest.raises(OutputExistsError, match=r"--export-uvfits '.*out\.uvfits' exists; pass "
                                                 r"--overwrite"):
-        calibrate(files["86"], files["230"], workdir=str(tmp_path / "w"), export_uvfits=str(out))
+        calibrate_flat(files["86"], files["230"], workdir=str(tmp_path / "w"), export_uvfits=str(out))
     assert digest(files["86"], files["230"], out) == before
     assert not (tmp_path / "w").exists()      # refused before any conversion
 
@@ -367,14 +367,22 @@ def test_public_eht_uvfits_pair_end_to_end(tmp_path):
 
 
 def test_caltable_checks_for_the_lead(demo, tmp_path):
-    # prepare_inputs checks --caltable before anything is written (calibrate passes it once
-    # --caltable is wired): the antenna tracker is needed, an existing table needs --overwrite
+    # stages 1 and 2 on their own: --caltable needs the antenna tracker (the mode's refusal,
+    # hitops/calibrate/modes.py), and prepare_inputs checks an existing table before anything
+    # is converted or written
+    from hitops.calibrate.inputs import CalibrateOptions
+    from hitops.calibrate.modes import check_options
     _, _, files = demo
+
+    def options(**flags):
+        return CalibrateOptions.from_flat(dict(ref_ms=files["86"], target_ms=files["230"],
+                                               workdir=str(tmp_path / "w"), **flags))
+
     with pytest.raises(InputError, match=r"--caltable '.*x\.G' needs --tracker antenna"):
-        rules.prepare_inputs(files["86"], files["230"], str(tmp_path / "w"),
-                             caltable=str(tmp_path / "x.G"), tracker="count")
+        check_options(options(caltable=str(tmp_path / "x.G"), tracker="count"), ["pwc"])
     (tmp_path / "old.G").mkdir()
+    old = options(caltable=str(tmp_path / "old.G"), tracker="antenna")
+    check_options(old, ["pwc"])
     with pytest.raises(OutputExistsError, match=r"--caltable '.*old\.G' exists; pass --overwrite"):
-        rules.prepare_inputs(files["86"], files["230"], str(tmp_path / "w"),
-                             caltable=str(tmp_path / "old.G"), tracker="antenna")
+        rules.prepare_inputs(old)
     assert not (tmp_path / "w").exists()

@@ -12,7 +12,7 @@ import datetime
 
 import numpy as np
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate_flat
 from hitops.testing import PairSpec, Storage, expected_pwc_phase, wrap
 from hitops.io import convert
 from hitops.io.fits import bintable as _bintable, card as _card, gst0_deg as _gst0_deg
@@ -114,7 +114,7 @@ def test_a_fitsidi_pair_comes_back_as_the_truth(tmp_path, shared_pair):
     ref = write_fitsidi(tmp_path / "ref.idi", truth.ref_ms)
     tgt = write_fitsidi(tmp_path / "tgt.idi", truth.target_ms)
     assert convert.detect_format(ref) == "fitsidi"
-    rep = calibrate(ref, tgt, workdir=str(tmp_path / "w"), method="pwc", no_verdict=True)
+    rep = calibrate_flat(ref, tgt, workdir=str(tmp_path / "w"), method="pwc", no_verdict=True)
     assert [c["tool"] for c in rep["conversions"]] == ["casatasks.importfitsidi"] * 2
     with pt.table(rep["target_ms"], ack=False) as t:
         pwc = t.getcol("PWC_DATA")[:, 0, :]
@@ -137,7 +137,7 @@ def test_fitsidi_with_several_ifs_goes_in_as_several_windows(tmp_path, shared_pa
     ref = write_fitsidi(tmp_path / "ref.idi", truth.ref_ms)
     tgt = write_fitsidi(tmp_path / "four-ifs.idi", truth.target_ms, n_band=4)
     before = tgt.read_bytes()
-    rep = calibrate(ref, tgt, workdir=str(tmp_path / "w"), method="pwc", no_verdict=True)
+    rep = calibrate_flat(ref, tgt, workdir=str(tmp_path / "w"), method="pwc", no_verdict=True)
     assert tgt.read_bytes() == before
     assert len(rep["groups"]) == 4
     with pt.table(rep["target_ms"], ack=False) as t:

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from casacore import tables as pt
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate_flat
 from hitops.testing import PairSpec, Storage, Troposphere, add_column
 from hitops.diagnose import diagnose
 from hitops.errors import InputError
@@ -42,7 +42,7 @@ def _rows(path):
 
 
 def test_tables_carry_the_default_calibrate_report(pair, tmp_path):
-    rep = calibrate(pair.ref_ms, pair.target_ms, tracker="smooth", coherence_time=30.0,
+    rep = calibrate_flat(pair.ref_ms, pair.target_ms, tracker="smooth", coherence_time=30.0,
                     overwrite=True)
     summary = diagnose(pair.target_ms, columns="DATA,PWC_DATA", interval=20.0,
                        intervals="5,10,20", outdir=tmp_path / "d")
@@ -63,7 +63,7 @@ def test_tables_carry_the_default_calibrate_report(pair, tmp_path):
 
 def test_antenna_mode_numbers_and_explicit_report(pair, tmp_path):
     report = tmp_path / "ant.json"
-    calibrate(pair.ref_ms, pair.target_ms, tracker="antenna", coherence_time=30.0,
+    calibrate_flat(pair.ref_ms, pair.target_ms, tracker="antenna", coherence_time=30.0,
               overwrite=True, report=str(report), output_column="PWC_ANT")
     summary = diagnose(pair.target_ms, columns="DATA,PWC_ANT", interval=20.0,
                        intervals="5,10,20", outdir=tmp_path / "d", calibrate_report=str(report))
@@ -99,7 +99,7 @@ def test_no_report_and_bad_reports(pair, tmp_path, new_pair):
 
 
 def test_count_tracker_report_gives_empty_tracking_cells(pair, tmp_path):
-    calibrate(pair.ref_ms, pair.target_ms, tracker="count", overwrite=True,
+    calibrate_flat(pair.ref_ms, pair.target_ms, tracker="count", overwrite=True,
               output_column="PWC_COUNT")
     summary = diagnose(pair.target_ms, columns="DATA,PWC_COUNT", interval=20.0,
                        intervals="5,10,20", outdir=tmp_path / "d")

@@ -86,7 +86,7 @@ def test_a_missing_or_foreign_version_is_refused_with_flag_as_it_was(new_demo, t
 
 
 def test_calibrate_from_the_kept_flags_equals_a_fresh_run(new_demo, tmp_path):
-    from hitops.calibrate import calibrate
+    from hitops.calibrate import calibrate_flat
 
     ref, target = new_demo
     fresh = tmp_path / "fresh"
@@ -94,7 +94,7 @@ def test_calibrate_from_the_kept_flags_equals_a_fresh_run(new_demo, tmp_path):
     fresh_target = fresh / "sim-230.ms"
     shutil.copytree(target, fresh_target)
     shutil.copytree(fv.versions_dir(target), fv.versions_dir(fresh_target))
-    calibrate(str(ref), str(fresh_target), method="pwc", no_verdict=True,
+    calibrate_flat(str(ref), str(fresh_target), method="pwc", no_verdict=True,
               report=str(fresh / "r.json"))
     expected_flag, _ = _flags(fresh_target)
     with pt.table(str(fresh_target), ack=False) as t:
@@ -103,7 +103,7 @@ def test_calibrate_from_the_kept_flags_equals_a_fresh_run(new_demo, tmp_path):
     stale = np.zeros_like(expected_flag)
     stale[::3] = True
     _set_flags(target, stale)
-    calibrate(str(ref), str(target), method="pwc", no_verdict=True, report=str(tmp_path / "a.json"),
+    calibrate_flat(str(ref), str(target), method="pwc", no_verdict=True, report=str(tmp_path / "a.json"),
               restore_flags="hitops_original", save_flags="pwc")
     flag, _ = _flags(target)
     assert np.array_equal(flag, expected_flag)
@@ -114,6 +114,6 @@ def test_calibrate_from_the_kept_flags_equals_a_fresh_run(new_demo, tmp_path):
     assert "hitops calibrate --method pwc -> PWC_DATA" in comment
     # the same run without --restore-flags keeps the stale flags (what reruns did before)
     _set_flags(target, stale)
-    calibrate(str(ref), str(target), method="pwc", no_verdict=True, overwrite=True,
+    calibrate_flat(str(ref), str(target), method="pwc", no_verdict=True, overwrite=True,
               report=str(tmp_path / "b.json"))
     assert not np.array_equal(_flags(target)[0], expected_flag)

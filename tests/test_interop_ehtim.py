@@ -26,7 +26,7 @@ import pytest
 
 eh = pytest.importorskip("ehtim")
 
-from hitops.calibrate import calibrate  # noqa: E402
+from hitops.calibrate import calibrate_flat  # noqa: E402
 
 R = 230.0 / 86.0
 EPS = R - math.floor(R)
@@ -92,7 +92,7 @@ def point_source(tmp_path_factory):
     work = tmp_path_factory.mktemp("ehtim-out")
     sets = simulate("demo", work, duration=1800, scan_length=300, scan_gap=60, no_noise=True)
     out = work / "pwc.uvfits"
-    report = calibrate(sets["86"], sets["230"], method="pwc", tracker="antenna",
+    report = calibrate_flat(sets["86"], sets["230"], method="pwc", tracker="antenna",
                        export_uvfits=str(out), no_verdict=True)
     return work, sets, out, report
 
@@ -185,7 +185,7 @@ def test_a_pair_written_by_ehtim_comes_back_as_the_truth(ehtim_pair, tracker):
     from casacore import tables as pt
 
     work, ref, tgt = ehtim_pair
-    rep = calibrate(ref, tgt, workdir=str(work / tracker), method="pwc,cfpt", tracker=tracker,
+    rep = calibrate_flat(ref, tgt, workdir=str(work / tracker), method="pwc,cfpt", tracker=tracker,
                     no_verdict=True, overwrite=True)
     assert [c["format"] for c in rep["conversions"]] == ["uvfits", "uvfits"]
     assert rep["conversions"][1]["n_scans"] == 5
@@ -265,7 +265,7 @@ def wideband_export(tmp_path_factory):
     raw = work / "raw.uvfits"
     export_uvfits(pair.target_ms, raw)
     pwc = work / "pwc.uvfits"
-    calibrate(str(pair.ref_ms), str(pair.target_ms), method="pwc", tracker="antenna",
+    calibrate_flat(str(pair.ref_ms), str(pair.target_ms), method="pwc", tracker="antenna",
               offset_model="point", export_uvfits=str(pwc), no_verdict=True)
     with pt.table(f"{pair.target_ms}::SPECTRAL_WINDOW", ack=False) as t:
         chan_freq = t.getcol("CHAN_FREQ")                    # (n_if, n_chan)

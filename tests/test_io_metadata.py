@@ -88,11 +88,11 @@ def test_a_calibrate_run_reads_each_subtable_once(new_pair, tmp_path, counted_op
     the readers' one-group check and (smooth) the stations' elevations open no subtable
     again (the verdict, whose caller passes the run's metadata after the run skeleton's
     rewrite, is left out here)."""
-    from hitops.calibrate import calibrate
+    from hitops.calibrate import calibrate_flat
 
     truth = new_pair(PairSpec(n_ant=3, n_time=20), tmp_path)
     counted_opens.clear()   # the pair's build (the session's first) is not the run
-    calibrate(str(truth.ref_ms), str(truth.target_ms), method="pwc", no_verdict=True,
+    calibrate_flat(str(truth.ref_ms), str(truth.target_ms), method="pwc", no_verdict=True,
               overwrite=True, tracker=tracker)
     subtables = {name: n for name, n in counted_opens.items() if "::" in name}
     expected = {f"{ms}::{sub}": 1 for ms in (truth.ref_ms, truth.target_ms)

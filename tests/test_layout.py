@@ -11,6 +11,7 @@ whatever the module does).
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 
@@ -245,3 +246,84 @@ def test_inside_hitops_io_one_module_opens_casacore_tables_and_one_opens_dask_ms
                 opens.setdefault(relative, []).append(found)
     assert table_opens(ROOT / "io" / "tables.py")
     assert opens == {}
+
+
+# ---- issue 36: no long parameter lists where the pipeline passes its types down
+MAX_PARAMETERS = 12
+PARAMETER_PACKAGES = ("calibrate", "solutions", "tracking", "io")
+
+
+def _long_signatures(paths, limit=MAX_PARAMETERS):
+    found = []
+    for path in paths:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                a = node.args
+                names = [x.arg for x in a.posonlyargs + a.args + a.kwonlyargs]
+                if names and names[0] in ("self", "cls"):
+                    names = names[1:]
+                if len(names) > limit:
+                    found.append(f"{path.name}: {node.name}() {len(names)} parameters")
+    return found
+
+
+def test_the_parameter_check_sees_a_long_signature(tmp_path):
+    wide = tmp_path / "wide.py"
+    wide.write_text("def f(" + ", ".join(f"a{i}" for i in range(MAX_PARAMETERS + 1)) + "):\n"
+                    "    pass\n\nclass C:\n    def g(self, " +
+                    ", ".join(f"a{i}" for i in range(MAX_PARAMETERS)) + "):\n        pass\n")
+    assert [s.split(": ")[1] for s in _long_signatures([wide])] == [f"f() {MAX_PARAMETERS + 1} parameters"]
+
+
+def test_no_function_of_the_calibrate_wing_takes_more_than_twelve_parameters():
+    paths = sorted(p for name in PARAMETER_PACKAGES for p in (ROOT / name).rglob("*.py"))
+    assert _long_signatures(paths) == []
+
+
+# ---- one stage numbering (hitops/calibrate/stages.py) in the code and the docs
+def _stage_claims(path: Path):
+    """The stage numbers a module's docstring claims ("Stage 3 of", "Stages 4-5 of")."""
+    doc = ast.get_docstring(ast.parse(path.read_text())) or ""
+    match = re.match(r"Stages? (\d+)(?:-(\d+))? of ``hitops calibrate``", doc)
+    if not match:
+        return None
+    first = int(match.group(1))
+    return set(range(first, int(match.group(2) or first) + 1))
+
+
+def test_stage_numbers_of_the_modules_are_the_declared_ones():
+    from hitops.calibrate.stages import STAGES
+
+    declared = {}
+    for info in STAGES:
+        for module in info.modules:
+            declared.setdefault(module, set()).add(int(info.stage))
+    checked = 0
+    for path in sorted((ROOT / "calibrate").rglob("*.py")):
+        claims = _stage_claims(path)
+        relative = f"hitops/{path.relative_to(ROOT)}"
+        if claims is not None:
+            assert relative in declared, f"{relative} claims stage(s) {claims} but no stage lists it"
+            assert claims == declared[relative], (f"{relative}: docstring says stage(s) "
+                                                  f"{sorted(claims)}, stages.py {sorted(declared[relative])}")
+            checked += 1
+    assert checked >= 5
+    assert [int(i.stage) for i in STAGES] == list(range(1, len(STAGES) + 1))
+
+
+def test_the_docs_stage_table_is_the_declared_one():
+    from hitops.calibrate.stages import STAGES
+
+    text = (ROOT.parent / "docs" / "architecture.md").read_text()
+    rows = re.findall(r"^\| (\d+)\. ([a-z0-9 ]+) \|", text, flags=re.M)
+    assert [(int(n), name) for n, name in rows] == [
+        (int(i.stage), i.stage.name.lower().replace("_", " ")) for i in STAGES]
+
+
+def test_the_docs_mode_table_is_the_declared_one():
+    from hitops.calibrate.modes import REFUSED
+
+    text = (ROOT.parent / "docs" / "calibrate.md").read_text()
+    rows = dict(re.findall(r"^\| (visibilities|table|calibrator) \| (.*) \|$", text, flags=re.M))
+    assert {mode.value: "; ".join(r.option for r in refused)
+            for mode, refused in REFUSED.items()} == rows

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from casacore import tables as pt
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate_flat
 from hitops.testing import PairSpec, Signal, Troposphere, add_column, wrap
 from hitops.errors import InputError
 from ms_columns import col, put  # tests/ is on sys.path (rootdir-relative)
@@ -27,7 +27,7 @@ EPS = 230.0 / 86.0 - 2
 
 
 def run(truth, column="OUT", **kw):
-    rep = calibrate(truth.ref_ms, truth.target_ms, output_column=column, overwrite=True, **kw)
+    rep = calibrate_flat(truth.ref_ms, truth.target_ms, output_column=column, overwrite=True, **kw)
     return col(truth.target_ms, column), rep
 
 
@@ -169,7 +169,7 @@ def test_baseline_trackers_fall_back_to_the_per_baseline_choice(new_pair):
 def test_no_step_warning_is_among_the_last_lines(new_pair, caplog):
     truth = new_pair(PairSpec(n_time=100, seed=2, corr_types=("RR",)))
     with caplog.at_level("INFO", logger="hitops"):
-        calibrate(truth.ref_ms, truth.target_ms, method="pwc,cfpt")
+        calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc,cfpt")
     last = [r for r in caplog.records if r.name.startswith("hitops")][-2:]
     assert "wrote PWC_DATA, CFPT_DATA" in last[0].getMessage()
     assert last[1].levelname == "WARNING"
@@ -180,10 +180,10 @@ def test_no_step_warning_is_among_the_last_lines(new_pair, caplog):
     assert report["offset_step"]["warning"] == msg
     caplog.clear()
     with caplog.at_level("INFO", logger="hitops"):
-        calibrate(truth.ref_ms, truth.target_ms, method="cfpt", overwrite=True)
+        calibrate_flat(truth.ref_ms, truth.target_ms, method="cfpt", overwrite=True)
     assert "no n0 offset step ran" not in caplog.text            # CFPT has no n0
     with caplog.at_level("INFO", logger="hitops"):
-        calibrate(truth.ref_ms, truth.target_ms, method="pwc", ratio=3.0, overwrite=True)
+        calibrate_flat(truth.ref_ms, truth.target_ms, method="pwc", ratio=3.0, overwrite=True)
     assert "no n0 offset step ran" not in caplog.text            # integer R has none
 
 
@@ -195,7 +195,7 @@ def test_bad_model_options_leave_the_set_unchanged(new_pair, kwargs, match):
     truth = new_pair(PairSpec(n_time=50, seed=3, corr_types=("RR",)))
     before = set(pt.table(str(truth.target_ms), ack=False).colnames())
     with pytest.raises(Exception, match=match):
-        calibrate(truth.ref_ms, truth.target_ms, **kwargs)
+        calibrate_flat(truth.ref_ms, truth.target_ms, **kwargs)
     assert set(pt.table(str(truth.target_ms), ack=False).colnames()) == before
 
 
@@ -203,7 +203,7 @@ def test_model_column_is_not_an_output(new_pair):
     truth = new_pair(PairSpec(n_time=50, seed=3, corr_types=("RR",)))
     add_column(truth.target_ms, "MODEL_DATA", np.exp(1j * truth.source_phase)[:, None, :])
     with pytest.raises(InputError, match="input or flag column"):
-        calibrate(truth.ref_ms, truth.target_ms, offset_model="MODEL_DATA",
+        calibrate_flat(truth.ref_ms, truth.target_ms, offset_model="MODEL_DATA",
                   output_column="MODEL_DATA", overwrite=True)
 
 
@@ -278,7 +278,7 @@ def test_both_hands_outvote_one_hand_off_its_lattice_point():
     other way: alone, that hand picks the neighbouring point; tied (k_RR - k_LL = j from
     the reference band, LL's constant instrumental phase of 100 deg on antenna 2 measured
     over the track and removed), every integer is the true one."""
-    from hitops.calibrate.n0.antenna import antenna_offsets
+    from hitops.calibrate.n0.antenna import LatticeProblem, antenna_offsets
     from hitops.calibrate.n0.hands import HandPhases
     from hitops.tracking.state import PAIR_KEY
 
@@ -298,8 +298,10 @@ def test_both_hands_outvote_one_hand_off_its_lattice_point():
             for b, (p, q) in enumerate(zip(ant1, ant2)):
                 z = 600 * np.exp(1j * (two_pi_eps * (m[p] - m[q]) - (cst[p] - cst[q])))
                 seg_sums[(b, c, key_of(s))] = (z, 600)
-    args = (seg_sums, {0, 1}, ant1, ant2, ["AP", "SM", "PV"], ["AP-SM", "AP-PV", "SM-PV"],
-            ["RR", "LL"], np.arange(1, 5), EPS, 50, 2.0)
+    problem = LatticeProblem(ant1=ant1, ant2=ant2, antenna_names=["AP", "SM", "PV"],
+                             baseline_names=["AP-SM", "AP-PV", "SM-PV"], corr_names=["RR", "LL"],
+                             scans=np.arange(1, 5), eps=EPS, max_k=50, ambiguity_deg=2.0,
+                             refants=(0,))
 
     def wrong_segments(result):
         bad = set()
@@ -310,10 +312,10 @@ def test_both_hands_outvote_one_hand_off_its_lattice_point():
                 bad.add((e["scan"], e["correlation"]))
         return bad
 
-    alone = antenna_offsets(*args, refants=[0])
+    alone = antenna_offsets(seg_sums, {0, 1}, problem)
     # (LL alone also rounds its 100 deg instrumental phase onto the lattice: not the truth)
     assert {w for w in wrong_segments(alone) if w[1] == "RR"} == {(1, "RR")}
-    tied = antenna_offsets(*args, refants=[0], hands=HandPhases(**_hands_scene()))
+    tied = antenna_offsets(seg_sums, {0, 1}, problem, hands=HandPhases(**_hands_scene()))
     assert wrong_segments(tied) == set()
     assert all(e["hands"] == "RR+LL" and e["tied"] for e in tied.antennas)
     # LL keeps its instrumental phase, the same in every scan (no lattice step between scans)

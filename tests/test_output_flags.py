@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from casacore import tables as pt
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate_flat
 from hitops.calibrate.output import FLAG_BACKUP
 from hitops.testing import PairSpec, Storage
 
@@ -36,8 +36,8 @@ def test_flags_changed_in_one_chunk_only(new_pair, tmp_path, time_order):
         t.putcol("FLAG", flag)
     other = tmp_path / "chunked.ms"
     shutil.copytree(truth.target_ms, other)
-    whole = calibrate(truth.ref_ms, truth.target_ms)
-    chunked = calibrate(truth.ref_ms, str(other), chunk_rows=3000)
+    whole = calibrate_flat(truth.ref_ms, truth.target_ms)
+    chunked = calibrate_flat(truth.ref_ms, str(other), chunk_rows=3000)
     assert whole["chunks"] == 1 and chunked["chunks"] > 4
     want = (truth.ant1 == 0) & (truth.ant2 == 1) & (truth.time > np.quantile(truth.time, 0.4)) \
         & (truth.time < np.quantile(truth.time, 0.5))
@@ -48,7 +48,7 @@ def test_flags_changed_in_one_chunk_only(new_pair, tmp_path, time_order):
     for column in ("FLAG", "PWC_DATA"):
         np.testing.assert_array_equal(col(str(other), column), col(truth.target_ms, column))
     # a rerun: the new flags equal FLAG everywhere, nothing is staged, nothing changes
-    again = calibrate(truth.ref_ms, str(other), chunk_rows=3000, overwrite=True)
+    again = calibrate_flat(truth.ref_ms, str(other), chunk_rows=3000, overwrite=True)
     assert not again["flags"]["flag_updated"] and not again["flags"]["backup_created"]
     for column in ("FLAG", "PWC_DATA", FLAG_BACKUP):
         np.testing.assert_array_equal(col(str(other), column), col(truth.target_ms, column))

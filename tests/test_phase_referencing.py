@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from casacore import tables as pt
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate_flat
 from hitops.simulate import simulate
 from hitops.simulate.scene import load_scene_mapping
 
@@ -66,10 +66,10 @@ def _target_coherence(ms: str, column: str = "PWC_DATA", field: int = 0) -> np.n
 
 def test_calibrator_step_restores_the_target(pair, tmp_path):
     ref, tgt = _copy(pair, tmp_path / "a")
-    calibrate(ref, tgt, overwrite=True, no_verdict=True)
+    calibrate_flat(ref, tgt, overwrite=True, no_verdict=True)
     before = _target_coherence(tgt)
     ref2, tgt2 = _copy(pair, tmp_path / "b")
-    report = calibrate(ref2, tgt2, calibrator_field="3C273", no_verdict=True)
+    report = calibrate_flat(ref2, tgt2, calibrator_field="3C273", no_verdict=True)
     after = _target_coherence(tgt2)
     assert before.min() < 0.5, before          # FPT alone: the instrumental term remains
     assert after.min() >= COHERENCE, after
@@ -87,7 +87,7 @@ def test_solutions_match_the_scene(pair, tmp_path):
     """Per scan and antenna: Phi_inst(nu_0) - (nu_0/nu_ref) phi_inst and the delay
     tau_inst - phi_inst / (2 pi nu_ref), both referred to the reference antenna."""
     ref, tgt = _copy(pair, tmp_path)
-    report = calibrate(ref, tgt, calibrator_field="3C273", no_verdict=True, refant="PB")
+    report = calibrate_flat(ref, tgt, calibrator_field="3C273", no_verdict=True, refant="PB")
     window = report["phase_referencing"]["methods"]["PWC_DATA"][0]
     assert window["refant"] == "PB"
     truth = np.load(pair["truth"])
@@ -142,7 +142,7 @@ def non_closing_pair(tmp_path_factory):
 
 def test_non_closing_offsets_removed(non_closing_pair, tmp_path):
     ref, tgt = _copy(non_closing_pair, tmp_path)
-    report = calibrate(ref, tgt, calibrator_field="3C273", no_verdict=True)
+    report = calibrate_flat(ref, tgt, calibrator_field="3C273", no_verdict=True)
     assert np.abs(_target_phases(tgt)).max() < 1.0
     assert _target_coherence(tgt).min() >= COHERENCE
     residual = report["phase_referencing"]["methods"]["PWC_DATA"][0]["baseline_residual_deg"]
@@ -157,7 +157,7 @@ def test_antenna_terms_alone_leave_closure_errors(non_closing_pair, tmp_path, mo
     monkeypatch.setattr(phase_ref, "_baseline_factors",
                         lambda solution, ant1, ant2, corr_hands, n_ant: 1.0)
     ref, tgt = _copy(non_closing_pair, tmp_path)
-    calibrate(ref, tgt, calibrator_field="3C273", no_verdict=True)
+    calibrate_flat(ref, tgt, calibrator_field="3C273", no_verdict=True)
     assert np.abs(_target_phases(tgt)).max() > 10.0
 
 
@@ -165,7 +165,7 @@ def test_phase_without_delay_fails(pair, tmp_path):
     """A phase-only calibrator step (no per-channel delay) leaves the target decorrelated:
     the step's output with the solved delays taken back out is what it would write."""
     ref, tgt = _copy(pair, tmp_path)
-    report = calibrate(ref, tgt, calibrator_field="3C273", no_verdict=True)
+    report = calibrate_flat(ref, tgt, calibrator_field="3C273", no_verdict=True)
     window = report["phase_referencing"]["methods"]["PWC_DATA"][0]
     t_scan = np.array([s["time"] for s in window["scans"]])
     with pt.table(tgt, readonly=False, ack=False) as t:
@@ -191,7 +191,7 @@ def test_without_carrying_the_count_across_switches_fails(pair, tmp_path, monkey
                         lambda time, phase: (np.zeros(phase.size, np.int64),
                                              np.zeros(max(phase.size - 1, 0))))
     ref, tgt = _copy(pair, tmp_path)
-    calibrate(ref, tgt, calibrator_field="3C273", no_verdict=True)
+    calibrate_flat(ref, tgt, calibrator_field="3C273", no_verdict=True)
     assert _target_coherence(tgt).min() < COHERENCE
 
 
@@ -288,7 +288,7 @@ def test_station_without_calibrator_solutions_is_flagged_on_the_target(pair, tmp
         flag[(field == 1) & touches] = True
         t.putcol("FLAG", flag)
         before = t.getcol("FLAG")
-    report = calibrate(ref, tgt, calibrator_field="3C273", no_verdict=True)
+    report = calibrate_flat(ref, tgt, calibrator_field="3C273", no_verdict=True)
     entry = report["phase_referencing"]["methods"]["PWC_DATA"][0]
     target_lost = (field == 0) & touches
     assert entry["target_rows_flagged"] == int(target_lost.sum()) > 0

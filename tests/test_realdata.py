@@ -28,7 +28,7 @@ import numpy as np
 import pytest
 from casacore import tables as pt
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate_flat
 from hitops.diagnose.closures import row_closures
 
 HITOPS = Path(sys.executable).with_name("hitops")
@@ -123,7 +123,7 @@ def check_cfpt_against_code_pairing(ref_ms, tgt_ms, report):
 
 def test_stations_paired_by_code_and_every_sample_checked(pair):
     ref, tgt = pair
-    report = calibrate(str(ref), str(tgt), method="cfpt,pwc")
+    report = calibrate_flat(str(ref), str(tgt), method="cfpt,pwc")
     assert {(e["reference"], e["target"]) for e in report["stations"]} == {
         (c, c) for c in codes(tgt)}
     can = check_cfpt_against_code_pairing(ref, tgt, report)
@@ -138,7 +138,7 @@ def test_one_band_without_a_station_still_pairs_by_code(pair, caplog):
     drop_station(ref, "LM")
     assert codes(ref)[4] == "PV" and codes(tgt)[4] == "LM"   # name '5' differs between bands
     with caplog.at_level("WARNING", logger="hitops"):
-        report = calibrate(str(ref), str(tgt), method="cfpt")
+        report = calibrate_flat(str(ref), str(tgt), method="cfpt")
     assert "target station LM" in caplog.text and "AA-LM" in caplog.text
     check_cfpt_against_code_pairing(ref, tgt, report)
     t_a1, t_a2, flag = read(tgt, "ANTENNA1", "ANTENNA2", "FLAG")
@@ -155,7 +155,7 @@ def closure_phases(ms, column, flag):
 
 def test_antenna_tracker_keeps_the_closure_phases_of_m87(pair):
     ref, tgt = pair
-    calibrate(str(ref), str(tgt), method="pwc", tracker="antenna")
+    calibrate_flat(str(ref), str(tgt), method="pwc", tracker="antenna")
     flag = read(tgt, "FLAG")[0]
     before = closure_phases(tgt, "DATA", flag)
     after = closure_phases(tgt, "PWC_DATA", flag)
@@ -171,9 +171,9 @@ def test_antenna_tracker_keeps_the_closure_phases_of_m87(pair):
 
 def test_rerun_with_overwrite_is_byte_identical(pair):
     ref, tgt = pair
-    calibrate(str(ref), str(tgt), method="pwc,cfpt")
+    calibrate_flat(str(ref), str(tgt), method="pwc,cfpt")
     first = read(tgt, "PWC_DATA", "CFPT_DATA", "FLAG", "FLAG_HITOPS_BACKUP")
-    calibrate(str(ref), str(tgt), method="pwc,cfpt", overwrite=True)
+    calibrate_flat(str(ref), str(tgt), method="pwc,cfpt", overwrite=True)
     second = read(tgt, "PWC_DATA", "CFPT_DATA", "FLAG", "FLAG_HITOPS_BACKUP")
     for a, b in zip(first, second):
         assert a.tobytes() == b.tobytes()

@@ -22,11 +22,11 @@ def _hitops(*args):
 
 
 def test_page_of_calibrate_and_diagnose_outputs(new_demo, tmp_path):
-    from hitops.calibrate import calibrate
+    from hitops.calibrate import calibrate_flat
     from hitops.diagnose import diagnose
 
     ref, target = new_demo
-    report = calibrate(str(ref), str(target), method="pwc,cfpt", tracker="antenna",
+    report = calibrate_flat(str(ref), str(target), method="pwc,cfpt", tracker="antenna",
                        offset_model="point", no_verdict=True)
     diagnose(str(target), columns="DATA,CFPT_DATA,PWC_DATA", outdir=str(tmp_path / "diagnose"),
              plots="coherence", interval=60.0)

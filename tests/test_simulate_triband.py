@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from casacore import tables as pt
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate_flat
 from hitops.simulate import parse_scene, simulate
 from hitops.simulate.scene import load_scene_mapping
 
@@ -55,7 +55,7 @@ def test_one_ms_per_band_same_troposphere(triband):
                                                ("230", "345", "PWC230_DATA")])
 def test_calibrate_every_pair_of_the_triband_output(triband, tmp_path, ref, target, column):
     """PWC on noise-free data leaves exactly zero phase (all stations up from the start: n0 = 0)."""
-    report = calibrate(str(triband[ref]), str(triband[target]), method="pwc", output_column=column,
+    report = calibrate_flat(str(triband[ref]), str(triband[target]), method="pwc", output_column=column,
                        overwrite=True, report=str(tmp_path / f"{ref}-{target}.json"))
     assert report                                   # the run's JSON report
     phase, *_ = phases(triband[target], column)
@@ -66,7 +66,7 @@ def test_calibrate_every_pair_of_the_triband_output(triband, tmp_path, ref, targ
 
 def test_230_to_345_cfpt_jumps_by_pi_at_every_wrap(triband, tmp_path):
     """R = 1.5: eps = 1/2, so CFPT leaves a jump of exactly pi at each 230 GHz wrap."""
-    calibrate(str(triband["230"]), str(triband["345"]), method="cfpt", output_column="CFPT230_DATA",
+    calibrate_flat(str(triband["230"]), str(triband["345"]), method="cfpt", output_column="CFPT230_DATA",
               overwrite=True, report=str(tmp_path / "cfpt.json"))
     phase, a1, a2, time = phases(triband["345"], "CFPT230_DATA")
     ref_phase, *_ = phases(triband["230"], "DATA")

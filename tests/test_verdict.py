@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate_flat
 from hitops.calibrate import verdict as V
 from hitops.simulate import simulate
 
@@ -28,7 +28,7 @@ pytestmark = pytest.mark.slow
 
 
 def predicted_and_measured(ref, tgt, **kw):
-    report = calibrate(str(ref), str(tgt), method="pwc", overwrite=True, **kw)
+    report = calibrate_flat(str(ref), str(tgt), method="pwc", overwrite=True, **kw)
     verdict = V.Verdict(interval=report["verdict"]["interval_s"], ratio=report["ratio"],
                         baselines=[V.BaselineVerdict(**e) for e in report["verdict"]["baselines"]])
     V.measure(verdict, str(tgt), "DATA", "PWC_DATA")
@@ -91,7 +91,7 @@ def test_eht_data_fpt_hurts_and_the_verdict_says_so(eht_imported, tmp_path, capl
     # the antenna tracker keeps the target's closures: no such warning then
     caplog.clear()
     with caplog.at_level("INFO", logger="hitops"):
-        calibrate(str(ref), str(tgt), method="pwc", tracker="antenna", overwrite=True)
+        calibrate_flat(str(ref), str(tgt), method="pwc", tracker="antenna", overwrite=True)
     assert "closure phases are not consistent" not in caplog.text
     saved = json.loads(Path(str(tgt) + ".hitops-calibrate.json").read_text())
     assert saved["verdict"]["summary"]["hurt"] >= 20

@@ -20,7 +20,7 @@ import logging
 import numpy as np
 import pytest
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate_flat
 from hitops.calibrate.verdict import CLOSURE_FLOOR_DEG, CLOSURE_SIGNIFICANCE
 from hitops.geometry import earth_rotation_angle
 from hitops.io.ms_create import ArrayLayout, Band, Field, create_ms
@@ -83,7 +83,7 @@ def write_pair(directory, components, sigma: float, seed: int = 4, n_time: int =
 def run(tmp_path, caplog, components, sigma):
     ref, tgt = write_pair(tmp_path, components, sigma)
     with caplog.at_level(logging.INFO, logger="hitops"):
-        report = calibrate(str(ref), str(tgt), method="pwc")
+        report = calibrate_flat(str(ref), str(tgt), method="pwc")
     return report["verdict"]["reference_closure"]
 
 
@@ -109,7 +109,7 @@ def test_resolved_source_no_warning_with_the_antenna_tracker(tmp_path, caplog):
     """The antenna tracker keeps the target's closure phases: nothing to warn of."""
     ref, tgt = write_pair(tmp_path, [(1.0, 0.0, 0.0), (0.6, 30 * UAS, 20 * UAS)], sigma=0.05)
     with caplog.at_level(logging.INFO, logger="hitops"):
-        report = calibrate(str(ref), str(tgt), method="pwc", tracker="antenna")
+        report = calibrate_flat(str(ref), str(tgt), method="pwc", tracker="antenna")
     assert not report["verdict"]["reference_closure"]["consistent_with_zero"]
     assert WARNING not in caplog.text
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate_flat
 from hitops.calibrate.channels import ChannelPlan
 from hitops.calibrate.n0.baseline import WindowRatios, choose_channel_offset, choose_offset
 from hitops.calibrate.n0.lattice import solve_lattice
@@ -116,7 +116,7 @@ def test_the_step_across_the_channels_finds_the_true_offset(pair, tmp_path, monk
                                                             tracker):
     ref_ms, target_ms, _ = pair
     target = _copy(target_ms, tmp_path / "all")
-    report = calibrate(str(ref_ms), str(target), method="pwc", tracker=tracker,
+    report = calibrate_flat(str(ref_ms), str(target), method="pwc", tracker=tracker,
                        offset_model="point", no_verdict=True)
     assert worst_phase(target) < 1e-3          # every channel of every baseline at phase 0
     entries = [e for e in report["groups"][0]["offset_step"]["series"] if e.get("samples")]
@@ -126,7 +126,7 @@ def test_the_step_across_the_channels_finds_the_true_offset(pair, tmp_path, monk
     wrong = _copy(target_ms, tmp_path / "centre")
     with monkeypatch.context() as m:
         centre_channel_only(m)
-        calibrate(str(ref_ms), str(wrong), method="pwc", tracker=tracker,
+        calibrate_flat(str(ref_ms), str(wrong), method="pwc", tracker=tracker,
                   offset_model="point", no_verdict=True)
     phases, _ = channel_phases(wrong)
     assert max(float(np.abs(p).max()) for p in phases.values()) > 1.0
@@ -142,14 +142,14 @@ def test_integer_ratio_at_the_centre_still_needs_the_step_across_the_window(inte
     # channel j carries 2*pi*(R_j - 3)*n0, a slope of n0*B/nu_ref turns across the window
     ref_ms, target_ms, _ = integer_pair
     target = _copy(target_ms, tmp_path / "all")
-    report = calibrate(str(ref_ms), str(target), method="pwc", tracker="count",
+    report = calibrate_flat(str(ref_ms), str(target), method="pwc", tracker="count",
                        offset_model="point", no_verdict=True)
     assert report["groups"][1]["channels"]["target_centre_hz"] == 230.0e9
     assert worst_phase(target) < 1e-3
     skipped = _copy(target_ms, tmp_path / "skipped")
     with monkeypatch.context() as m:
         centre_channel_only(m)         # the step skipped as "integer R" on window 1
-        calibrate(str(ref_ms), str(skipped), method="pwc", tracker="count",
+        calibrate_flat(str(ref_ms), str(skipped), method="pwc", tracker="count",
                   offset_model="point", no_verdict=True)
     phases, _ = channel_phases(skipped)
     window1 = [p for key, p in phases.items() if key[2] == 1]
@@ -266,7 +266,7 @@ def test_pwc_and_cfpt_write_the_same_bytes_without_the_target_reduction(pair, tm
                 m.setattr(chunk_read, "target_rows",
                           lambda data, flag, flag_row, channels, phase_needed:
                           chunk_read.reduce(data, flag, flag_row, channels, "tgt"))
-            calibrate(str(ref_ms), str(target), method="pwc,cfpt", tracker="antenna",
+            calibrate_flat(str(ref_ms), str(target), method="pwc,cfpt", tracker="antenna",
                       chunk_rows=2000, no_verdict=True)
         with pt.table(str(target), ack=False) as t:
             columns[name] = [t.getcol(c).tobytes() for c in ("PWC_DATA", "CFPT_DATA", "FLAG")]

@@ -33,7 +33,7 @@ import numpy as np
 import pytest
 from casacore import tables as pt
 
-from hitops.calibrate import calibrate
+from hitops.calibrate import calibrate_flat
 from hitops.calibrate.channels import ChannelPlan
 from hitops.simulate import simulate
 from test_simulate import small_scene  # tests/ is on sys.path (rootdir-relative)
@@ -144,7 +144,7 @@ def test_the_simulated_data_are_the_excess_path_and_need_the_step(simulated):
 
 
 def _run(ref_ms, target_ms, tracker):
-    return calibrate(str(ref_ms), str(target_ms), method="pwc", tracker=tracker,
+    return calibrate_flat(str(ref_ms), str(target_ms), method="pwc", tracker=tracker,
                      offset_model="point", no_verdict=True)
 
 

@@ -1,4 +1,5 @@
-"""Entry point of ``hitops calibrate``: the Python function itself (parameters and defaults
-from hitops/schemas/calibrate.yml; tests/test_schema_defaults.py keeps them equal)."""
+"""Entry point of ``hitops calibrate``: the Python function with one keyword per flag
+(its signature is the schema's, hitops/schemas/calibrate.yml; tests/test_schema_defaults.py
+checks it), which makes the option sections and calls :func:`hitops.calibrate.calibrate`."""
 
-from .api import calibrate as run  # noqa: F401
+from .api import calibrate_flat as run  # noqa: F401

@@ -1,4 +1,4 @@
-"""Stage 4d, first pass: what calibrate keeps of each band's rows, without keeping the rows.
+"""Stage 3 of ``hitops calibrate`` (plan), its first pass: what is kept of each band's rows.
 
 :func:`index_bands` reads the per-row metadata (:data:`INDEX_COLUMNS`) of
 each :class:`BandSource` in blocks of at most ``block_rows`` rows and builds one

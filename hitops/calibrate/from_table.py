@@ -32,7 +32,7 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Tuple
+from typing import Dict, Tuple
 
 import numpy as np
 
@@ -44,7 +44,7 @@ from ..solutions.apply import all_fields, gains_at
 from .inputs import CalibrateOptions, check_inputs
 from .commit import stage_and_commit
 from .output import OutputTransaction
-from .rules import PreparedInputs, finish_report
+from .rules import finish_report
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -55,32 +55,6 @@ RECEPTORS = {5: (0, 0), 6: (0, 1), 7: (1, 0), 8: (1, 1),      # RR RL LR LL
 WRAP_COUNTING = {"pwc": True, "cfpt": False}
 #: visibilities (rows x channels x correlations) per chunk when --chunk-rows is 0
 CHUNK_VISIBILITIES = 4_000_000
-
-
-def refuse_options(opts: CalibrateOptions, methods: List[str]) -> None:
-    """Options of the visibility path that mean nothing with a table: one line each."""
-    table = f"--reference-table {opts.reference_table}"
-    if "cwu" in methods:
-        raise InputError(f"--method cwu with {table}: on the table's wrap counts CWU equals PWC "
-                         "(rewrapping cancels the target's unwrap); use --method pwc "
-                         "(or pwc,cfpt to compare with the uncounted transfer)")
-    step = "--offset-model" if opts.offset_model else "--offset-reference-column"
-    if (opts.offset_model or opts.offset_reference_column) and "pwc" not in methods:
-        raise InputError(f"{step} with {table} and --method {','.join(methods)}: the n0 step "
-                         "solves the integers of the counted transfer; add pwc to --method")
-    if opts.calibrator_field:
-        raise InputError(f"--calibrator-field {opts.calibrator_field} with {table}: the calibrator "
-                         "step works on the visibility path's per-baseline counts; run it without "
-                         "--reference-table, or solve the calibrator's scans of the written column "
-                         "in CASA (fringefit field=..., then applycal to the target)")
-    given = [(bool(opts.ref_model_column), "--ref-model-column"), (opts.ratio is not None, "--ratio"),
-             (bool(opts.average_channels), "--average-channels"), (bool(opts.scheduler), "--scheduler"),
-             (opts.tracker != "count", f"--tracker {opts.tracker}")]
-    for present, flag in given:
-        if present:
-            raise InputError(f"{flag} with {table}: the table's solutions replace REF_MS's "
-                             "visibilities (their wraps counted by hitops.solutions, each target "
-                             f"channel at R_k = nu_k / nu_ref); drop {flag}")
 
 
 @dataclass(frozen=True)
@@ -203,7 +177,7 @@ def offset_step(prepared: PreparedTransfer, layout: TargetLayout, columns, chunk
                 model = np.angle(cols["offset"][rows]) if offset_column else 0.0
                 accumulate(sums, prepared, j, rows, cols, result.columns["pwc"][rows], ~bad[rows],
                            model, receptors)
-    offsets = solve(prepared, sums, opts.max_offset_wraps, _antenna_names(target_ms),
+    offsets = solve(prepared, sums, opts.n0.max_offset_wraps, _antenna_names(target_ms),
                     layout.chan_freq)
     for entry in offsets.solves:
         moved = {name: k for name, k in entry["k"].items() if k}
@@ -237,8 +211,8 @@ def _write_outputs(tx: OutputTransaction, transfers, layout, columns, chunk_rows
 
 
 def _chunk_rows(opts: CalibrateOptions, target_ms: str, target_column: str) -> int:
-    if int(opts.chunk_rows) > 0:
-        return int(opts.chunk_rows)
+    if int(opts.run.chunk_rows) > 0:
+        return int(opts.run.chunk_rows)
     with tables.main_table(target_ms) as t:
         cell = t.getcell(target_column, 0) if t.nrows() else np.zeros((1, 1))
     return max(1, CHUNK_VISIBILITIES // int(np.prod(cell.shape)))
@@ -268,15 +242,17 @@ def _report(opts, methods, ref_ms, target_ms, outputs, transfers, counts, starte
     }
 
 
-def calibrate_from_table(opts: CalibrateOptions, methods: List[str], ref_ms: str, target_ms: str,
-                         started: float, prepared: PreparedInputs) -> Dict:
-    """The whole ``--reference-table`` run: checks, transfer, column, table, report."""
-    refuse_options(opts, methods)
+def calibrate_from_table(start) -> Dict:
+    """Stages 2 (the columns) to 6 of the table mode (``--reference-table``; its options
+    refused in hitops/calibrate/modes.py): checks, transfer, column, table, report.
+    ``start``: the run's :class:`hitops.calibrate.api.RunStart`."""
+    opts, methods, ref_ms, target_ms = start.opts, start.methods, start.ref_ms, start.target_ms
+    started, prepared = start.started, start.prepared
     outputs, columns = check_inputs(opts, methods, ref_ms, target_ms)
     layout = read_layout(target_ms)
     # every check of the table (type, set, stations, solution interval) before anything is written
-    transfers = {m: prepare_transfer(opts.reference_table, ref_ms, target_ms,
-                                     wrap_counting=WRAP_COUNTING[m], antenna_map=opts.antenna_map)
+    transfers = {m: prepare_transfer(opts.input.reference_table, ref_ms, target_ms,
+                                     wrap_counting=WRAP_COUNTING[m], antenna_map=opts.input.antenna_map)
                  for m in methods}
     chunk_rows = _chunk_rows(opts, target_ms, columns.target_data)
     offsets = None
@@ -307,16 +283,16 @@ def _finish(opts, methods, ref_ms, target_ms, outputs, transfers, counts, offset
     log.info("%d of %d target samples not calibrated by the table (no unflagged solution on "
              "either side), %d flagged before", counts["not_calibrated"], counts["n_samples"],
              counts["flagged_before"])
-    report_path = Path(opts.report) if opts.report else Path(target_ms + ".hitops-calibrate.json")
-    if opts.caltable:
-        n_rows = write_target_table(transfers[methods[0]], opts.caltable, bool(opts.overwrite))
-        report["caltable"] = {"path": str(opts.caltable), "kind": "Fringe Jones", "rows": n_rows,
+    report_path = Path(opts.output.report) if opts.output.report else Path(target_ms + ".hitops-calibrate.json")
+    if opts.output.caltable:
+        n_rows = write_target_table(transfers[methods[0]], opts.output.caltable, bool(opts.output.overwrite))
+        report["caltable"] = {"path": str(opts.output.caltable), "kind": "Fringe Jones", "rows": n_rows,
                               "method": methods[0]}
-        log.info("wrote the target-band Fringe Jones table %s (%d rows, %s)", opts.caltable,
+        log.info("wrote the target-band Fringe Jones table %s (%d rows, %s)", opts.output.caltable,
                  n_rows, methods[0])
     finish_report(report, opts, ref_ms, target_ms, outputs, methods, prepared)
     report_path.write_text(json.dumps(report, indent=1))
     log.info("wrote %s to %s from reference table %s; report %s; %.2f s",
-             ", ".join(outputs.values()), target_ms, opts.reference_table, report_path,
+             ", ".join(outputs.values()), target_ms, opts.input.reference_table, report_path,
              time.perf_counter() - started)
     return report

@@ -1,4 +1,4 @@
-"""Stage 1 of ``hitops calibrate``: every option checked against both sets before anything is read.
+"""Stage 2 of ``hitops calibrate`` (prepare): every column checked in both sets before a read.
 
 :func:`check_inputs` turns the typed options into the run's :class:`Columns`
 (what each band reads, what the n0 offset step compares with) and its output
@@ -9,13 +9,11 @@ here writes, so bad input leaves both sets as they were.
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Tuple
 
 from ..errors import InputError, OutputExistsError
 from ..io import read as msio
-from ..tracking.options import check_options as check_tracking_numbers
 from .band_index import INDEX_COLUMNS
 from ..options import options_class
 from .output import FLAG_BACKUP, STAGING_PREFIX
@@ -76,63 +74,37 @@ def parse_methods(method) -> List[str]:
     return methods
 
 
-def check_numbers(opts: CalibrateOptions) -> None:
-    """The numeric options (the schema has checked types and choices)."""
-    ratio = opts.ratio
-    if ratio is not None and not (float(ratio) > 0 and math.isfinite(float(ratio))):
-        raise InputError(f"--ratio {ratio}: R = nu_target / nu_reference must be a positive "
-                         "number (e.g. 2.6744 for 230/86 GHz); omit it to take R from the sets")
-    if int(opts.max_offset_wraps) < 0:
-        raise InputError(f"--max-offset-wraps {opts.max_offset_wraps} must be >= 0")
-    if int(opts.chunk_rows) < 0:
-        raise InputError(f"--chunk-rows {opts.chunk_rows} must be >= 1 (or 0: from --memory-budget)")
-    check_tracking_numbers(half_window=opts.half_window, coherence_time=opts.coherence_time,
-                           snr=opts.snr, max_gap=opts.max_gap,
-                           jump_threshold=opts.jump_threshold, jump_window=opts.jump_window,
-                           solve_half_window=opts.solve_half_window)
-    if opts.time_tolerance is not None and not float(opts.time_tolerance) > 0:
-        raise InputError(f"--time-tolerance {opts.time_tolerance} must be a positive number of "
-                         "seconds; omit it to use half the smallest INTERVAL")
-
-
 def output_columns(opts: CalibrateOptions, methods: List[str]) -> Dict[str, str]:
-    """method -> the column it writes."""
-    if opts.output_column and len(methods) > 1:
-        raise InputError(f"--output-column {opts.output_column} names one column but --method "
-                         f"lists {len(methods)} methods; run one method at a time to rename")
-    return {m: (opts.output_column or DEFAULT_COLUMNS[m]) for m in methods}
+    """method -> the column it writes (one method with --output-column: hitops/calibrate/modes.py)."""
+    return {m: (opts.output.output_column or DEFAULT_COLUMNS[m]) for m in methods}
 
 
 def check_inputs(opts: CalibrateOptions, methods: List[str], ref_ms: str,
                  target_ms: str) -> Tuple[Dict[str, str], "Columns"]:
     """(outputs, :class:`Columns`) of a run, every column checked in both sets."""
-    check_numbers(opts)
     outputs = output_columns(opts, methods)
     present = set(msio.column_names(target_ms))
     # a rerun with --overwrite starts from the flags hitops found before its first run
     # (FLAG_HITOPS_BACKUP), so two identical runs give identical FLAG columns; a run that
     # was killed half-way through writing FLAG is repaired the same way
     # --restore-flags names the starting flags explicitly: FLAG holds them now
-    flag_column = (FLAG_BACKUP if (opts.overwrite and FLAG_BACKUP in present
-                                   and not opts.restore_flags) else "FLAG")
+    flag_column = (FLAG_BACKUP if (opts.output.overwrite and FLAG_BACKUP in present
+                                   and not opts.input.restore_flags) else "FLAG")
     if flag_column == FLAG_BACKUP:
         log.info("--overwrite: starting from %s (the flags before hitops first ran), not "
                  "from FLAG, so this run's flags replace the earlier run's", FLAG_BACKUP)
-    offset_model = opts.offset_model or None
-    reference = opts.offset_reference_column or None
-    if offset_model and reference:
-        raise InputError(f"--offset-model {offset_model} and --offset-reference-column "
-                         f"{reference} both set the n0 offset step; give one")
+    offset_model = opts.n0.offset_model or None
+    reference = opts.n0.offset_reference_column or None
     # --offset-model: 'point' or a model column of TARGET_MS (hitops/calibrate/n0/)
     model_column = offset_model if offset_model and not is_point_model(offset_model) else None
-    ref_cols = [opts.ref_column, "FLAG"] + ([opts.ref_model_column] if opts.ref_model_column else [])
-    tgt_cols = ([opts.target_column, flag_column] + ([reference] if reference else [])
+    ref_cols = [opts.input.ref_column, "FLAG"] + ([opts.input.ref_model_column] if opts.input.ref_model_column else [])
+    tgt_cols = ([opts.input.target_column, flag_column] + ([reference] if reference else [])
                 + ([model_column] if model_column else []))
     msio.require_columns(ref_ms, ref_cols + INDEX_COLUMNS, "reference-band Measurement Set",
                          "check --ref-column / --ref-model-column")
     msio.require_columns(target_ms, tgt_cols + INDEX_COLUMNS, "target-band Measurement Set",
                          "check --target-column / --offset-reference-column / --offset-model")
-    protected = {opts.target_column, "FLAG", FLAG_BACKUP, "DATA", reference, model_column} - {None}
+    protected = {opts.input.target_column, "FLAG", FLAG_BACKUP, "DATA", reference, model_column} - {None}
     for col in outputs.values():
         if col.startswith(STAGING_PREFIX):
             raise InputError(f"output column {col}: names starting with {STAGING_PREFIX} are "
@@ -140,18 +112,18 @@ def check_inputs(opts: CalibrateOptions, methods: List[str], ref_ms: str,
         if col in protected:
             raise InputError(f"output column {col} of {target_ms} is an input or flag column; "
                              "choose another --output-column (e.g. PWC_DATA)")
-        if col in present and not opts.overwrite:
+        if col in present and not opts.output.overwrite:
             raise OutputExistsError(f"column {col} already exists in {target_ms}; pass "
                                     "--overwrite to replace it or --output-column to write "
                                     "another column")
     # the robust trackers take the per-sample SNR from SIGMA or WEIGHT where they are
     # informative (hitops/tracking/options.py): that column is read with the data
     snr_from = "data"
-    if opts.tracker != "count" and not (float(opts.snr) > 0 or int(opts.half_window) > 0):
+    if opts.tracking.tracker != "count" and not (float(opts.tracking.snr) > 0 or int(opts.tracking.half_window) > 0):
         from ..tracking.options import sigma_source
         snr_from = sigma_source(ref_ms)
-    columns = Columns(ref_data=opts.ref_column, ref_model=opts.ref_model_column or None,
-                      target_data=opts.target_column, flag=flag_column,
+    columns = Columns(ref_data=opts.input.ref_column, ref_model=opts.input.ref_model_column or None,
+                      target_data=opts.input.target_column, flag=flag_column,
                       offset=reference or offset_model, offset_is_model=bool(offset_model),
                       model=model_column, ref=ref_cols, tgt=tgt_cols,
                       snr=[snr_from.upper()] if snr_from in ("sigma", "weight") else [],

@@ -1,4 +1,4 @@
-"""Stages 3-5 of ``hitops calibrate`` for one group pair: read -> track -> transfer -> write.
+"""Stage 4 of ``hitops calibrate``, the chunk loop of one group pair: read -> track -> transfer -> stage.
 
 For each time chunk of the plan, in time order:
 
@@ -134,7 +134,7 @@ class GroupPipeline:
         self._reader = self.new_tracker()
         log.info("%d chunk(s) of <= %d target rows; %d baseline groups; scheduler %s",
                  group.n_chunks, run.chunk_rows, len(self.baseline_groups),
-                 run.opts.scheduler or "threads")
+                 run.opts.run.scheduler or "threads")
 
     @property
     def segmented(self) -> bool:
@@ -145,7 +145,7 @@ class GroupPipeline:
     def new_tracker(self) -> WrapTracker:
         """A fresh tracker of --tracker (empty state)."""
         group = self.group
-        return new_tracker(self.run.opts.tracker, group.grid, group.match.corr_names,
+        return new_tracker(self.run.opts.tracking.tracker, group.grid, group.match.corr_names,
                            group.tracking, len(group.antenna_names), list(group.antenna_names),
                            workers=1 if self.client is not None else 0)
 

@@ -1,4 +1,4 @@
-"""Stage 2 of ``hitops calibrate``: the plan, built once from both bands' metadata.
+"""Stage 3 of ``hitops calibrate``: the plan, built once from both bands' metadata.
 
 A :class:`RunPlan` holds what the whole run shares (options, columns, chunk
 size, the open dask-ms datasets); a :class:`GroupPlan` holds one (field,
@@ -147,21 +147,21 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
     """Open both bands, pair their groups and plan each pair (nothing written yet)."""
     from .memory import parse_budget
 
-    budget = parse_budget(opts.memory_budget)
-    antenna_map = parse_antenna_map(opts.antenna_map)
+    budget = parse_budget(opts.run.memory_budget)
+    antenna_map = parse_antenna_map(opts.input.antenna_map)
     stage = time.perf_counter()
     # each set's subtables, read once for the run and passed down
     ref_meta, tgt_meta = read_metadata(ref_ms), read_metadata(target_ms)
     # a table stored in time order is read in that order; any other is sorted by dask-ms
     ordered = {ms: msio.is_time_ordered(ms) for ms in (ref_ms, target_ms)}
-    chunk_rows = int(opts.chunk_rows)
+    chunk_rows = int(opts.run.chunk_rows)
     if chunk_rows == 0:
-        explicit = str(opts.memory_budget or "auto").strip().lower() != "auto"
+        explicit = str(opts.run.memory_budget or "auto").strip().lower() != "auto"
         chunk_rows = rows_from_budget(budget, ref_ms, target_ms, columns, len(methods),
                                       all(ordered.values()), strict=explicit,
                                       # sets of several fields or windows are still read
                                       # through dask-ms's datasets
-                                      local=not (opts.scheduler or ref_meta.has_groups()
+                                      local=not (opts.run.scheduler or ref_meta.has_groups()
                                                  or tgt_meta.has_groups()))
     # dask row chunks of chunk_rows rows: the metadata blocks of the first pass are
     # slices of these datasets (no dataset per block); a field/spectral-window group is a
@@ -173,13 +173,13 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
     one_chunk = sum(n_rows.values()) <= 2 * chunk_rows and max(n_rows.values()) <= chunk_rows
     in_time_order = {ms: not (one_chunk and not ordered[ms]) for ms in ordered}
     # one chunk on this process: a set of one group is read by python-casacore directly
-    direct = one_chunk and not opts.scheduler
+    direct = one_chunk and not opts.run.scheduler
     ref_groups = msio.open_for_reading(ref_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.ref + columns.snr)),
                                        io_rows, ordered[ref_ms] or one_chunk, direct,
-                                       local=not opts.scheduler, mixed=ref_meta.has_groups())
+                                       local=not opts.run.scheduler, mixed=ref_meta.has_groups())
     tgt_groups = msio.open_for_reading(target_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.tgt)),
                                        io_rows, ordered[target_ms] or one_chunk, direct,
-                                       local=not opts.scheduler, mixed=tgt_meta.has_groups())
+                                       local=not opts.run.scheduler, mixed=tgt_meta.has_groups())
     timings["open"] = time.perf_counter() - stage
     ref_role, tgt_role = "reference-band Measurement Set", "target-band Measurement Set"
     ref_stations = stations_of(ref_ms, ref_meta.antennas, ref_role)
@@ -199,10 +199,10 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
                          ordered[target_ms], in_time_order[target_ms])
         run.groups.append(plan_group(run, pair, ref_band, tgt_band, ref_stations, tgt_stations,
                                      antenna_map, label=pair.label if len(pairs) > 1 else ""))
-    if opts.caltable and len(pairs) > 1 and any(g.channels is None for g in run.groups):
+    if opts.output.caltable and len(pairs) > 1 and any(g.channels is None for g in run.groups):
         # a per-channel transfer's Fringe Jones table holds every window and field; the
         # single-ratio G Jones table holds one group
-        raise InputError(f"--caltable {opts.caltable}: the sets hold {len(pairs)} field/"
+        raise InputError(f"--caltable {opts.output.caltable}: the sets hold {len(pairs)} field/"
                          "spectral-window groups and the G Jones table holds one; split them "
                          "(CASA split field=/spw=) and write one table per group")
     return run
@@ -219,14 +219,14 @@ def _band(ms: str, datasets: Dict, key, n_ant: int, time_ordered: bool,
 def _ratio(opts: CalibrateOptions, pair: GroupPair, label: str):
     """(R, r, eps, where R came from), logged."""
     ref_freq, tgt_freq = pair.ref.freq, pair.tgt.freq
-    if opts.ratio is None:
+    if opts.input.ratio is None:
         if not (ref_freq > 0 and tgt_freq > 0):
             raise MeasurementSetError(f"cannot take R from the spectral windows ({ref_freq} Hz, "
                                       f"{tgt_freq} Hz); pass --ratio")
         ratio = tgt_freq / ref_freq
         source = f"from the spectral windows: {tgt_freq / 1e9:.6g} GHz / {ref_freq / 1e9:.6g} GHz"
     else:
-        ratio, source = float(opts.ratio), "from --ratio"
+        ratio, source = float(opts.input.ratio), "from --ratio"
     r, eps = split_ratio(ratio)
     log.info("%sR = %.10g (%s): r = %d, eps = %.10g; a reference wrap moves CFPT by %.2f deg",
              f"{label}: " if label else "", ratio, source, r, eps,
@@ -252,7 +252,7 @@ def plan_group(run: RunPlan, pair: GroupPair, ref_source: BandSource, tgt_source
                                      run.chunk_rows)
     timings["metadata"] = time.perf_counter() - stage
     ratio, r, eps, source = _ratio(opts, pair, label)
-    channels = channel_plan(pair, ratio, opts.average_channels, label)
+    channels = channel_plan(pair, ratio, opts.input.average_channels, label)
     for band, group, role, column in ((ref_source, pair.ref, "reference-band Measurement Set",
                                        columns.ref_data),
                                       (tgt_source, pair.tgt, "target-band Measurement Set",
@@ -261,7 +261,7 @@ def plan_group(run: RunPlan, pair: GroupPair, ref_source: BandSource, tgt_source
 
     stage = time.perf_counter()
     match = ChunkMatch(ref_band, tgt_band, ref_stations, tgt_stations, list(pair.ref.corr),
-                       list(pair.tgt.corr), antenna_map, opts.time_tolerance,
+                       list(pair.tgt.corr), antenna_map, opts.input.time_tolerance,
                        datasets={"ref": ref_source.ds, "tgt": tgt_source.ds})
     log.info("stations paired by code (%s: ANTENNA::%s, %s: ANTENNA::%s): %s", run.ref_ms,
              ref_stations.column, run.target_ms, tgt_stations.column,
@@ -273,13 +273,13 @@ def plan_group(run: RunPlan, pair: GroupPair, ref_source: BandSource, tgt_source
         match = match.with_datasets(match.chunk_datasets(
             bounds, {"tgt": ROW_COLUMNS + ["ROWID"] + columns.tgt,
                      "ref": ROW_COLUMNS + ["ROWID"] + columns.ref + columns.snr},
-            split={"ref": 1 if opts.tracker == "count" else 8}))
+            split={"ref": 1 if opts.tracking.tracker == "count" else 8}))
     # every chunk's cells are checked (duplicates, matches, scans) before anything is written
     checked = match.check(bounds)
     grid = TrackGrid(times=match.times, ant1=match.ant1, ant2=match.ant2,
                      baseline_names=match.baseline_names,
                      scans=_split_long_gaps(checked.scans, match.times,
-                                            float(opts.coherence_time)))
+                                            float(opts.tracking.coherence_time)))
     timings["match"] = time.perf_counter() - stage
     from .tracking_setup import tracking_setup
     setup = tracking_setup(opts, grid, run.target_ms, tgt_stations.codes, columns.snr_from,

@@ -67,7 +67,7 @@ def group_report(run: RunPlan, group: GroupPlan, result: GroupResult, tx: Output
         "ref_ms": run.ref_ms, "target_ms": run.target_ms, "methods": run.methods,
         "columns": run.outputs, "ratio": group.ratio, "r": group.r, "eps": group.eps,
         "ratio_source": group.ratio_source, "time_tolerance_s": match.tolerance,
-        "tracker": run.opts.tracker, "chunks": group.n_chunks, "stations": match.pairing,
+        "tracker": run.opts.tracking.tracker, "chunks": group.n_chunks, "stations": match.pairing,
         "tracking": tracking,
         "flags": {"column": "FLAG", "backup_column": FLAG_BACKUP, "flag_updated": tx.flag_written,
                   "input_flags": columns.flag, "backup_created": tx.backup_written},
@@ -86,12 +86,12 @@ def group_report(run: RunPlan, group: GroupPlan, result: GroupResult, tx: Output
                   for b, name in enumerate(match.baseline_names)
                   for c, cn in enumerate(match.corr_names)],
         "offset_step": {
-            "column": run.opts.offset_reference_column,
-            "max_offset_wraps": int(run.opts.max_offset_wraps),
+            "column": run.opts.n0.offset_reference_column,
+            "max_offset_wraps": int(run.opts.n0.max_offset_wraps),
             "applied_to": ([m for m in run.methods if m in ("pwc", "cwu")]
                            if solution.ran else []),
             "per": "segment" if solution.segment_k is not None else "scan",
-            "model": run.opts.offset_model or None,
+            "model": run.opts.n0.offset_model or None,
             "solve": ("antenna lattice" if solution.solves is not None
                       else "baseline" if solution.ran else None),
             "antennas": solution.antennas,
@@ -137,8 +137,8 @@ def write_report(run: RunPlan, report: Dict, result: Optional[GroupResult],
     ``group_results``: every group's (a per-channel --caltable holds all windows).
     """
     opts = run.opts
-    report_path = Path(opts.report) if opts.report else Path(run.target_ms + ".hitops-calibrate.json")
-    if opts.no_verdict:
+    report_path = Path(opts.output.report) if opts.output.report else Path(run.target_ms + ".hitops-calibrate.json")
+    if opts.run.no_verdict:
         pass
     elif result is None:
         # the verdict reads each band as one group (hitops/calibrate/verdict_sample.py)
@@ -155,10 +155,10 @@ def write_report(run: RunPlan, report: Dict, result: Optional[GroupResult],
     if "verdict" in run.timings and "timings_s" in report:   # made after the summary
         report["timings_s"]["verdict"] = round(run.timings["verdict"], 4)
     report_path.write_text(json.dumps(report, indent=1))
-    if opts.caltable and run.groups[0].channels is not None:
+    if opts.output.caltable and run.groups[0].channels is not None:
         report["caltable"] = _write_fringe_table(run, group_results)
         report_path.write_text(json.dumps(report, indent=1))
-    elif opts.caltable:
+    elif opts.output.caltable:
         report["caltable"] = _write_caltable(run, run.groups[0], result)
         report_path.write_text(json.dumps(report, indent=1))
     # the input conversions in the report, --export-uvfits (hitops/calibrate/rules.py)
@@ -185,7 +185,7 @@ def no_offset_step_warning(run: RunPlan, group: GroupPlan, solution) -> Optional
     if not written or solution.ran or (group.eps == 0.0 and not across):
         return None
     per = ("antenna (closure phases are right, the phases themselves are not)"
-           if run.opts.tracker == "antenna" else "baseline")
+           if run.opts.tracking.tracker == "antenna" else "baseline")
     return (f"{' and '.join(written)} carr{'y' if len(written) > 1 else 'ies'} a constant "
             f"2 pi eps n0 per {per} and scan (or tracking segment): no n0 offset step ran. Before "
             "imaging, run the offset step (--offset-model point, or a model column; "
@@ -210,13 +210,13 @@ def _write_fringe_table(run: RunPlan, results: Sequence[GroupResult]) -> Dict:
             group.channels.ref_freq, group.pair.tgt.spw, group.pair.tgt.key[0],
             group.channels.tgt_centre))
     n_ant = len(run.groups[0].antenna_names)
-    n_row = write_fringe_table(run.opts.caltable, run.target_ms, windows, n_ant,
-                               overwrite=bool(run.opts.overwrite))
+    n_row = write_fringe_table(run.opts.output.caltable, run.target_ms, windows, n_ant,
+                               overwrite=bool(run.opts.output.overwrite))
     n_valid = int(sum(w.valid.sum() for w in windows))
     log.info("wrote the antenna solutions to %s (CASA Fringe Jones: phase at each window's "
-             "centre and a delay, %d rows for %d window(s); %d solutions)", run.opts.caltable,
+             "centre and a delay, %d rows for %d window(s); %d solutions)", run.opts.output.caltable,
              n_row, len(windows), n_valid)
-    return {"path": str(run.opts.caltable), "type": "Fringe Jones", "rows": n_row,
+    return {"path": str(run.opts.output.caltable), "type": "Fringe Jones", "rows": n_row,
             "solutions": n_valid}
 
 
@@ -231,8 +231,8 @@ def _write_caltable(run: RunPlan, group: GroupPlan, result: GroupResult) -> Dict
                                        offsets=result.offsets.antennas)
     # the cross hands of the column are transferred per baseline: the table holds the
     # parallel hands' antenna gains, from which CASA forms every correlation
-    path = write_gain_table(run.opts.caltable, run.target_ms, match.times, phase, valid,
-                            match.corr_names, overwrite=bool(run.opts.overwrite))
+    path = write_gain_table(run.opts.output.caltable, run.target_ms, match.times, phase, valid,
+                            match.corr_names, overwrite=bool(run.opts.output.overwrite))
     n_valid = int(valid.sum())
     log.info("wrote the antenna gains to %s (CASA G Jones, %d times x %d antennas; %d "
              "solutions, %d flagged)", path, phase.shape[0], phase.shape[1], n_valid,
@@ -247,14 +247,14 @@ def _verdict(run: RunPlan, group: GroupPlan, report_path: str) -> Dict:
     opts = run.opts
     started = time.perf_counter()
     try:
-        verdict = predict(run.ref_ms, run.target_ms, group.ratio, opts.ref_column,
-                          opts.target_column, float(opts.verdict_interval),
+        verdict = predict(run.ref_ms, run.target_ms, group.ratio, opts.input.ref_column,
+                          opts.input.target_column, float(opts.run.verdict_interval),
                           ref_meta=run.ref_meta, tgt_meta=run.tgt_meta)
     except HitopsError as err:   # the columns are written: say why there is no verdict
         log.warning("no verdict: %s", err)
         return {"error": str(err)}
-    log_verdict(verdict, methods_transfer_baselines=opts.tracker != "antenna",
-                has_model=bool(opts.ref_model_column), report_path=report_path)
+    log_verdict(verdict, methods_transfer_baselines=opts.tracking.tracker != "antenna",
+                has_model=bool(opts.input.ref_model_column), report_path=report_path)
     run.timings["verdict"] = time.perf_counter() - started
     return {**verdict.as_dict(), "summary": summary(verdict)}
 

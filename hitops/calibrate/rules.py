@@ -6,8 +6,7 @@ Issue 13 let ``hitops calibrate`` take UVFITS and FITS-IDI files and write
 
 * :func:`prepare_inputs`, the run's first step: the output files are checked
   before anything is converted or calibrated (an existing file needs
-  ``--overwrite``; ``--caltable`` needs the antenna tracker, the only one with
-  per-antenna solutions; no output may be an input), then REF and TARGET are
+  ``--overwrite``; no output may be an input), then REF and TARGET are
   converted (or reused) into Measurement Sets.  It returns the conversions as
   a :class:`PreparedInputs`, which the run hands to its report stage;
 * :func:`finish_report`, the run's last step: the conversions in the report,
@@ -19,7 +18,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List
 
 from ..errors import InputError, OutputExistsError
 from ..io.convert import Conversion, ensure_ms
@@ -62,38 +61,29 @@ def check_output_file(path, overwrite: bool, option: str) -> None:
                          "writable path")
 
 
-def _check_caltable(caltable: str, overwrite: bool, tracker: Optional[str],
-                    reference_table: Optional[str] = None) -> None:
-    # with --reference-table the table holds the transferred solutions, per antenna already
-    if not reference_table and tracker is not None and tracker != "antenna":
-        raise InputError(f"--caltable '{caltable}' needs --tracker antenna: a calibration "
-                         "table holds one phase per antenna, and only the antenna tracker "
-                         f"solves per antenna (--tracker {tracker} works per baseline)")
-    if Path(caltable).exists() and not overwrite:
-        raise OutputExistsError(f"--caltable '{caltable}' exists; pass --overwrite to "
-                                "replace it or give another --caltable path (nothing was "
-                                "written)")
-
-
-def prepare_inputs(ref, target, workdir: Optional[str] = None,
-                   export_uvfits: Optional[str] = None, overwrite: bool = False,
-                   caltable: Optional[str] = None,
-                   tracker: Optional[str] = None,
-                   reference_table: Optional[str] = None) -> PreparedInputs:
+def prepare_inputs(opts) -> PreparedInputs:
     """calibrate's first step: check the output files, convert the inputs that are no sets.
 
     The --export-uvfits and --caltable paths are checked before any conversion
-    or calibration, so a refused run changes nothing.
+    or calibration, so a refused run changes nothing (the options themselves were
+    checked before: hitops/calibrate/modes.py).
     """
-    check_output_file(export_uvfits, overwrite, "--export-uvfits")
-    if caltable:
-        _check_caltable(caltable, overwrite, tracker, reference_table)
+    output = opts.output
+    ref, target, reference_table = opts.ref_ms, opts.target_ms, opts.input.reference_table
+    check_output_file(output.export_uvfits, output.overwrite, "--export-uvfits")
+    # a CASA table is a directory: only its existence is checked
+    if output.caltable and Path(output.caltable).exists() and not output.overwrite:
+        raise OutputExistsError(f"--caltable '{output.caltable}' exists; pass --overwrite to "
+                                "replace it or give another --caltable path (nothing was "
+                                "written)")
     for given in (ref, target) + ((reference_table,) if reference_table else ()):
-        for option, out in (("--export-uvfits", export_uvfits), ("--caltable", caltable)):
+        for option, out in (("--export-uvfits", output.export_uvfits),
+                            ("--caltable", output.caltable)):
             if out and Path(given).exists() and \
                     os.path.realpath(given) == os.path.realpath(out):
                 raise InputError(f"{option} '{out}' is an input; give another path (inputs "
                                  "are never written)")
+    workdir = opts.input.workdir
     ref_c = ensure_ms(ref, "REF (reference band)", workdir)
     tgt_c = ensure_ms(target, "TARGET (target band)", workdir)
     if ref_c.format != "ms" and os.path.realpath(ref_c.ms) == os.path.realpath(tgt_c.ms):
@@ -121,11 +111,11 @@ def finish_report(report: Dict, opts, ref_ms: str, target_ms: str, outputs: Dict
     if conversions:
         report["conversions"] = conversions
         changed = True
-    path = getattr(opts, "export_uvfits", None)
+    path = opts.output.export_uvfits
     if path:
         report["export_uvfits"] = export_uvfits(
-            target_ms, path, outputs[methods[0]], overwrite=bool(opts.overwrite),
+            target_ms, path, outputs[methods[0]], overwrite=bool(opts.output.overwrite),
             role="target-band Measurement Set",
-            history=history_lines(methods, opts.tracker, ref_ms))
+            history=history_lines(methods, opts.tracking.tracker, ref_ms))
         changed = True
     return changed

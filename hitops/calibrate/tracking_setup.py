@@ -31,29 +31,28 @@ def tracking_setup(opts: CalibrateOptions, grid: TrackGrid, target_ms: str, ante
     """The TrackingSetup of ``--tracker smooth|antenna`` (None for count, which has no
     parameters); checks --refant.  ``target_meta``: the run's SetMetadata of the target
     set (its ANTENNA positions and phase centre for the elevations)."""
-    if opts.tracker == "count":
-        defaults = {f.name: f.default for f in fields(CalibrateOptions)}
+    tracking = opts.tracking
+    if tracking.tracker == "count":
+        defaults = {f.name: f.default for f in fields(tracking)}
         changed = [k for k in ROBUST_OPTIONS
-                   if getattr(opts, k) != defaults[k]
-                   and not (defaults[k] is None and not getattr(opts, k))]
+                   if getattr(tracking, k) != defaults[k]
+                   and not (defaults[k] is None and not getattr(tracking, k))]
         if changed:
             log.warning("--tracker count ignores %s (they tune --tracker smooth/antenna)",
                         ", ".join("--" + k.replace("_", "-") for k in changed))
         return None
-    if opts.refant and opts.tracker != "antenna":
+    if opts.tracking.refant and opts.tracking.tracker != "antenna":
         log.warning("--refant is used by --tracker antenna only; ignored")
     _, dt = grid_positions(grid.times, grid.scans.scan_of_time)
-    fixed = float(opts.snr) > 0 or int(opts.half_window) > 0
+    fixed = float(opts.tracking.snr) > 0 or int(opts.tracking.half_window) > 0
     sin_el = None
-    if not opts.no_elevation_scaling:
+    if not opts.tracking.no_elevation_scaling:
         sin_el = station_sin_elevation(target_ms, grid.times, target_meta)
         if sin_el is None:
             log.info("no station geometry in %s (ANTENNA positions off the Earth's surface): "
                      "--coherence-time is used without elevation scaling", target_ms)
-    setup = setup_tracking(opts.tracker, opts.half_window, opts.coherence_time, opts.snr,
-                           opts.max_gap, opts.jump_threshold, opts.jump_window, opts.jump_action,
-                           opts.refant, opts.solve_half_window, dt, list(antenna_names),
-                           "fixed" if fixed else snr_from, sin_elevation=sin_el)
+    setup = setup_tracking(tracking, dt, list(antenna_names), "fixed" if fixed else snr_from,
+                           sin_elevation=sin_el)
     _log_setup(setup)
     return setup
 

@@ -29,7 +29,7 @@ def _read(ms, *cols):
 
 def direct_check(codes, outdir, date="2018-04-10", start="2018-04-10T00:00:00", duration=3600.0,
                  target_rho=2.6, seed=1) -> dict:
-    from ..calibrate import calibrate
+    from ..calibrate import OutputOptions, TrackingOptions, calibrate
     from ..simulate import simulate
     from ..simulate.scene import load_scene_mapping
 
@@ -46,7 +46,8 @@ def direct_check(codes, outdir, date="2018-04-10", start="2018-04-10T00:00:00", 
     flux = target_rho * float(np.median(sigma[:, 0]))
     scene["source"]["flux"] = {"86": flux, "230": 1.0}
     paths = simulate(scene, outdir / "sim", overwrite=True, save_truth=True)
-    calibrate(str(paths["86"]), str(paths["230"]), method="pwc", tracker="count", overwrite=True)
+    calibrate(str(paths["86"]), str(paths["230"]), tracking=TrackingOptions(tracker="count"),
+              output=OutputOptions(method="pwc", overwrite=True))
     truth = np.load(paths["truth"])
     ref, sig, t86 = _read(paths["86"], "DATA", "SIGMA", "TIME")
     pwc, dat = _read(paths["230"], "PWC_DATA", "DATA")

@@ -94,10 +94,12 @@ _CHECKS = {
 }
 
 
-def check_options(**values) -> None:
-    """Raise InputError for a tracking option out of range (keyword names of :data:`_CHECKS`)."""
-    for key, value in values.items():
-        name, ok, what = _CHECKS[key]
+def check_options(tracking) -> None:
+    """Raise InputError for a tracking option out of range: ``tracking`` is calibrate's
+    tracking section (hitops/schemas/calibrate.yml), or anything with the names of
+    :data:`_CHECKS` as attributes."""
+    for key, (name, ok, what) in _CHECKS.items():
+        value = getattr(tracking, key)
         try:
             good = ok(float(value))
         except (TypeError, ValueError):
@@ -180,15 +182,21 @@ def _context(tracker, h_max, m_gap, window, solve_h, snr_window) -> int:
     return 2 * (2 * h_max + 1) + (m_gap + 1) + 2 * reach_window + snr_window + 16
 
 
-def setup_tracking(tracker, half_window, coherence_time, snr, max_gap, jump_threshold,
-                   jump_window, jump_action, refant, solve_half_window, dt, antenna_names,
-                   snr_from: str, sin_elevation=None) -> TrackingSetup:
+def setup_tracking(tracking, dt: float, antenna_names, snr_from: str,
+                   sin_elevation=None) -> TrackingSetup:
     """Resolve the defaults of docs/tracking.md ("Recommended defaults for calibrate").
 
+    ``tracking``: calibrate's tracking section (``tracker``, ``half_window``,
+    ``coherence_time``, ``snr``, ``max_gap``, ``jump_threshold``, ``jump_window``,
+    ``jump_action``, ``refant``, ``solve_half_window``); ``dt`` the grid's time step (s).
     ``sin_elevation`` (n_ant, n_time) or None: with it the coherence time is
     scaled per station as sin(el)^(3/5) (``elevation_scaling``).
     """
-    coherence_time = float(coherence_time)
+    tracker, jump_action = tracking.tracker, tracking.jump_action
+    half_window, snr, max_gap = tracking.half_window, tracking.snr, tracking.max_gap
+    jump_threshold, jump_window = tracking.jump_threshold, tracking.jump_window
+    solve_half_window = tracking.solve_half_window
+    coherence_time = float(tracking.coherence_time)
     cap = max(1, int((coherence_time / dt - 1) // 2))          # windows stay below t_c
     snr = float(snr)
     h_fixed = int(half_window)
@@ -215,7 +223,7 @@ def setup_tracking(tracker, half_window, coherence_time, snr, max_gap, jump_thre
                          snr_source="fixed" if snr > 0 else snr_from, half_window=h_fixed,
                          max_half_window=cap, max_gap=m_gap, jump_window=window,
                          jump_threshold=float(threshold), jump_action=jump_action,
-                         refants=parse_refants(refant, antenna_names), solve_half_window=solve_h,
+                         refants=parse_refants(tracking.refant, antenna_names), solve_half_window=solve_h,
                          snr_window=snr_window,
                          context=int(_context(tracker, h_max, m_gap, window, solve_h, snr_window)),
                          elevation_scaling=sin_elevation is not None, sin_elevation=sin_elevation)

@@ -14,6 +14,7 @@ result for the report (:func:`_series_entries`, :func:`_antenna_entries`,
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
@@ -79,8 +80,12 @@ class AntennaOffsets:
 
 
 @dataclass(frozen=True)
-class _Problem:
-    """What every solve of one antenna_offsets call shares."""
+class LatticeProblem:
+    """What every solve of one :func:`antenna_offsets` call shares: the group's baselines
+    (``ant1``, ``ant2``: antenna indices), names, scan numbers, eps, the candidate bound
+    and ambiguity, the reference antennas in order of preference, the segment key of the
+    sums, and across a wide window its per-channel ratios.  ``pair`` is set by
+    :func:`antenna_offsets` (the parallel hands solved together)."""
 
     ant1: np.ndarray
     ant2: np.ndarray
@@ -91,10 +96,10 @@ class _Problem:
     eps: float
     max_k: int
     ambiguity_deg: float
-    refants: List[int]
-    segment_key: int
-    pair: Optional[Tuple[int, int]]     # the parallel hands solved together, or None
+    refants: Tuple[int, ...] = ()
+    segment_key: int = int(SEGMENT_KEY)
     window: Optional[WindowRatios] = None   # the n0 step across a window's channels
+    pair: Optional[Tuple[int, int]] = None  # the parallel hands solved together, or None
 
     @property
     def two_pi_eps(self) -> float:
@@ -128,11 +133,8 @@ class _Problem:
         return canonical_k(k, self.eps, self.max_k) if self.window is None else int(k)
 
 
-def antenna_offsets(seg_sums, antenna_corrs, ant1, ant2, antenna_names, baseline_names,
-                    corr_names, scans, eps: float, max_k: int, ambiguity_deg: float,
-                    refants=(), segment_key: int = int(SEGMENT_KEY),
-                    hands: Optional[HandPhases] = None,
-                    window: Optional[WindowRatios] = None) -> AntennaOffsets:
+def antenna_offsets(seg_sums, antenna_corrs, problem: LatticeProblem,
+                    hands: Optional[HandPhases] = None) -> AntennaOffsets:
     """The n0 step of the antenna tracker: integers per antenna and segment on the lattice.
 
     ``seg_sums``: {(baseline, correlation, key): (z, n)} with z the sum of
@@ -152,17 +154,14 @@ def antenna_offsets(seg_sums, antenna_corrs, ant1, ant2, antenna_names, baseline
     ``window``: the sums are per target channel ((n_chan,) arrays) and the integers are
     chosen across them (k and k + 43 differ across a wide window; docs/wideband.md).
     """
-    groups = _sums_by_solve(seg_sums, antenna_corrs, segment_key)
-    problem = _Problem(ant1=ant1, ant2=ant2, antenna_names=antenna_names,
-                       baseline_names=baseline_names, corr_names=corr_names, scans=scans,
-                       eps=eps, max_k=max_k, ambiguity_deg=ambiguity_deg,
-                       refants=[int(r) for r in refants], segment_key=segment_key,
-                       pair=parallel_hand_pair(corr_names, antenna_corrs)
-                       if hands is not None else None, window=window)
+    groups = _sums_by_solve(seg_sums, antenna_corrs, problem.segment_key)
+    problem = dataclasses.replace(
+        problem, refants=tuple(int(r) for r in problem.refants),
+        pair=parallel_hand_pair(problem.corr_names, antenna_corrs) if hands is not None else None)
     tie = _hand_links(problem.pair, hands)
     units = [_unit_graph(unit, groups, tie, problem)
              for unit in _solve_units(groups, problem.pair, {key[0] for key in tie})]
-    rot = np.ones(len(antenna_names), np.complex128)
+    rot = np.ones(len(problem.antenna_names), np.complex128)
     if problem.pair is not None and any(u.joint for u in units):
         rot = _hand_rotation(units, problem)
     result = AntennaOffsets()
@@ -207,7 +206,7 @@ def _solve_units(groups, pair, tied_scans) -> List[List[tuple]]:
     return units
 
 
-def _unit_graph(unit, groups, tie, problem: _Problem) -> SolveUnit:
+def _unit_graph(unit, groups, tie, problem: LatticeProblem) -> SolveUnit:
     """Nodes (c, p, seg), their solve variable and offset, and the unit's edges."""
     nodes, edges = {}, []
     s = unit[0][1]
@@ -242,7 +241,7 @@ def _unit_graph(unit, groups, tie, problem: _Problem) -> SolveUnit:
                      offset=offset, edges=edges)
 
 
-def _hand_rotation(units: List[SolveUnit], problem: _Problem) -> np.ndarray:
+def _hand_rotation(units: List[SolveUnit], problem: LatticeProblem) -> np.ndarray:
     """The hands' antenna-based phase difference over the whole track: unit phasors per
     antenna (:func:`hitops.calibrate.n0.hands.phase_sync` of the products of the two
     hands' edge sums), applied to the second hand's edges."""
@@ -269,7 +268,7 @@ def _hand_rotation(units: List[SolveUnit], problem: _Problem) -> np.ndarray:
     return phase_sync(h)
 
 
-def _solve_unit(unit: SolveUnit, rot: np.ndarray, problem: _Problem,
+def _solve_unit(unit: SolveUnit, rot: np.ndarray, problem: LatticeProblem,
                 result: AntennaOffsets) -> None:
     """One lattice solve, its integers per node, and its report entries added to ``result``."""
     group, offset, edges = unit.group, unit.offset, unit.edges
@@ -298,7 +297,7 @@ def _solve_unit(unit: SolveUnit, rot: np.ndarray, problem: _Problem,
     _solve_entries(unit, sol, ga, n, node_ph, hands_label, problem, result)
 
 
-def _series_entries(unit: SolveUnit, k_node, node_ph, problem: _Problem,
+def _series_entries(unit: SolveUnit, k_node, node_ph, problem: LatticeProblem,
                     result: AntennaOffsets) -> None:
     """Each baseline segment's k = k_p - k_q and the mismatch left on it."""
     for e in unit.edges:
@@ -316,7 +315,7 @@ def _series_entries(unit: SolveUnit, k_node, node_ph, problem: _Problem,
 
 
 def _antenna_entries(unit: SolveUnit, sol: LatticeSolution, k_node, hands_label: str,
-                     problem: _Problem, result: AntennaOffsets) -> None:
+                     problem: LatticeProblem, result: AntennaOffsets) -> None:
     """One entry per antenna segment: its k and how clearly the data chose it."""
     group, offset = unit.group, unit.offset
     gauges = set(int(g) for g in sol.gauge)
@@ -345,7 +344,7 @@ def _antenna_entries(unit: SolveUnit, sol: LatticeSolution, k_node, hands_label:
 
 
 def _solve_entries(unit: SolveUnit, sol: LatticeSolution, ga, n, node_ph, hands_label: str,
-                   problem: _Problem, result: AntennaOffsets) -> None:
+                   problem: LatticeProblem, result: AntennaOffsets) -> None:
     """One entry per connected component and hand: its gauge and the mismatch left."""
     group, edges = unit.group, unit.edges
     names = sorted(unit.nodes, key=unit.nodes.get)          # (c, p, seg) per node

@@ -30,7 +30,7 @@ from ...kernels.segments import shifted_rows
 from ...tracking.base import WrapTracker
 from ...tracking.state import SEGMENT_KEY, apply_segment_offsets
 from ..plan import GroupPlan, RunPlan
-from .antenna import antenna_offsets
+from .antenna import LatticeProblem, antenna_offsets
 from .baseline import WindowRatios, choose_channel_offset, choose_offset
 from .hands import HandPhases
 
@@ -142,7 +142,7 @@ def solve_offsets(run: RunPlan, group: GroupPlan, tracker: WrapTracker,
     """The integers from the first pass's ``sums`` and its ``tracker``."""
     stage = time.perf_counter()
     match = group.match
-    max_k, ambiguity = int(run.opts.max_offset_wraps), float(run.opts.offset_ambiguity_deg)
+    max_k, ambiguity = int(run.opts.n0.max_offset_wraps), float(run.opts.n0.offset_ambiguity_deg)
     shape = (match.n_bl, group.n_corr, group.grid.scans.n_scan)
     solution = OffsetSolution(offsets=np.zeros(shape), offset_k=np.zeros(shape, np.int64))
     if not tracker.segmented:
@@ -178,11 +178,12 @@ def _antenna_lattice(solution: OffsetSolution, group: GroupPlan, sums, tracker: 
     # the first pass's antenna phases tie the two hands
     hands = None if tracker.antenna_phase is None else HandPhases(
         tracker.antenna_phase, tracker.antenna_segment, scans.scan_of_time)
-    found = antenna_offsets(
-        sums, antenna_corrs, match.ant1, match.ant2, list(group.antenna_names),
-        match.baseline_names, match.corr_names, scans.scan_numbers, group.eps, max_k, ambiguity,
-        refants=group.tracking.refants, segment_key=int(SEGMENT_KEY), hands=hands,
-        window=window)
+    problem = LatticeProblem(
+        ant1=match.ant1, ant2=match.ant2, antenna_names=list(group.antenna_names),
+        baseline_names=match.baseline_names, corr_names=match.corr_names,
+        scans=scans.scan_numbers, eps=group.eps, max_k=max_k, ambiguity_deg=ambiguity,
+        refants=tuple(group.tracking.refants), segment_key=int(SEGMENT_KEY), window=window)
+    found = antenna_offsets(sums, antenna_corrs, problem, hands=hands)
     solution.segment_k.update(found.segment_k)
     solution.series.extend(found.series)
     solution.antennas, solution.solves = found.antennas, found.solves

@@ -113,7 +113,7 @@ def switch_counts(run, groups: List, tgt_meta: Dict[str, np.ndarray],
     meta, phase, ok = _reference_series(run, groups, ref_rows)
     ref_codes = read_stations(run.ref_ms).codes
     tgt_codes = read_stations(run.target_ms).codes
-    rename = parse_antenna_map(run.opts.antenna_map)
+    rename = parse_antenna_map(run.opts.input.antenna_map)
     to_tgt = np.array([tgt_codes.index(rename.get(c, c)) if rename.get(c, c) in tgt_codes
                        else -1 for c in ref_codes])
     corr_map = correlation_map(pair.ref.corr, pair.tgt.corr)

@@ -119,16 +119,10 @@ def check_calibrator_field(run) -> Optional[CalibratorField]:
     """The run's calibrator (None without --calibrator-field), checked before anything is
     written: a field of TARGET_MS, with rows the transfer covers, and another field to
     apply it to."""
-    name = run.opts.calibrator_field
+    name = run.opts.input.calibrator_field
     if not name:
         return None
-    if run.opts.tracker != "count" or run.columns.offset is not None:
-        raise InputError(f"--calibrator-field {name} works on the count tracker's output "
-                         "without an n0 step (its per-scan counts are carried across the field "
-                         "switches; docs/solutions.md): drop --tracker "
-                         f"{run.opts.tracker}" if run.opts.tracker != "count" else
-                         f"--calibrator-field {name} replaces the n0 offset step: drop "
-                         "--offset-model / --offset-reference-column")
+    # the options it refuses (a robust tracker, the n0 step): hitops/calibrate/modes.py
     names = [str(n) for n in msio.read_subtable(run.target_ms, "FIELD", ["NAME"])["NAME"]]
     if name not in names:
         raise InputError(f"--calibrator-field {name}: no such field in {run.target_ms} "
@@ -260,7 +254,7 @@ def _apply_window(table, tx, column: str, rows: np.ndarray, meta, solution: Wind
 def _refant(run, names: List[str], cal_ant: np.ndarray) -> int:
     """--refant's first station present on the calibrator, else the one in most rows."""
     present = set(np.unique(cal_ant).tolist())
-    for code in (run.opts.refant or "").split(","):
+    for code in (run.opts.tracking.refant or "").split(","):
         if code.strip() in names and names.index(code.strip()) in present:
             return names.index(code.strip())
     return int(np.bincount(cal_ant, minlength=len(names)).argmax())
