@@ -31,7 +31,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from ...errors import ProcessingSetError
-from .store import PartitionEntry, ProcessingSetStore
+from .store import PartitionEntry, ProcessingSetStore, quiet_zarr, zarr_group
 
 #: casacore's Stokes codes (casacore/measures/Measures/Stokes.h) of the names MSv4 stores
 STOKES_CODES = {"I": 1, "Q": 2, "U": 3, "V": 4, "RR": 5, "RL": 6, "LR": 7, "LL": 8,
@@ -113,10 +113,9 @@ def split_id(v4_name: str) -> Tuple[str, Optional[int]]:
 
 def read_layout(store: ProcessingSetStore) -> ProcessingSetLayout:
     """The :class:`ProcessingSetLayout` of a checked store (small arrays only)."""
-    import zarr   # the msv4 extra: imported when a processing set is read
-
-    root = zarr.open_group(store.path, mode="r")
-    facts = [_partition_facts(root, entry, store.path) for entry in store.partitions]
+    root = zarr_group(store.path)
+    with quiet_zarr():
+        facts = [_partition_facts(root, entry, store.path) for entry in store.partitions]
     window_ids = _window_ids(facts)
     windows = [None] * (max(window_ids.values()) + 1)
     for fact in facts:

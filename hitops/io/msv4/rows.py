@@ -19,7 +19,8 @@ from typing import Iterator, Optional, Sequence, Tuple
 import numpy as np
 
 from ...errors import ProcessingSetError
-from .layout import ProcessingSetLayout, split_id
+from .layout import ProcessingSetLayout
+from .store import quiet_zarr, zarr_group
 
 #: seconds from the MJD epoch (1858-11-17, MSv2 TIME) to the Unix epoch (MSv4 time)
 UNIX_TO_MJD_S = 40587 * 86400.0
@@ -57,21 +58,20 @@ class PartitionReader:
     """Rows of one partition and data group of a processing set (zarr, read only)."""
 
     def __init__(self, layout: ProcessingSetLayout, partition: str, data_group: str = "base"):
-        import zarr   # the msv4 extra
-
         self.layout = layout
         self.entry = layout.store.partition(partition)
         self.group = self.entry.group(data_group)
         self.place = layout.partition(partition)
-        self._zarr = zarr.open_group(layout.store.path, mode="r")[partition]
-        self.times = np.asarray(self._zarr["time"][...], np.float64) + UNIX_TO_MJD_S
-        self._ant1 = self._antenna_index("baseline_antenna1_name")
-        self._ant2 = self._antenna_index("baseline_antenna2_name")
-        field_names = [str(n) for n in np.asarray(self._zarr["field_name"][...]).ravel()]
-        known = {name: i for i, name in enumerate(layout.fields.v4_names)}
-        self._field = np.array([known[n] for n in field_names], np.int32)
-        self._scan = np.array([_scan_number(str(s)) for s in
-                               np.asarray(self._zarr["scan_name"][...]).ravel()], np.int32)
+        with quiet_zarr():
+            self._zarr = zarr_group(layout.store.path)[partition]
+            self.times = np.asarray(self._zarr["time"][...], np.float64) + UNIX_TO_MJD_S
+            self._ant1 = self._antenna_index("baseline_antenna1_name")
+            self._ant2 = self._antenna_index("baseline_antenna2_name")
+            known = {name: i for i, name in enumerate(layout.fields.v4_names)}
+            self._field = np.array([known[str(n)] for n in
+                                    np.asarray(self._zarr["field_name"][...]).ravel()], np.int32)
+            self._scan = np.array([_scan_number(str(s)) for s in
+                                   np.asarray(self._zarr["scan_name"][...]).ravel()], np.int32)
         self._presence = next((v for v in _PRESENCE if v in self.entry.arrays), None)
 
     @property
@@ -140,6 +140,5 @@ class PartitionReader:
 
 def _scan_number(scan_name: str) -> int:
     """SCAN_NUMBER of xradio's scan_name (the MSv2 number as text); -1 when it is no number."""
-    head = split_id(scan_name)[0] if not scan_name.lstrip("-").isdigit() else scan_name
-    return int(scan_name) if scan_name.lstrip("-").isdigit() else (
-        int(head) if head.isdigit() else -1)
+    text = scan_name.strip()
+    return int(text) if text.lstrip("-").isdigit() else -1

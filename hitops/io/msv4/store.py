@@ -22,6 +22,8 @@ the partition and the remedy.
 from __future__ import annotations
 
 import json
+import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Tuple
@@ -80,6 +82,25 @@ class ProcessingSetStore:
         raise ProcessingSetError(
             f"'{self.path}' has no partition '{name}' (it has "
             f"{', '.join(p.name for p in self.partitions)})")
+
+
+@contextmanager
+def quiet_zarr():
+    """zarr 3.1 warns on every open of xradio's stores that consolidated metadata and
+    fixed-length strings are not in the zarr v3 specification yet; xradio's own readers
+    rely on both, so the warning says nothing to a hitops user."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*Zarr V3 specification")
+        warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part")
+        yield
+
+
+def zarr_group(path: str, mode: str = "r", **kwargs):
+    """A zarr group of the store (the msv4 extra's zarr, imported here)."""
+    import zarr
+
+    with quiet_zarr():
+        return zarr.open_group(path, mode=mode, **kwargs)
 
 
 def _read_json(path: Path) -> Optional[dict]:
