@@ -69,7 +69,7 @@ class DataGroupWriter:
         self.overwrite = overwrite
         self.description = description or f"written by hitops from data group '{like}'"
         self._check(name)
-        self._staged = False
+        self._staged = None     # the partition's zarr group once staged
 
     def _check(self, name: str) -> None:
         where = f"'{self.store.path}' partition '{self.entry.name}'"
@@ -123,14 +123,14 @@ class DataGroupWriter:
                                chunks=source.chunks, compressors=source.compressors,
                                fill_value=fill, attributes=attributes,
                                dimension_names=source.metadata.dimension_names)
-        self._staged = True
+        self._staged = group
 
     def write(self, rows: PartitionRows, data: np.ndarray, flag: np.ndarray) -> None:
         """The rows' data (n_row, n_chan, n_corr) and flags into their cells; the chunk's other
         cells stay NaN and flagged."""
-        if not self._staged:
+        group = self._staged
+        if group is None:
             raise RuntimeError("DataGroupWriter.write before stage()")
-        group = self._group()
         start, stop = rows.time_slice
         out = group[self.variables.correlated_data]
         block = np.full((stop - start,) + out.shape[1:], np.nan + 0j, out.dtype)
@@ -143,13 +143,13 @@ class DataGroupWriter:
     def commit(self) -> None:
         """Register the group in ``data_groups``, then the consolidated metadata (last)."""
         self._register(drop=False)
-        self._staged = False
+        self._staged = None
 
     def abort(self) -> None:
         """Remove the staged arrays (the partition as it was)."""
         for variable in (self.variables.correlated_data, self.variables.flag):
             shutil.rmtree(Path(self.store.path) / self.entry.name / variable, ignore_errors=True)
-        self._staged = False
+        self._staged = None
 
     def _register(self, drop: bool) -> None:
         group = self._group()

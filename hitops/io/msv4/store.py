@@ -95,12 +95,12 @@ def quiet_zarr():
         yield
 
 
-def zarr_group(path: str, mode: str = "r", **kwargs):
+def zarr_group(store: str, mode: str = "r", **kwargs):
     """A zarr group of the store (the msv4 extra's zarr, imported here)."""
     import zarr
 
     with quiet_zarr():
-        return zarr.open_group(path, mode=mode, **kwargs)
+        return zarr.open_group(store, mode=mode, **kwargs)
 
 
 def _read_json(path: Path) -> Optional[dict]:
