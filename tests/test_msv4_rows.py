@@ -17,6 +17,7 @@ import pytest
 
 pytest.importorskip("xradio")
 import xarray as xr  # noqa: E402
+import zarr  # noqa: E402
 
 from hitops.errors import OutputExistsError, ProcessingSetError  # noqa: E402
 from hitops.io import tables  # noqa: E402
@@ -135,7 +136,8 @@ def _write_group(ps, name, overwrite=False, fail_after=None, rows_per_chunk=600)
     layout = read_layout(open_store(ps))
     for place in layout.partitions:
         reader = PartitionReader(layout, place.name)
-        with DataGroupWriter(str(ps), place.name, name, overwrite=overwrite) as writer:
+        with DataGroupWriter(str(ps), place.name, name, overwrite=overwrite,
+                             time_chunk=reader.time_step(rows_per_chunk)) as writer:
             for k, rows in enumerate(reader.chunks(rows_per_chunk)):
                 if fail_after is not None and k == fail_after:
                     raise KeyboardInterrupt("stopped")
@@ -147,7 +149,7 @@ def test_written_group_read_back_with_xarray(simulator_sets, tmp_path):
     ms, ps = simulator_sets
     ps = _writable(ps, tmp_path)
     inputs = file_digests(ps, skip={"zarr.json", "VISIBILITY_PWC", "FLAG_PWC"})
-    _write_group(ps, "pwc")
+    _write_group(ps, "pwc", rows_per_chunk=120)
     assert file_digests(ps, skip={"zarr.json", "VISIBILITY_PWC", "FLAG_PWC"}) == inputs
     tree = xr.open_datatree(ps, engine="zarr")
     for partition in open_store(ps).partitions:
@@ -162,6 +164,10 @@ def test_written_group_read_back_with_xarray(simulator_sets, tmp_path):
                 .ds.antenna_name.values[0])
         expect_flag = ds.FLAG.values | ant0[None, :, None, None]
         np.testing.assert_array_equal(ds.FLAG_PWC.values, expect_flag)
+    # the new arrays are stored in the chunks the writer wrote (whole zarr chunks per write)
+    group = zarr.open_group(str(ps), path=partition.name, mode="r")
+    assert group["VISIBILITY_PWC"].chunks[0] == 120 // ds.sizes["baseline_id"] < ds.sizes["time"]
+    assert group["VISIBILITY"].chunks[0] == ds.sizes["time"]
     # and through hitops's own reader, as the group's rows
     layout = read_layout(open_store(ps))
     place = layout.partitions[1]

@@ -31,6 +31,7 @@ import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -61,12 +62,16 @@ class DataGroupWriter:
     """Writes data group ``name`` of ``partition``, made like group ``like``."""
 
     def __init__(self, store_path: str, partition: str, name: str, like: str = "base",
-                 overwrite: bool = False, description: str = ""):
+                 overwrite: bool = False, description: str = "",
+                 time_chunk: Optional[int] = None):
         self.store = open_store(store_path, role="output")
         self.entry = self.store.partition(partition)
         self.like = self.entry.group(like)
         self.variables = GroupVariables.of(name)
         self.overwrite = overwrite
+        #: time steps per zarr chunk of the new arrays (default: the input's); a caller writing
+        #: chunk by chunk gives PartitionReader.time_step, so every write is whole chunks
+        self.time_chunk = time_chunk
         self.description = description or f"written by hitops from data group '{like}'"
         self._check(name)
         self._staged = None     # the partition's zarr group once staged
@@ -119,8 +124,10 @@ class DataGroupWriter:
             source = group[like]
             attributes = dict(source.attrs)
             attributes[MARK] = self.variables.name
+            chunks = source.chunks if self.time_chunk is None else \
+                (min(int(self.time_chunk), source.shape[0]),) + tuple(source.chunks[1:])
             group.create_array(variable, shape=source.shape, dtype=source.dtype,
-                               chunks=source.chunks, compressors=source.compressors,
+                               chunks=chunks, compressors=source.compressors,
                                fill_value=fill, attributes=attributes,
                                dimension_names=source.metadata.dimension_names)
         self._staged = group

@@ -82,9 +82,15 @@ class PartitionReader:
     def n_baseline(self) -> int:
         return int(self._ant1.size)
 
+    def time_step(self, rows_per_chunk: int) -> int:
+        """Time steps per chunk of about ``rows_per_chunk`` grid cells (at least one): also the
+        time chunk a :class:`~hitops.io.msv4.DataGroupWriter` should store, so that each
+        chunk's write is whole zarr chunks (no read-modify-write, one writer per chunk)."""
+        return max(1, int(rows_per_chunk) // max(1, self.n_baseline))
+
     def time_slices(self, rows_per_chunk: int) -> Tuple[Tuple[int, int], ...]:
         """[start, stop) time ranges of about ``rows_per_chunk`` grid cells, whole time steps."""
-        step = max(1, int(rows_per_chunk) // max(1, self.n_baseline))
+        step = self.time_step(rows_per_chunk)
         return tuple((t, min(t + step, self.n_time)) for t in range(0, self.n_time, step))
 
     def slice_of(self, t_lo: float, t_hi: float) -> Tuple[int, int]:
