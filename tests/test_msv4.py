@@ -176,3 +176,21 @@ def test_partition_missing_from_the_root_metadata(pair_sets, tmp_path):
     partition = open_store(ps).partitions[0].name
     shutil.copytree(ps / partition, ps / "late_7")
     _refused(ps, "late_7", "not in the store's consolidated metadata")
+
+
+def test_calibrate_on_processing_sets_says_so(pair_sets, tmp_path):
+    """What the issue's new user met ("is not a casacore table (no table.dat)") is now one
+    line naming the processing set and the way on; exit 2, the store unchanged."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    ps = pair_sets[1]
+    before = file_digests(ps)
+    proc = subprocess.run([str(Path(sys.executable).with_name("hitops")), "calibrate", str(ps),
+                           str(ps)], capture_output=True, text=True, timeout=300)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 2, out
+    assert "Traceback" not in out and "is an MSv4 processing set" in out, out
+    assert "docs/msv4.md" in out and str(ps) in out
+    assert file_digests(ps) == before
