@@ -226,3 +226,32 @@ def test_foreign_array_and_bad_names_refused(simulator_sets, tmp_path):
     shutil.copytree(ps / name / "WEIGHT", ps / name / "VISIBILITY_CWU")
     with pytest.raises(ProcessingSetError, match="VISIBILITY_CWU that no data group names"):
         DataGroupWriter(str(ps), name, "cwu")
+
+
+def _mount(*args) -> bool:
+    import subprocess
+
+    return subprocess.run(["mount", *args], capture_output=True).returncode == 0
+
+
+def test_read_only_store_refused(simulator_sets, tmp_path):
+    """Behind a read-only bind mount (as tests/test_cli_boundary.py makes one): one line."""
+    import os
+    import subprocess
+
+    ms, ps = simulator_sets
+    source = _writable(ps, tmp_path)
+    view = tmp_path / "ro"
+    view.mkdir()
+    if os.geteuid() != 0 or not _mount("--bind", str(source.parent), str(view)):
+        pytest.skip("needs root to bind-mount read-only")
+    try:
+        if not _mount("-o", "remount,bind,ro", str(view)):
+            pytest.skip("read-only remount not permitted here")
+        store = view / source.name
+        before = file_digests(store)
+        with pytest.raises(ProcessingSetError, match="is not writable .*writable copy"):
+            DataGroupWriter(str(store), open_store(store).partitions[0].name, "pwc")
+        assert file_digests(store) == before
+    finally:
+        subprocess.run(["umount", str(view)], capture_output=True)
