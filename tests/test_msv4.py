@@ -194,3 +194,10 @@ def test_calibrate_on_processing_sets_says_so(pair_sets, tmp_path):
     assert "Traceback" not in out and "is an MSv4 processing set" in out, out
     assert "docs/msv4.md" in out and str(ps) in out
     assert file_digests(ps) == before
+
+
+def test_without_the_msv4_extra(pair_sets, monkeypatch):
+    """zarr not importable (the extra not installed): one line saying how to install it."""
+    monkeypatch.setitem(__import__("sys").modules, "zarr", None)
+    with pytest.raises(ProcessingSetError, match=r"needs the msv4 extra \(pip install"):
+        read_metadata(pair_sets[1])

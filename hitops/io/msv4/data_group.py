@@ -171,7 +171,7 @@ class DataGroupWriter:
                 "description": self.description,
                 "date": datetime.datetime.now(datetime.timezone.utc).isoformat()}
         group.attrs["data_groups"] = groups
-        import zarr
+        import zarr   # zarr_group above has imported it (or said how to install it)
 
         with quiet_zarr():
             zarr.consolidate_metadata(self.store.path, path=self.entry.name)

@@ -97,7 +97,12 @@ def quiet_zarr():
 
 def zarr_group(store: str, mode: str = "r", **kwargs):
     """A zarr group of the store (the msv4 extra's zarr, imported here)."""
-    import zarr
+    try:
+        import zarr
+    except ImportError:
+        raise ProcessingSetError(
+            f"'{store}' is a zarr store: reading MSv4 processing sets needs the msv4 extra "
+            "(pip install 'hitops[msv4]', or make setup)") from None
 
     with quiet_zarr():
         return zarr.open_group(store, mode=mode, **kwargs)
