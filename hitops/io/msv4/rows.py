@@ -113,7 +113,9 @@ class PartitionReader:
         t_idx, bl = np.nonzero(present)
         t_idx = t_idx.astype(np.int64) + start
         bl = bl.astype(np.int64)
-        arrays = {v.lower(): self._variable(v, start, stop)[present] for v in variables}
+        dense = bool(present.all())     # every cell a row: a reshape, no gather (no copy)
+        arrays = {v.lower(): _rows_of(self._variable(v, start, stop), present, dense)
+                  for v in variables}
         return PartitionRows(
             time_slice=(start, stop), time_index=t_idx, baseline=bl, time=self.times[t_idx],
             antenna1=self._ant1[bl], antenna2=self._ant2[bl],
@@ -142,6 +144,11 @@ class PartitionReader:
         names = [str(n) for n in np.asarray(self._zarr[coordinate][...]).ravel()]
         known = {name: i for i, name in enumerate(self.layout.antennas.v4_names)}
         return np.array([known[n] for n in names], np.int32)
+
+
+def _rows_of(grid: np.ndarray, present: np.ndarray, dense: bool) -> np.ndarray:
+    """The (time, baseline, ...) grid's present cells as rows, in time then baseline order."""
+    return grid.reshape((-1,) + grid.shape[2:]) if dense else grid[present]
 
 
 def _scan_number(scan_name: str) -> int:
