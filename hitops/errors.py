@@ -57,3 +57,7 @@ class RollbackError(HitopsError):
     """A run failed and could not undo what it had begun; the message says what is left."""
 
     exit_code = 1
+
+
+class ProcessingSetError(MeasurementSetError):
+    """An MSv4 processing set (zarr) is foreign, of another schema version or half-written."""

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # HITOPS set-up, one step per argument (no argument: every step, in order):
 #
-#   venv         .venv with the Python packages (pip install -e '.[test,ehtim]'), redone
+#   venv         .venv with the Python packages (pip install -e '.[test,ehtim,msv4]'), redone
 #                only when pyproject.toml is newer than .venv/.hitops-installed
 #   wsclean      WSClean from Debian when it is not on PATH (apt-get; through sudo
 #                when not root)
@@ -67,8 +67,9 @@ step_venv() {
     run_logged "creating the virtual environment $VENV (Debian needs the python3-venv package)" \
         "$PYTHON" -m venv "$VENV"
     run_logged "upgrading pip in $VENV" "$PY" -m pip install --progress-bar off --upgrade pip
-    # ehtim: the eht-imaging client that reads our UVFITS in the tests (tests/test_interop_ehtim.py)
-    run_logged "pip install -e '.[test,ehtim]'" "$PY" -m pip install --progress-bar off -e '.[test,ehtim]'
+    # ehtim: the eht-imaging client that reads our UVFITS in the tests (tests/test_interop_ehtim.py);
+    # msv4: xradio/zarr for MSv4 processing sets (hitops/io/msv4/, tests/test_msv4*.py)
+    run_logged "pip install -e '.[test,ehtim,msv4]'" "$PY" -m pip install --progress-bar off -e '.[test,ehtim,msv4]'
     touch "$STAMP"
 }
 

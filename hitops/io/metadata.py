@@ -10,10 +10,11 @@ result down (hitops/calibrate/plan.py: ``build_plan``); nothing is cached here.
 
 The backend seam: :func:`read_metadata` is what a caller asks for a set's
 metadata, whatever the set's format.  The MSv2 reader (:func:`_read_msv2`, through
-hitops/io/tables.py) is the only backend today; an MSv4 processing set
-(xradio/zarr: its ``antenna_xds``, ``field_and_source_xds``, the ``frequency`` and
-``polarization`` coordinates) plugs in as a second reader returning the same
-:class:`SetMetadata`, chosen by the path's format in :func:`read_metadata`.
+hitops/io/tables.py) reads a casacore table; an MSv4 processing set (a zarr store:
+hitops/io/msv4/, docs/msv4.md) is read by :func:`_read_msv4` from its
+``antenna_xds``, ``field_and_source_xds``, the ``frequency`` and ``polarization``
+coordinates (hitops/io/msv4/layout.py) into the same :class:`SetMetadata`, chosen by
+what the path holds.
 """
 
 from __future__ import annotations
@@ -25,6 +26,8 @@ import numpy as np
 
 from ..errors import MeasurementSetError
 from . import tables
+from .msv4.layout import read_layout
+from .msv4.store import is_zarr_store, open_store
 
 
 @dataclass(frozen=True, eq=False)
@@ -114,10 +117,32 @@ class SetMetadata:
 def read_metadata(ms: str) -> SetMetadata:
     """The :class:`SetMetadata` of the set at ``ms`` (one open per subtable).
 
-    The one entry for every backend: a second format (an MSv4 processing set) is
-    recognised here and read by its own reader into the same :class:`SetMetadata`.
+    The one entry for every backend: a zarr store is read as an MSv4 processing set
+    (a foreign, half-written or other-schema store is one ProcessingSetError line),
+    anything else as a Measurement Set v2.
     """
-    return _read_msv2(str(ms).rstrip("/"))
+    path = str(ms).rstrip("/")
+    return _read_msv4(path) if is_zarr_store(path) else _read_msv2(path)
+
+
+def _read_msv4(path: str) -> SetMetadata:
+    """A processing set's metadata, ids recovered as hitops/io/msv4/layout.py says."""
+    layout = read_layout(open_store(path))
+    ant = layout.antennas
+    return SetMetadata(
+        ms=path,
+        antennas=Antennas(names=ant.names, stations=ant.stations, positions=ant.positions,
+                          dish_diameters=ant.dish_diameters, mounts=ant.mounts),
+        fields=Fields(names=layout.fields.names, phase_dirs=layout.fields.phase_dirs),
+        # MSv4 keeps one channel width per window, no TOTAL_BANDWIDTH and no NET_SIDEBAND
+        windows=tuple(Window(chan_freq=w.chan_freq, chan_width=w.chan_width,
+                             ref_frequency=w.ref_frequency, num_chan=w.chan_freq.size,
+                             total_bandwidth=float(np.sum(np.abs(w.chan_width))))
+                      for w in layout.windows),
+        data_descriptions=tuple(DataDescription(window=w, polarization=p)
+                                for w, p in layout.data_descriptions),
+        polarizations=tuple(Polarization(corr_types=c.corr_types, receptors=c.receptors)
+                            for c in layout.polarizations))
 
 
 def _read_msv2(ms: str) -> SetMetadata:

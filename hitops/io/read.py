@@ -24,6 +24,7 @@ import numpy as np
 
 from ..errors import ColumnError, MeasurementSetError
 from . import tables
+from .msv4.store import is_processing_set
 from .table_rows import MAX_RUNS, MainTable, StorageRows, rows_reader  # noqa: F401 (re-exported)
 
 
@@ -33,6 +34,10 @@ def check_ms(ms: str | Path, role: str = "Measurement Set") -> str:
     if not path.exists():
         raise MeasurementSetError(f"{role} '{ms}' does not exist; check the path")
     if not (path / "table.dat").exists():
+        if is_processing_set(path):
+            raise MeasurementSetError(
+                f"{role} '{ms}' is an MSv4 processing set; this step reads Measurement Sets v2 "
+                "so far: give the v2 set it was converted from (docs/msv4.md)")
         raise MeasurementSetError(f"{role} '{ms}' is not a casacore table (no table.dat); "
                                   "give the Measurement Set directory")
     return str(path).rstrip("/")

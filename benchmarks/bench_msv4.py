@@ -1,0 +1,218 @@
+"""MSv4 processing sets: conversion, store layout and the zarr read/write floor (issue 37).
+
+On a hitops.testing pair's target set of 10^6 rows (8 stations, 28 baselines x
+35,715 one-second integrations, RR LL, one channel, stored in time order as
+correlators write), page cache warm:
+
+* conversion by xradio 1.3 (``convert_msv2_to_processing_set``, defaults), each in a
+  process of its own: its default casacore backend arcae, and python-casacore
+  (``XRADIO_CASACORE_BACKEND=casacore``, which xradio calls an unsupported testing hook);
+  wall time and peak RSS;
+* the store's layout: partitions, the chunk shape of VISIBILITY, bytes on disk per
+  variable against the v2 set's table files;
+* the floor of the variables a calibration reads and writes: zarr reading
+  EFFECTIVE_INTEGRATION_TIME, VISIBILITY and FLAG whole, and writing a new
+  correlated-data and flag array of the same shape, chunks and codecs; beside it
+  hitops's :class:`~hitops.io.msv4.PartitionReader` (10^5-row chunks, rows in MSv2
+  terms) and :class:`~hitops.io.msv4.DataGroupWriter` (stage, write per chunk,
+  register), and python-casacore's getcol of TIME, ANTENNA1, ANTENNA2, DATA, FLAG
+  of the v2 set for scale.  Median of ``--repeats`` runs each.
+
+Writes its section of docs/msv4.md.  Run: ``python -m benchmarks.bench_msv4
+[--workdir DIR] [--repeats N]`` (about two minutes here; no more than 10^6 rows:
+the machine is shared).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ._report import ROOT, machine_line, replace_section, run_process
+
+N_ANT = 8
+N_TIME = 35_715            # x 28 baselines = 1,000,020 rows
+CHUNK_ROWS = 100_000
+DOC = ROOT / "docs" / "msv4.md"
+
+_CONVERT = """
+import json, logging, sys
+logging.getLogger("toolviper").setLevel(logging.WARNING)
+from xradio.measurement_set import convert_msv2_to_processing_set
+convert_msv2_to_processing_set(sys.argv[1], sys.argv[2], main_chunksize=json.loads(sys.argv[3]))
+"""
+
+
+def _timed(fn, repeats: int) -> float:
+    fn()                                       # warm: page cache, first-call costs
+    runs = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        runs.append(time.perf_counter() - t0)
+    return statistics.median(runs)
+
+
+def _du(path: Path) -> int:
+    return sum(p.stat().st_size for p in Path(path).rglob("*") if p.is_file())
+
+
+def _convert(ms: Path, out: Path, backend: str, time_chunk=None) -> dict:
+    shutil.rmtree(out, ignore_errors=True)
+    env = {"XRADIO_CASACORE_BACKEND": backend}
+    chunks = json.dumps(None if time_chunk is None else {"time": time_chunk})
+    return run_process([sys.executable, "-c", _CONVERT, str(ms), str(out), chunks], env=env)
+
+
+def _zarr_floor(ps: Path, partition: str, repeats: int) -> dict:
+    import zarr
+
+    from hitops.io.msv4.store import quiet_zarr
+
+    with quiet_zarr():
+        group = zarr.open_group(str(ps), path=partition, mode="r+", use_consolidated=False)
+
+    def read():
+        return [group[v][...] for v in ("EFFECTIVE_INTEGRATION_TIME", "VISIBILITY", "FLAG")]
+
+    vis, flag = group["VISIBILITY"][...], group["FLAG"][...]
+
+    runs = iter(range(1000))
+
+    def write():    # new arrays each run, as a new data group is
+        k = next(runs)
+        for name, like, values in ((f"FLOOR_VIS{k}", "VISIBILITY", vis),
+                                   (f"FLOOR_FLAG{k}", "FLAG", flag)):
+            source = group[like]
+            out = group.create_array(name, shape=source.shape, dtype=source.dtype,
+                                     chunks=source.chunks, compressors=source.compressors)
+            out[...] = values
+
+    with quiet_zarr():
+        return {"read": _timed(read, repeats), "write": _timed(write, repeats)}
+
+
+def _hitops_path(ps: Path, partition: str, repeats: int) -> dict:
+    from hitops.io.msv4 import DataGroupWriter, PartitionReader, open_store, read_layout
+
+    layout = read_layout(open_store(str(ps)))
+    reader = PartitionReader(layout, partition)
+
+    def read():
+        return [c.n_row for c in reader.chunks(CHUNK_ROWS)]
+
+    runs = iter(range(1000))
+
+    def read_write():   # a new group each run (removing an old one's files is not measured)
+        with DataGroupWriter(str(ps), partition, f"bench{next(runs)}",
+                             time_chunk=reader.time_step(CHUNK_ROWS)) as writer:
+            for rows in reader.chunks(CHUNK_ROWS):
+                writer.write(rows, rows.data, rows.flag)
+
+    return {"read": _timed(read, repeats), "read_write": _timed(read_write, repeats)}
+
+
+def _casacore_read(ms: Path, repeats: int) -> float:
+    from hitops.io import tables
+
+    return _timed(lambda: tables.read_columns(str(ms), ["TIME", "ANTENNA1", "ANTENNA2", "DATA",
+                                                          "FLAG"]), repeats)
+
+
+def _layout_rows(ps: Path, ms: Path, partition: str):
+    import zarr
+
+    from hitops.io.msv4.store import quiet_zarr
+
+    with quiet_zarr():
+        group = zarr.open_group(str(ps), path=partition, mode="r")
+        chunks = group["VISIBILITY"].chunks
+        shape = group["VISIBILITY"].shape
+    sizes = {v: _du(ps / partition / v) for v in ("VISIBILITY", "FLAG", "WEIGHT", "UVW",
+                                                     "TIME_CENTROID", "EFFECTIVE_INTEGRATION_TIME")}
+    return shape, chunks, sizes, _du(ps), _du(ms)
+
+
+def _markdown(n_row, conv, layout, floor, mine, chunked, chunked_floor, casacore_s,
+              step) -> str:
+    shape, chunks, sizes, ps_bytes, ms_bytes = layout
+    mb = 1e6
+    lines = [
+        f"Measured {time.strftime('%Y-%m-%d')} on {machine_line()} (shared with other work), "
+        f"xradio 1.3.0, zarr 3.1; a hitops.testing target set of {n_row:,} rows ({N_ANT} "
+        "stations, RR LL, one channel, time order); page cache warm; median of the repeats.",
+        "",
+        "| conversion (`convert_msv2_to_processing_set`, defaults) | wall s | peak RSS MB |",
+        "|---|---|---|"]
+    for backend, stats in conv.items():
+        lines.append(f"| {backend} | {stats['wall_s']:.1f} | {stats['peak_rss_mb']:.0f} |")
+    lines += [
+        "",
+        f"Store: one partition, VISIBILITY {shape} in chunks of {chunks} "
+        f"(time, baseline_id, frequency, polarization), blosc-lz4; {ps_bytes / mb:.0f} MB on disk "
+        f"against {ms_bytes / mb:.0f} MB for the v2 set.  Per variable: "
+        + ", ".join(f"{k} {v / mb:.1f} MB" for k, v in sizes.items()) + ".",
+        "",
+        f"| I/O of the variables a calibration reads and writes, s | store as converted "
+        f"(one chunk) | converted with time chunks of {step} ({CHUNK_ROWS:,} rows) |",
+        "|---|---|---|",
+        f"| zarr floor: read EFFECTIVE_INTEGRATION_TIME, VISIBILITY, FLAG whole | "
+        f"{floor['read']:.2f} | {chunked_floor['read']:.2f} |",
+        f"| zarr floor: write a VISIBILITY and a FLAG array whole (the store's chunks, codecs) | "
+        f"{floor['write']:.2f} | {chunked_floor['write']:.2f} |",
+        f"| hitops PartitionReader, {CHUNK_ROWS:,}-row chunks, rows in MSv2 terms | "
+        f"{mine['read']:.2f} | {chunked['read']:.2f} |",
+        f"| hitops read + DataGroupWriter (stage, write per chunk in {step}-step chunks, "
+        f"register) | {mine['read_write']:.2f} | {chunked['read_write']:.2f} |",
+        f"| v2 for scale: python-casacore getcol TIME, ANTENNA1, ANTENNA2, DATA, FLAG | "
+        f"{casacore_s:.2f} | |",
+    ]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--workdir", type=Path, default=None)
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args(argv)
+    from hitops.testing import PairSpec, make_pair
+    from hitops.testing.pairs import Storage
+
+    work = Path(args.workdir or tempfile.mkdtemp(prefix="bench-msv4-"))
+    work.mkdir(parents=True, exist_ok=True)
+    pair = make_pair(work / "pair", PairSpec(n_ant=N_ANT, n_time=N_TIME,
+                                            storage=Storage(time_order=True)))
+    ms = pair.target_ms
+    step = CHUNK_ROWS // (N_ANT * (N_ANT - 1) // 2)
+    conv = {"arcae (xradio's default)": _convert(ms, work / "arcae.ps.zarr", "arcae"),
+            "python-casacore (XRADIO_CASACORE_BACKEND=casacore)":
+                _convert(ms, work / "casacore.ps.zarr", "casacore"),
+            f"arcae, main_chunksize={{'time': {step}}}":
+                _convert(ms, work / "chunked.ps.zarr", "arcae", step)}
+    ps = work / "arcae.ps.zarr"
+    partition = sorted(p.name for p in ps.iterdir() if p.is_dir())[0]
+    layout = _layout_rows(ps, ms, partition)
+    floor = _zarr_floor(ps, partition, args.repeats)
+    mine = _hitops_path(ps, partition, args.repeats)
+    chunked_floor = _zarr_floor(work / "chunked.ps.zarr", partition, args.repeats)
+    chunked = _hitops_path(work / "chunked.ps.zarr", partition,
+                           args.repeats)
+    casacore_s = _casacore_read(ms, args.repeats)
+    text = _markdown(N_TIME * N_ANT * (N_ANT - 1) // 2, conv, layout, floor, mine, chunked,
+                     chunked_floor, casacore_s, step)
+    replace_section("msv4", text, DOC)
+    print(text)
+    if args.workdir is None:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

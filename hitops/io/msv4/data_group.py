@@ -1,0 +1,188 @@
+"""A new data group written into a partition whole or not at all: :class:`DataGroupWriter`.
+
+MSv4 keeps a result beside its input: a data group (the partition's ``data_groups``
+attribute) names its own correlated data and flag variables and shares the
+weight, UVW and field_and_source of the group it was made from.  So nothing of
+the input is written: its ``VISIBILITY`` and ``FLAG`` stay as they were and no
+flag backup is needed.
+
+Whole or nothing, in the order xradio's readers see it:
+
+1. **stage**: the group's arrays (``VISIBILITY_<NAME>``, ``FLAG_<NAME>``) are created
+   with the input's shape, chunks and codecs, NaN and flagged where nothing is written,
+   and marked ``hitops_data_group: <name>``; they are in no data group and not in
+   the consolidated metadata, so no reader takes them for a result;
+2. **write**: the rows of each chunk (:class:`~hitops.io.msv4.rows.PartitionRows`) go
+   to their (time, baseline) cells, a time range per call;
+3. **commit**: the partition's ``data_groups`` gets the new entry, then the
+   partition's and the root's consolidated metadata are written again (last).
+
+A failure before the commit removes the staged arrays (:meth:`DataGroupWriter.abort`);
+arrays left by a killed run (marked, unregistered) are removed by the next writer of
+that name.  An existing group is refused unless ``overwrite``: then it is
+unregistered first (so an interrupted overwrite leaves no group, never a half-new one).
+"""
+
+from __future__ import annotations
+
+import datetime
+import re
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from ...errors import OutputExistsError, ProcessingSetError
+from .rows import PartitionRows
+from .store import open_store, quiet_zarr, zarr_group
+
+#: the attribute that marks an array as written by this writer (stale when unregistered)
+MARK = "hitops_data_group"
+_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
+
+
+@dataclass(frozen=True)
+class GroupVariables:
+    """The variable names of a new data group."""
+
+    name: str
+    correlated_data: str
+    flag: str
+
+    @classmethod
+    def of(cls, name: str) -> "GroupVariables":
+        return cls(name=name, correlated_data=f"VISIBILITY_{name.upper()}",
+                   flag=f"FLAG_{name.upper()}")
+
+
+class DataGroupWriter:
+    """Writes data group ``name`` of ``partition``, made like group ``like``."""
+
+    def __init__(self, store_path: str, partition: str, name: str, like: str = "base",
+                 overwrite: bool = False, description: str = "",
+                 time_chunk: Optional[int] = None):
+        self.store = open_store(store_path, role="output")
+        self.entry = self.store.partition(partition)
+        self.like = self.entry.group(like)
+        self.variables = GroupVariables.of(name)
+        self.overwrite = overwrite
+        #: time steps per zarr chunk of the new arrays (default: the input's); a caller writing
+        #: chunk by chunk gives PartitionReader.time_step, so every write is whole chunks
+        self.time_chunk = time_chunk
+        self.description = description or f"written by hitops from data group '{like}'"
+        self._check(name)
+        self._staged = None     # the partition's zarr group once staged
+
+    def _check(self, name: str) -> None:
+        where = f"'{self.store.path}' partition '{self.entry.name}'"
+        if not _NAME.match(name):
+            raise ProcessingSetError(f"data group name '{name}' for {where}: use lower-case "
+                                     "letters, digits and '_', starting with a letter")
+        try:   # a probe, not os.access: it also sees a read-only file system (and root)
+            tempfile.TemporaryFile(dir=Path(self.store.path) / self.entry.name).close()
+        except OSError as err:
+            raise ProcessingSetError(f"{where} is not writable ({err.strerror}); give a "
+                                     "writable copy of the store") from None
+        taken = [g.name for g in self.entry.data_groups]
+        if name in taken and not self.overwrite:
+            raise OutputExistsError(f"{where} already has data group '{name}'; give another "
+                                    "name, or --overwrite to replace it")
+        others = {v for g in self.entry.data_groups if g.name != name
+                  for v in (g.correlated_data, g.flag, g.weight, g.uvw)}
+        for variable in (self.variables.correlated_data, self.variables.flag):
+            if variable in others:
+                raise ProcessingSetError(f"{where}: {variable} belongs to another data group; "
+                                         f"name the new group other than '{name}'")
+            path = Path(self.store.path) / self.entry.name / variable
+            if path.exists() and name not in taken and self._mark_of(variable) != name:
+                raise ProcessingSetError(f"{where} holds an array {variable} that no data group "
+                                         "names and hitops did not write; remove it or choose "
+                                         "another group name")
+
+    def _group(self):
+        return zarr_group(self.store.path, mode="r+", path=self.entry.name, use_consolidated=False)
+
+    def _mark_of(self, variable: str):
+        try:
+            return self._group()[variable].attrs.get(MARK)
+        except KeyError:
+            return None
+
+    def stage(self) -> None:
+        """Create the group's arrays (an existing group of the name unregistered first)."""
+        if self.variables.name in [g.name for g in self.entry.data_groups]:
+            self._register(drop=True)
+        group = self._group()
+        for variable in (self.variables.correlated_data, self.variables.flag):
+            shutil.rmtree(Path(self.store.path) / self.entry.name / variable, ignore_errors=True)
+        for variable, like, fill in ((self.variables.correlated_data, self.like.correlated_data,
+                                      complex(np.nan, np.nan)),
+                                     (self.variables.flag, self.like.flag, True)):
+            source = group[like]
+            attributes = dict(source.attrs)
+            attributes[MARK] = self.variables.name
+            chunks = source.chunks if self.time_chunk is None else \
+                (min(int(self.time_chunk), source.shape[0]),) + tuple(source.chunks[1:])
+            group.create_array(variable, shape=source.shape, dtype=source.dtype,
+                               chunks=chunks, compressors=source.compressors,
+                               fill_value=fill, attributes=attributes,
+                               dimension_names=source.metadata.dimension_names)
+        self._staged = group
+
+    def write(self, rows: PartitionRows, data: np.ndarray, flag: np.ndarray) -> None:
+        """The rows' data (n_row, n_chan, n_corr) and flags into their cells; the chunk's other
+        cells stay NaN and flagged."""
+        group = self._staged
+        if group is None:
+            raise RuntimeError("DataGroupWriter.write before stage()")
+        start, stop = rows.time_slice
+        out = group[self.variables.correlated_data]
+        block = np.full((stop - start,) + out.shape[1:], np.nan + 0j, out.dtype)
+        flags = np.ones(block.shape, bool)
+        block[rows.time_index - start, rows.baseline] = data
+        flags[rows.time_index - start, rows.baseline] = flag
+        out[start:stop] = block
+        group[self.variables.flag][start:stop] = flags
+
+    def commit(self) -> None:
+        """Register the group in ``data_groups``, then the consolidated metadata (last)."""
+        self._register(drop=False)
+        self._staged = None
+
+    def abort(self) -> None:
+        """Remove the staged arrays (the partition as it was)."""
+        for variable in (self.variables.correlated_data, self.variables.flag):
+            shutil.rmtree(Path(self.store.path) / self.entry.name / variable, ignore_errors=True)
+        self._staged = None
+
+    def _register(self, drop: bool) -> None:
+        group = self._group()
+        groups = {k: dict(v) for k, v in dict(group.attrs["data_groups"]).items()}
+        groups.pop(self.variables.name, None)
+        if not drop:
+            base = groups[self.like.name]
+            groups[self.variables.name] = {
+                "correlated_data": self.variables.correlated_data, "flag": self.variables.flag,
+                "weight": base.get("weight"), "uvw": base.get("uvw"),
+                "field_and_source": base.get("field_and_source"),
+                "description": self.description,
+                "date": datetime.datetime.now(datetime.timezone.utc).isoformat()}
+        group.attrs["data_groups"] = groups
+        import zarr   # zarr_group above has imported it (or said how to install it)
+
+        with quiet_zarr():
+            zarr.consolidate_metadata(self.store.path, path=self.entry.name)
+            zarr.consolidate_metadata(self.store.path)
+
+    def __enter__(self) -> "DataGroupWriter":
+        self.stage()
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.commit()
+        else:
+            self.abort()

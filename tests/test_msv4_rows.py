@@ -1,0 +1,257 @@
+"""MSv4 partitions read as rows and a data group written whole (issue 37, first part).
+
+Reader truth: the Measurement Set v2 each processing set was converted from (the
+EHT M87 low band after importuvfits, which lacks rows on some baselines and
+times; a casatools.simulator layout with two windows, two fields, random DATA and
+flags).  Writer truth: values written chunk by chunk, read back with xarray
+(``open_datatree``, as a user of the processing set reads it), and the input's
+files byte for byte as before.  Cost: about 8 s here.
+"""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+pytest.importorskip("xradio")
+import xarray as xr  # noqa: E402
+import zarr  # noqa: E402
+
+from hitops.errors import OutputExistsError, ProcessingSetError  # noqa: E402
+from hitops.io import tables  # noqa: E402
+from hitops.io.metadata import read_metadata  # noqa: E402
+from hitops.io.msv4.data_group import DataGroupWriter  # noqa: E402
+from hitops.io.msv4.layout import read_layout  # noqa: E402
+from hitops.io.msv4.rows import PartitionReader  # noqa: E402
+from hitops.io.msv4.store import open_store  # noqa: E402
+from msv4_sets import convert, file_digests, simulator_layout  # noqa: E402
+
+pytestmark = pytest.mark.filterwarnings("ignore:.*Zarr V3 specification",
+                                        "ignore:Consolidated metadata is currently not part")
+COLUMNS = ["TIME", "ANTENNA1", "ANTENNA2", "DATA_DESC_ID", "FIELD_ID", "SCAN_NUMBER", "DATA",
+           "FLAG", "UVW"]
+
+
+@pytest.fixture(scope="module")
+def eht_sets(eht_imported, tmp_path_factory):
+    lo_ms = eht_imported[0]
+    return lo_ms, convert(lo_ms, tmp_path_factory.mktemp("eht-ps") / "lo.ps.zarr")
+
+
+@pytest.fixture(scope="module")
+def simulator_sets(tmp_path_factory):
+    root = tmp_path_factory.mktemp("sim-rows")
+    ms = simulator_layout(root / "sim.ms", seed=9)
+    return ms, convert(ms, root / "sim.ps.zarr")
+
+
+def _v2_rows(ms, ddid, names):
+    """The v2 set's rows of ``ddid`` by (TIME, ANTENNA1 name, ANTENNA2 name)."""
+    cols = tables.read_columns(ms, COLUMNS)
+    keep = cols["DATA_DESC_ID"] == ddid
+    cols = {k: v[keep] for k, v in cols.items()}
+    order = np.lexsort((names[cols["ANTENNA2"]], names[cols["ANTENNA1"]], cols["TIME"]))
+    return {k: v[order] for k, v in cols.items()}
+
+
+def _v4_rows(chunks, names):
+    keys = ("time", "antenna1", "antenna2", "data_desc_id", "field_id", "scan_number", "data",
+            "flag", "uvw")
+    rows = {k: np.concatenate([getattr(c, k) for c in chunks]) for k in keys}
+    order = np.lexsort((names[rows["antenna2"]], names[rows["antenna1"]], rows["time"]))
+    return {k: v[order] for k, v in rows.items()}
+
+
+def _assert_rows_equal(ms, ps, partition_chunks):
+    """Every partition's rows equal the v2 rows of its data description, value for value."""
+    v2_names = np.array(read_metadata(ms).antennas.names)
+    v4_names = np.array(read_metadata(ps).antennas.names)
+    for place, chunks in partition_chunks:
+        v2, v4 = _v2_rows(ms, place.data_desc_id, v2_names), _v4_rows(chunks, v4_names)
+        assert v4["time"].size == v2["TIME"].size > 0
+        np.testing.assert_array_equal(v4["time"], v2["TIME"])          # MSv2 seconds, exactly
+        np.testing.assert_array_equal(v4_names[v4["antenna1"]], v2_names[v2["ANTENNA1"]])
+        np.testing.assert_array_equal(v4_names[v4["antenna2"]], v2_names[v2["ANTENNA2"]])
+        for key in ("data_desc_id", "field_id", "scan_number", "data", "flag", "uvw"):
+            np.testing.assert_array_equal(v4[key], v2[key.upper()], err_msg=key)
+
+
+def test_eht_rows_are_the_v2_rows(eht_sets):
+    """Missing (baseline, time) cells are no rows: the row count is the v2 set's."""
+    ms, ps = eht_sets
+    layout = read_layout(open_store(ps))
+    reader = PartitionReader(layout, layout.partitions[0].name)
+    assert reader.n_time * reader.n_baseline > tables.row_count(ms)   # cells without rows
+    chunks = list(reader.chunks(500, variables=("DATA", "FLAG", "UVW")))
+    assert len(chunks) > 3
+    _assert_rows_equal(ms, ps, [(layout.partitions[0], chunks)])
+
+
+def test_simulator_rows_windows_fields_scans(simulator_sets):
+    ms, ps = simulator_sets
+    layout = read_layout(open_store(ps))
+    assert len(layout.partitions) == 2
+    pairs = [(p, list(PartitionReader(layout, p.name).chunks(
+        100, variables=("DATA", "FLAG", "UVW")))) for p in layout.partitions]
+    _assert_rows_equal(ms, ps, pairs)
+    assert {int(f) for _, c in pairs for x in c for f in x.field_id} == {0, 1}
+
+
+def test_time_range_and_only_the_variables_asked(eht_sets, tmp_path):
+    """A time range gives the v2 rows of that range; a read of FLAG alone never touches
+    VISIBILITY (its chunk files removed from a copy: the read still succeeds)."""
+    ms, ps = eht_sets
+    copy = tmp_path / "copy.ps.zarr"
+    shutil.copytree(ps, copy)
+    layout = read_layout(open_store(copy))
+    name = layout.partitions[0].name
+    shutil.rmtree(copy / name / "VISIBILITY" / "c")
+    reader = PartitionReader(layout, name)
+    times = np.unique(tables.read_columns(ms, ["TIME"])["TIME"])
+    t_lo, t_hi = times[10], times[40]
+    rows = [c for c in reader.chunks(200, variables=("FLAG",), t_lo=t_lo, t_hi=t_hi)]
+    got = np.concatenate([c.time for c in rows])
+    v2_time = tables.read_columns(ms, ["TIME"])["TIME"]
+    assert got.size == np.count_nonzero((v2_time >= t_lo) & (v2_time < t_hi))
+    assert got.min() == t_lo and got.max() < t_hi
+    assert all(c.data is None and c.flag.shape == (c.n_row, 1, 4) for c in rows)
+    with pytest.raises(ProcessingSetError, match="cannot read"):
+        reader.read((0, 1), variables=("MODEL",))
+
+
+# ------------------------------------------------------------------ the data group writer
+
+
+def _writable(ps, tmp_path):
+    out = tmp_path / "w.ps.zarr"
+    shutil.copytree(ps, out)
+    return out
+
+
+def _write_group(ps, name, overwrite=False, fail_after=None, rows_per_chunk=600):
+    """Data group ``name``: conj(data) * 2 and flags where ANTENNA1 is 0, chunk by chunk
+    (stopped by a KeyboardInterrupt at chunk ``fail_after`` of the first partition)."""
+    layout = read_layout(open_store(ps))
+    for place in layout.partitions:
+        reader = PartitionReader(layout, place.name)
+        with DataGroupWriter(str(ps), place.name, name, overwrite=overwrite,
+                             time_chunk=reader.time_step(rows_per_chunk)) as writer:
+            for k, rows in enumerate(reader.chunks(rows_per_chunk)):
+                if fail_after is not None and k == fail_after:
+                    raise KeyboardInterrupt("stopped")
+                writer.write(rows, np.conj(rows.data) * 2,
+                             rows.flag | (rows.antenna1 == 0)[:, None, None])
+
+
+def test_written_group_read_back_with_xarray(simulator_sets, tmp_path):
+    ms, ps = simulator_sets
+    ps = _writable(ps, tmp_path)
+    inputs = file_digests(ps, skip={"zarr.json", "VISIBILITY_PWC", "FLAG_PWC"})
+    _write_group(ps, "pwc", rows_per_chunk=120)
+    assert file_digests(ps, skip={"zarr.json", "VISIBILITY_PWC", "FLAG_PWC"}) == inputs
+    tree = xr.open_datatree(ps, engine="zarr")
+    for partition in open_store(ps).partitions:
+        ds = tree[partition.name].ds
+        group = ds.attrs["data_groups"]["pwc"]
+        assert (group["correlated_data"], group["flag"], group["weight"], group["uvw"]) == \
+            ("VISIBILITY_PWC", "FLAG_PWC", "WEIGHT", "UVW")
+        present = np.isfinite(ds.EFFECTIVE_INTEGRATION_TIME.values)
+        np.testing.assert_array_equal(ds.VISIBILITY_PWC.values[present],
+                                      np.conj(ds.VISIBILITY.values[present]) * 2)
+        ant0 = (ds.baseline_antenna1_name.values == tree[partition.name]["antenna_xds"]
+                .ds.antenna_name.values[0])
+        expect_flag = ds.FLAG.values | ant0[None, :, None, None]
+        np.testing.assert_array_equal(ds.FLAG_PWC.values, expect_flag)
+    # the new arrays are stored in the chunks the writer wrote (whole zarr chunks per write)
+    group = zarr.open_group(str(ps), path=partition.name, mode="r")
+    assert group["VISIBILITY_PWC"].chunks[0] == 120 // ds.sizes["baseline_id"] < ds.sizes["time"]
+    assert group["VISIBILITY"].chunks[0] == ds.sizes["time"]
+    # and through hitops's own reader, as the group's rows
+    layout = read_layout(open_store(ps))
+    place = layout.partitions[1]
+    base = list(PartitionReader(layout, place.name).chunks(10**6))[0]
+    mine = list(PartitionReader(layout, place.name, data_group="pwc").chunks(10**6))[0]
+    np.testing.assert_array_equal(mine.data, np.conj(base.data) * 2)
+
+
+def test_cells_without_rows_are_nan_and_flagged(eht_sets, tmp_path):
+    ms, ps = eht_sets
+    ps = _writable(ps, tmp_path)
+    _write_group(ps, "pwc")
+    ds = xr.open_datatree(ps, engine="zarr")[open_store(ps).partitions[0].name].ds
+    absent = ~np.isfinite(ds.EFFECTIVE_INTEGRATION_TIME.values)
+    assert absent.any()
+    assert np.isnan(ds.VISIBILITY_PWC.values[absent]).all() and ds.FLAG_PWC.values[absent].all()
+
+
+def test_existing_group_refused_then_overwritten(simulator_sets, tmp_path):
+    ms, ps = simulator_sets
+    ps = _writable(ps, tmp_path)
+    name = open_store(ps).partitions[0].name
+    before = file_digests(ps)
+    with pytest.raises(OutputExistsError, match="already has data group 'corrected'"):
+        DataGroupWriter(str(ps), name, "corrected")
+    assert file_digests(ps) == before
+    _write_group(ps, "pwc")
+    with pytest.raises(OutputExistsError, match="--overwrite"):
+        DataGroupWriter(str(ps), name, "pwc")
+    _write_group(ps, "pwc", overwrite=True)
+    assert [g.name for g in open_store(ps).partition(name).data_groups].count("pwc") == 1
+
+
+def test_interrupted_write_leaves_the_store_as_it_was(simulator_sets, tmp_path):
+    ms, ps = simulator_sets
+    ps = _writable(ps, tmp_path)
+    before = file_digests(ps)
+    with pytest.raises(KeyboardInterrupt):
+        _write_group(ps, "pwc", fail_after=1, rows_per_chunk=100)
+    assert file_digests(ps) == before
+    # a killed run (staged, never committed): no reader sees the group, the next run cleans up
+    name = open_store(ps).partitions[0].name
+    DataGroupWriter(str(ps), name, "pwc").stage()
+    assert "pwc" not in xr.open_datatree(ps, engine="zarr")[name].ds.attrs["data_groups"]
+    assert "pwc" not in [g.name for g in open_store(ps).partition(name).data_groups]
+    _write_group(ps, "pwc")
+    assert "pwc" in xr.open_datatree(ps, engine="zarr")[name].ds.attrs["data_groups"]
+
+
+def test_foreign_array_and_bad_names_refused(simulator_sets, tmp_path):
+    ms, ps = simulator_sets
+    ps = _writable(ps, tmp_path)
+    name = open_store(ps).partitions[0].name
+    with pytest.raises(ProcessingSetError, match="lower-case"):
+        DataGroupWriter(str(ps), name, "PWC data")
+    shutil.copytree(ps / name / "WEIGHT", ps / name / "VISIBILITY_CWU")
+    with pytest.raises(ProcessingSetError, match="VISIBILITY_CWU that no data group names"):
+        DataGroupWriter(str(ps), name, "cwu")
+
+
+def _mount(*args) -> bool:
+    import subprocess
+
+    return subprocess.run(["mount", *args], capture_output=True).returncode == 0
+
+
+def test_read_only_store_refused(simulator_sets, tmp_path):
+    """Behind a read-only bind mount (as tests/test_cli_boundary.py makes one): one line."""
+    import os
+    import subprocess
+
+    ms, ps = simulator_sets
+    source = _writable(ps, tmp_path)
+    view = tmp_path / "ro"
+    view.mkdir()
+    if os.geteuid() != 0 or not _mount("--bind", str(source.parent), str(view)):
+        pytest.skip("needs root to bind-mount read-only")
+    try:
+        if not _mount("-o", "remount,bind,ro", str(view)):
+            pytest.skip("read-only remount not permitted here")
+        store = view / source.name
+        before = file_digests(store)
+        with pytest.raises(ProcessingSetError, match="is not writable .*writable copy"):
+            DataGroupWriter(str(store), open_store(store).partitions[0].name, "pwc")
+        assert file_digests(store) == before
+    finally:
+        subprocess.run(["umount", str(view)], capture_output=True)
