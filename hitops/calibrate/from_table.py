@@ -38,9 +38,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..io import tables
-from ..kernels.wideband import rotate_channels
 from ..solutions.api import PreparedTransfer, prepare_transfer, transfer_report, write_target_table
-from ..solutions.apply import all_fields, gains_at
+from ..solutions.apply import all_fields, apply_window
 from .inputs import CalibrateOptions, check_inputs
 from .commit import stage_and_commit
 from .output import OutputTransaction
@@ -138,7 +137,7 @@ def correct_chunk(transfers: Dict[str, PreparedTransfer], layout: TargetLayout, 
     """
     data = cols["data"]
     n_row, _, n_corr = data.shape
-    a1, a2, ddid = cols["ANTENNA1"], cols["ANTENNA2"], cols["DATA_DESC_ID"]
+    ddid = cols["DATA_DESC_ID"]
     out = {m: np.zeros(data.shape, np.complex64) for m in transfers}
     calibrated = np.ones((n_row, n_corr), bool)
     for method, prepared in transfers.items():
@@ -149,18 +148,11 @@ def correct_chunk(transfers: Dict[str, PreparedTransfer], layout: TargetLayout, 
             if window is None:
                 continue
             rows = np.flatnonzero(ddid == d)
-            utimes, it = np.unique(cols["TIME"][rows], return_inverse=True)
-            gains = gains_at(window, utimes)
-            # a T Jones source: one receptor for both hands
-            rec = np.minimum(layout.receptors_of_ddid[d], gains.phase.shape[2] - 1)
-            p, q, ti = a1[rows][:, None], a2[rows][:, None], it.ravel()[:, None]
-            phase = gains.phase[ti, p, rec[:, 0]] - gains.phase[ti, q, rec[:, 1]]
-            delay = gains.delay_s[ti, p, rec[:, 0]] - gains.delay_s[ti, q, rec[:, 1]]
-            ok = gains.ok[ti, p, rec[:, 0]] & gains.ok[ti, q, rec[:, 1]]
-            phasor = np.where(ok, np.exp(-1j * phase), 0.0)
-            offset = layout.chan_freq[window.spw] - gains.centre_hz
-            out[method][rows] = rotate_channels(data[rows], phasor, np.where(ok, delay, 0.0), offset)
-            done[rows] = ok
+            corrected = apply_window(window, cols["TIME"][rows], cols["ANTENNA1"][rows],
+                                     cols["ANTENNA2"][rows], layout.receptors_of_ddid[d],
+                                     data[rows], layout.chan_freq[window.spw])
+            out[method][rows] = corrected.data
+            done[rows] = corrected.calibrated
         calibrated &= done
     return ChunkOutput(out, ~calibrated)
 
