@@ -318,3 +318,26 @@ def test_channel_lattice_resolves_what_the_centre_lattice_cannot():
     centre = solve_lattice(12, a, b, np.array(z).sum(axis=1), np.array(n).sum(axis=1),
                            ratios.mean() % 1.0, 50, gauge_order=gauge)
     assert not np.array_equal(centre.k, truth.ravel())
+
+
+def test_memory_budget_cuts_the_table_path_into_chunks(solved, tmp_path):
+    """--memory-budget sets the rows per chunk (hitops/calibrate/memory.py's model, as the
+    visibility path): a budget of about 2500 rows gives several chunks, each read while the
+    one before is corrected, and the same column and flags as one chunk."""
+    from hitops.calibrate import memory
+
+    pair, table = solved
+    whole, chunked = _target(pair, tmp_path, "whole.ms"), _target(pair, tmp_path, "chunked.ms")
+    with pt.table(str(whole), ack=False) as t:
+        n_rows, (n_chan, n_corr) = t.nrows(), t.getcell("DATA", 0).shape
+    per_row = memory.bytes_per_row(n_corr, n_chan, 1) + memory.read_bytes_per_row(n_corr, n_chan)
+    budget = (memory.FIXED_BYTES + memory.LOCAL_ORDER_BYTES_PER_ROW * n_rows + 2500 * per_row)
+    rows = memory.rows_for_budget(budget, n_rows, n_corr, n_chan, 1, local=True)
+    assert 1000 <= rows < n_rows / 3
+    rc, out = hitops(pair.ref_ms, chunked, "--reference-table", table, "--memory-budget", budget)
+    assert rc == 0, out
+    assert f"up to {rows} target rows per chunk" in out
+    assert hitops(pair.ref_ms, whole, "--reference-table", table, "--chunk-rows", n_rows)[0] == 0
+    with pt.table(str(whole), ack=False) as a, pt.table(str(chunked), ack=False) as b:
+        for column in ("PWC_DATA", "FLAG"):
+            np.testing.assert_array_equal(a.getcol(column), b.getcol(column))

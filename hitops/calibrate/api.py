@@ -34,8 +34,8 @@ from ..options import make_options
 from .band_index import INDEX_COLUMNS
 from .from_table import calibrate_from_table
 from .inputs import CalibrateOptions, check_inputs, output_columns, parse_methods
-from .commit import stage_and_commit
-from .output import (FLAG_BACKUP, OutputTransaction, drop_stale_columns,
+from .commit import committed_note, stage_and_commit
+from .output import (OutputTransaction, drop_stale_columns,
                      release_cluster_tables)
 from .rules import PreparedInputs, prepare_inputs
 
@@ -238,10 +238,4 @@ def _run(run: RunPlan, client, started: float, prepared: PreparedInputs) -> Dict
 
 def _committed(run, tx) -> str:
     """What the target set holds after the commit, for a run stopped before its end."""
-    columns = ", ".join(run.outputs.values())
-    flags = (f" and the updated FLAG (the flags before hitops in {FLAG_BACKUP})"
-             if tx.flag_written else "")
-    after = "the report" if run.opts.no_verdict else "the verdict and the report"
-    return (f"the run had finished writing: {run.target_ms} holds the new {columns}{flags}; "
-            f"what follows the commit ({after}) did not finish; rerun the same command with "
-            "--overwrite to redo it (the columns come out the same)")
+    return committed_note(tx, "the report" if run.opts.no_verdict else "the verdict and the report")

@@ -7,7 +7,18 @@ and end the same way, through :func:`stage_and_commit`.
 
 from __future__ import annotations
 
-from .output import OutputTransaction
+from .output import FLAG_BACKUP, OutputTransaction
+
+
+def committed_note(tx: OutputTransaction, after: str) -> str:
+    """What the target set holds after the commit, for a run stopped before its end:
+    ``after`` names what follows the commit (the report, the verdict, --caltable)."""
+    columns = ", ".join(tx.outputs.values())
+    flags = (f" and the updated FLAG (the flags before hitops in {FLAG_BACKUP})"
+             if tx.flag_written else "")
+    return (f"the run had finished writing: {tx.target_ms} holds the new {columns}{flags}; "
+            f"what follows the commit ({after}) did not finish; rerun the same command with "
+            "--overwrite to redo it (the columns come out the same)")
 
 
 def stage_and_commit(tx: OutputTransaction, stage, note):

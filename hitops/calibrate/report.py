@@ -18,6 +18,7 @@ from .output import FLAG_BACKUP, OutputTransaction
 from .pipeline import GroupResult
 from .plan import GroupPlan, RunPlan
 from .rules import PreparedInputs, finish_report
+from .run_report import report_path
 from .transfer import SampleCounts
 
 log = logging.getLogger("hitops.calibrate")
@@ -137,7 +138,7 @@ def write_report(run: RunPlan, report: Dict, result: Optional[GroupResult],
     ``group_results``: every group's (a per-channel --caltable holds all windows).
     """
     opts = run.opts
-    report_path = Path(opts.report) if opts.report else Path(run.target_ms + ".hitops-calibrate.json")
+    path = report_path(opts, run.target_ms)
     if opts.no_verdict:
         pass
     elif result is None:
@@ -146,7 +147,7 @@ def write_report(run: RunPlan, report: Dict, result: Optional[GroupResult],
                  "verdict reads each band as one")
         report["verdict"] = {"skipped": "several groups"}
     elif result.n_chunks == 1:
-        report["verdict"] = _verdict(run, run.groups[0], str(report_path))
+        report["verdict"] = _verdict(run, run.groups[0], str(path))
     else:
         # a run whose memory is bounded by --chunk-rows makes no verdict
         log.info("no verdict: the sets are larger than --chunk-rows (%d chunks) and the verdict "
@@ -154,26 +155,26 @@ def write_report(run: RunPlan, report: Dict, result: Optional[GroupResult],
         report["verdict"] = {"skipped": f"{result.n_chunks} chunks"}
     if "verdict" in run.timings and "timings_s" in report:   # made after the summary
         report["timings_s"]["verdict"] = round(run.timings["verdict"], 4)
-    report_path.write_text(json.dumps(report, indent=1))
+    path.write_text(json.dumps(report, indent=1))
     if opts.caltable and run.groups[0].channels is not None:
         report["caltable"] = _write_fringe_table(run, group_results)
-        report_path.write_text(json.dumps(report, indent=1))
+        path.write_text(json.dumps(report, indent=1))
     elif opts.caltable:
         report["caltable"] = _write_caltable(run, run.groups[0], result)
-        report_path.write_text(json.dumps(report, indent=1))
+        path.write_text(json.dumps(report, indent=1))
     # the input conversions in the report, --export-uvfits (hitops/calibrate/rules.py)
     if finish_report(report, opts, run.ref_ms, run.target_ms, run.outputs, run.methods,
                      prepared):
-        report_path.write_text(json.dumps(report, indent=1))
+        path.write_text(json.dumps(report, indent=1))
     elapsed = time.perf_counter() - started
     log.info("wrote %s to %s; report %s; %.2f s (%s)", ", ".join(run.outputs.values()),
-             run.target_ms, report_path, elapsed,
+             run.target_ms, path, elapsed,
              ", ".join(f"{k} {v:.2f}" for k, v in run.timings.items()))
     warnings = [report["offset_step"]["warning"]] if "offset_step" in report else \
         [e["offset_step"]["warning"] for e in report.get("groups", [])]
     for warning in dict.fromkeys(w for w in warnings if w):
         log.warning(warning)
-    report["report_path"] = str(report_path)
+    report["report_path"] = str(path)
     return report
 
 
