@@ -109,6 +109,22 @@ def test_fringefit_table_to_target_column_and_table(solved, tmp_path):
     assert wraps["PV"] == 0 and min(wraps[s] for s in ("PB", "AP", "GL")) > 10
     assert report["samples"]["not_calibrated"] == 0
     assert report["caltable"]["rows"] == 300 * 4 * 2
+    # the tracking section is what the run tracked: each antenna's counted wraps, which
+    # hitops diagnose reads beside the coherence
+    tracking = report["tracking"]
+    assert tracking["setup"] == {"tracker": "reference-table", "segments": pwc["n_segments"],
+                                 "wrap_counting": True}
+    assert {a["antenna"]: a["wraps"] for a in tracking["antennas"]} == wraps
+    assert {a["antenna"]: a["solutions"] for a in tracking["antennas"]} == \
+        {a["name"]: a["n_solutions"] for a in pwc["antennas"]}
+    # diagnose's reader of the report (hitops diagnose itself refuses this scene's two
+    # polarization setups, one per window)
+    from hitops.diagnose.confidence import cell, load
+
+    info, warnings = load(str(target), str(report_path))
+    assert warnings == [] and info["tracker"] == "reference-table"
+    assert {a: e["wraps"] for a, e in info["antennas"].items()} == wraps
+    assert cell(info["antennas"]["PB"]) == f"{wraps['PB']} wraps"
     # CASA applycal of the written table equals the column (it follows the rates between
     # the 4-s solutions, and so does the column)
     diff, both = _applycal_difference(target, caltable, "PWC_DATA")

@@ -32,31 +32,29 @@ read once.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import time
 from dataclasses import dataclass
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional
 
 import numpy as np
 
 from ..errors import InputError
 from ..io.metadata import SetMetadata, read_metadata
 from ..io.table_rows import MainTable
-from ..solutions.api import PreparedTransfer, prepare_transfer, transfer_report, write_target_table
-from ..solutions.apply import all_fields, apply_window
+from ..solutions.api import (PreparedTransfer, TransferReport, prepare_transfer, transfer_report,
+                             write_target_table)
 from .chunk_io import ChunkIO
+from .table_source import TargetLayout, correct_chunk, target_layout, window_rows
 from .commit import committed_note, stage_and_commit
 from .inputs import CalibrateOptions, Columns, check_inputs
 from .output import OutputTransaction
 from .rules import PreparedInputs, finish_report
-from .run_report import report_path
+from .run_report import (AfterCommit, AntennaWraps, RunReport, TableTracking, report_path,
+                         write_run_report)
 
 log = logging.getLogger("hitops.calibrate")
 
-#: receptors (ANTENNA1's, ANTENNA2's) of each correlation type (casacore Stokes codes)
-RECEPTORS = {5: (0, 0), 6: (0, 1), 7: (1, 0), 8: (1, 1),      # RR RL LR LL
-             9: (0, 0), 10: (0, 1), 11: (1, 0), 12: (1, 1)}   # XX XY YX YY
 #: what each method makes of the table's solution phases
 WRAP_COUNTING = {"pwc": True, "cfpt": False}
 #: the main-table columns every chunk reads besides the data, the flags and the n0 column
@@ -90,32 +88,6 @@ def refuse_options(opts: CalibrateOptions, methods: List[str]) -> None:
 
 
 @dataclass(frozen=True)
-class TargetLayout:
-    """What the writer needs of TARGET_MS's subtables."""
-
-    spw_of_ddid: np.ndarray                 # (n_ddid,) SPECTRAL_WINDOW_ID
-    receptors_of_ddid: Tuple[np.ndarray, ...]   # per DATA_DESC_ID: (n_corr, 2) receptor of ant1, ant2
-    chan_freq: Tuple[np.ndarray, ...]       # per spectral window: (n_chan,) Hz
-
-
-def target_layout(meta: SetMetadata) -> TargetLayout:
-    """The layout from the target's metadata; a correlation type no antenna gain applies to
-    is refused, naming the data description."""
-    receptors = []
-    for ddid in range(len(meta.data_descriptions)):
-        types = meta.corr_types_of(ddid)
-        unknown = [int(c) for c in types if int(c) not in RECEPTORS]
-        if unknown:
-            raise InputError(f"TARGET_MS '{meta.ms}' data description {ddid} has correlation "
-                             f"type(s) {unknown} (casacore Stokes codes): a table's antenna gains "
-                             "apply to RR/RL/LR/LL or XX/XY/YX/YY; give circular or linear hands")
-        receptors.append(np.array([RECEPTORS[int(c)] for c in types], int))
-    spw = np.array([d.window for d in meta.data_descriptions], int)
-    return TargetLayout(spw, tuple(receptors),
-                        tuple(np.asarray(w.chan_freq, float) for w in meta.windows))
-
-
-@dataclass(frozen=True)
 class TableRun:
     """A ``--reference-table`` run, checked and planned; nothing written yet."""
 
@@ -146,53 +118,6 @@ class TargetChunk:
     @property
     def rows(self) -> np.ndarray:
         return np.arange(self.start, self.start + self.columns["data"].shape[0])
-
-
-@dataclass
-class ChunkOutput:
-    """One chunk's corrected visibilities per method and the samples left uncalibrated."""
-
-    columns: Dict[str, np.ndarray]
-    uncalibrated: np.ndarray    # (n_row, n_corr) bool
-
-
-def _window_rows(prepared: PreparedTransfer, layout: "TargetLayout", ddid: np.ndarray,
-                 field: np.ndarray):
-    """(index, window, receptors, rows) of every transferred window and data description
-    in the chunk."""
-    for j, window in enumerate(prepared.targets):
-        for d in np.flatnonzero(layout.spw_of_ddid == window.spw):
-            rows = np.flatnonzero((ddid == d) & (field == window.field))
-            if rows.size:
-                yield j, window, layout.receptors_of_ddid[d], rows
-
-
-def correct_chunk(transfers: Dict[str, PreparedTransfer], layout: TargetLayout, cols: Dict) -> ChunkOutput:
-    """The target rows of one chunk corrected by each method's transferred antenna terms.
-
-    Every field's solutions of a window are one series, as applycal interpolates them
-    with its default gainfield (hitops/solutions/apply.py); a window without any stays 0.
-    """
-    data = cols["data"]
-    n_row, _, n_corr = data.shape
-    ddid = cols["DATA_DESC_ID"]
-    out = {m: np.zeros(data.shape, np.complex64) for m in transfers}
-    calibrated = np.ones((n_row, n_corr), bool)
-    for method, prepared in transfers.items():
-        done = np.zeros((n_row, n_corr), bool)
-        merged = all_fields(prepared.targets)
-        for d in np.unique(ddid):
-            window = merged.get(int(layout.spw_of_ddid[d]))
-            if window is None:
-                continue
-            rows = np.flatnonzero(ddid == d)
-            corrected = apply_window(window, cols["TIME"][rows], cols["ANTENNA1"][rows],
-                                     cols["ANTENNA2"][rows], layout.receptors_of_ddid[d],
-                                     data[rows], layout.chan_freq[window.spw])
-            out[method][rows] = corrected.data
-            done[rows] = corrected.calibrated
-        calibrated &= done
-    return ChunkOutput(out, ~calibrated)
 
 
 def _read_chunk(run: TableRun, k: int, offset_column: Optional[str]) -> TargetChunk:
@@ -234,7 +159,7 @@ def offset_step(run: TableRun, prepared: PreparedTransfer):
         cols = chunk.columns
         result = correct_chunk({"pwc": prepared}, layout, cols)
         bad = cols["flag"] | cols["FLAG_ROW"][:, None, None] | result.uncalibrated[:, None, :]
-        for j, _, receptors, rows in _window_rows(prepared, layout, cols["DATA_DESC_ID"],
+        for j, _, receptors, rows in window_rows(prepared, layout, cols["DATA_DESC_ID"],
                                                   cols["FIELD_ID"]):
             if j in solve_on:
                 model = np.angle(cols["offset"][rows]) if offset_column else 0.0
@@ -318,21 +243,30 @@ def plan_table_run(opts: CalibrateOptions, methods: List[str], ref_ms: str,
                     n_rows, _rows_per_chunk(opts, meta, n_rows, len(methods)))
 
 
-def _report(opts, methods, ref_ms, target_ms, outputs, transfers, counts, started) -> Dict:
-    first = transfers[methods[0]]
-    reports = {m: dataclasses.asdict(transfer_report(p, None, 0)) for m, p in transfers.items()}
-    per_antenna = reports[methods[0]]["antennas"]
-    return {
-        "ref_ms": ref_ms, "target_ms": target_ms, "methods": methods, "outputs": outputs,
-        "reference_table": {"path": first.table.path, "kind": first.table.kind, "methods": reports},
+def _tracking(report: TransferReport) -> TableTracking:
+    """What the run tracked: each antenna's wraps counted in the first method's solutions."""
+    return TableTracking(
+        tuple(AntennaWraps(a.name, a.n_wraps, a.n_flagged, a.n_solutions, a.max_residual_rad)
+              for a in report.antennas), report.n_segments, report.wrap_counting)
+
+
+def _sections(run: TableRun, ref_ms: str, transfers: Dict[str, PreparedTransfer],
+              counts: SampleCounts, offsets, started: float) -> Dict:
+    """The table path's report sections (the run report's, hitops/calibrate/run_report.py)."""
+    first = transfers[run.methods[0]]
+    reports = {m: transfer_report(p, None, 0) for m, p in transfers.items()}
+    sections = {
+        "ref_ms": ref_ms, "target_ms": run.target_ms, "methods": run.methods,
+        "outputs": run.outputs, "chunks": run.n_chunks,
+        "reference_table": {"path": first.table.path, "kind": first.table.kind,
+                            "methods": {m: dataclasses.asdict(r) for m, r in reports.items()}},
         "samples": dataclasses.asdict(counts),
-        # diagnose reads the tracking section: per antenna, no per-baseline tracker here
-        "tracking": {"setup": {"tracker": "reference-table"}, "baselines": [],
-                     "antennas": [{"antenna": a["name"], "wraps": a["n_wraps"],
-                                   "flagged_solutions": a["n_flagged"]} for a in per_antenna]},
-        "verdict": {"skipped": "reference table: no reference-band visibilities are read"},
+        "tracking": _tracking(reports[run.methods[0]]).as_json(),
         "timings_s": {"total": round(time.perf_counter() - started, 4)},
     }
+    if offsets is not None:
+        sections["offsets"] = {"compared_with": run.columns.offset, "solves": offsets.solves}
+    return sections
 
 
 def calibrate_from_table(opts: CalibrateOptions, methods: List[str], ref_ms: str, target_ms: str,
@@ -354,32 +288,34 @@ def calibrate_from_table(opts: CalibrateOptions, methods: List[str], ref_ms: str
     counts = stage_and_commit(tx, lambda: write_outputs(run, tx, transfers),
                               lambda: committed_note(tx, after))
     try:
-        return _finish(opts, methods, ref_ms, target_ms, run.outputs, transfers, counts,
-                       offsets, run.columns, started, prepared)
+        return _finish(run, ref_ms, transfers, counts, offsets, started, prepared)
     except BaseException as stop:
         stop.add_note(committed_note(tx, after))
         raise
 
 
-def _finish(opts, methods, ref_ms, target_ms, outputs, transfers, counts, offsets, columns,
-            started, prepared) -> Dict:
-    """After the commit: the report, --caltable, --export-uvfits."""
-    report = _report(opts, methods, ref_ms, target_ms, outputs, transfers, counts, started)
-    if offsets is not None:
-        report["offsets"] = {"compared_with": columns.offset, "solves": offsets.solves}
+def _finish(run: TableRun, ref_ms: str, transfers: Dict[str, PreparedTransfer],
+            counts: SampleCounts, offsets, started: float, prepared: PreparedInputs) -> Dict:
+    """After the commit: --caltable, --export-uvfits, the report written once."""
+    opts, method = run.opts, run.methods[0]
     log.info("%d of %d target samples not calibrated by the table (no unflagged solution on "
              "either side), %d flagged before", counts.not_calibrated, counts.n_samples,
              counts.flagged_before)
-    path = report_path(opts, target_ms)
-    if opts.caltable:
-        n_rows = write_target_table(transfers[methods[0]], opts.caltable, bool(opts.overwrite))
-        report["caltable"] = {"path": str(opts.caltable), "kind": "Fringe Jones", "rows": n_rows,
-                              "method": methods[0]}
+    report = RunReport(report_path(opts, run.target_ms),
+                       _sections(run, ref_ms, transfers, counts, offsets, started),
+                       AfterCommit(verdict={"skipped": "reference table: no reference-band "
+                                                       "visibilities are read"}))
+
+    def caltable() -> Dict:
+        n_rows = write_target_table(transfers[method], opts.caltable, bool(opts.overwrite))
         log.info("wrote the target-band Fringe Jones table %s (%d rows, %s)", opts.caltable,
-                 n_rows, methods[0])
-    finish_report(report, opts, ref_ms, target_ms, outputs, methods, prepared)
-    path.write_text(json.dumps(report, indent=1))
+                 n_rows, method)
+        return {"path": str(opts.caltable), "kind": "Fringe Jones", "rows": n_rows,
+                "method": method}
+
+    body = write_run_report(report, caltable if opts.caltable else None, lambda after: finish_report(
+        after, opts, ref_ms, run.target_ms, run.outputs, run.methods, prepared))
     log.info("wrote %s to %s from reference table %s; report %s; %.2f s",
-             ", ".join(outputs.values()), target_ms, opts.reference_table, path,
+             ", ".join(run.outputs.values()), run.target_ms, opts.reference_table, report.path,
              time.perf_counter() - started)
-    return report
+    return body
