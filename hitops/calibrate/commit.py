@@ -1,8 +1,10 @@
-"""The end of every calibrate path that writes: stage the outputs, then commit them once.
+"""The end of every calibrate run that writes: stage the outputs, then commit them once.
 
-The visibility path (hitops/calibrate/api.py) and the ``--reference-table`` path
-(from_table.py) both write through an :class:`~hitops.calibrate.output.OutputTransaction`
-and end the same way, through :func:`stage_and_commit`.
+Both reference sources (REF_MS's visibilities, hitops/calibrate/visibility_source.py; a
+CASA table, from_table.py) write through an :class:`~hitops.calibrate.output.OutputTransaction`
+and end the same way, in the run skeleton (hitops/calibrate/skeleton.py), through
+:func:`stage_and_commit`; a run stopped after its commit says what the set holds in the
+words of :func:`committed_note`.
 """
 
 from __future__ import annotations

@@ -46,12 +46,12 @@ from ..solutions.api import (PreparedTransfer, TransferReport, prepare_transfer,
                              write_target_table)
 from .chunk_io import ChunkIO
 from .table_source import TargetLayout, correct_chunk, target_layout, window_rows
-from .commit import committed_note, stage_and_commit
 from .inputs import CalibrateOptions, Columns, check_inputs
 from .output import OutputTransaction
 from .rules import PreparedInputs, finish_report
 from .run_report import (AfterCommit, AntennaWraps, RunReport, TableTracking, report_path,
                          write_run_report)
+from .skeleton import run_source
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -271,27 +271,55 @@ def _sections(run: TableRun, ref_ms: str, transfers: Dict[str, PreparedTransfer]
 
 def calibrate_from_table(opts: CalibrateOptions, methods: List[str], ref_ms: str, target_ms: str,
                          started: float, prepared: PreparedInputs) -> Dict:
-    """The whole ``--reference-table`` run: checks, transfer, column, table, report."""
-    run = plan_table_run(opts, methods, ref_ms, target_ms)
-    # every check of the table (type, set, stations, solution interval) before anything is written
-    transfers = {m: prepare_transfer(opts.reference_table, ref_ms, target_ms,
-                                     wrap_counting=WRAP_COUNTING[m], antenna_map=opts.antenna_map)
-                 for m in methods}
-    offsets = None
-    if run.columns.offset and "pwc" in transfers:   # --offset-model / --offset-reference-column
-        transfers["pwc"], offsets = offset_step(run, transfers["pwc"])
-    tx = OutputTransaction(target_ms, run.outputs, run.columns.target_data, run.n_rows,
-                           run.chunk_rows, direct_writes=True)
-    tx.check_space()
-    tx.create_columns()
-    after = "the report and --caltable" if opts.caltable else "the report"
-    counts = stage_and_commit(tx, lambda: write_outputs(run, tx, transfers),
-                              lambda: committed_note(tx, after))
-    try:
-        return _finish(run, ref_ms, transfers, counts, offsets, started, prepared)
-    except BaseException as stop:
-        stop.add_note(committed_note(tx, after))
-        raise
+    """The whole ``--reference-table`` run: checks, transfer, column, table, report
+    (the run skeleton, hitops/calibrate/skeleton.py, with the table as its source)."""
+    return run_source(TableSource.of(opts, methods, ref_ms, target_ms, started, prepared))
+
+
+@dataclass(frozen=True)
+class TableSource:
+    """A planned ``--reference-table`` run: the transfer of every method, checked, and the
+    n0 step's integers taken out (its first pass done); nothing written yet."""
+
+    run: TableRun
+    ref_ms: str
+    transfers: Dict[str, PreparedTransfer]
+    offsets: object             # n0/table.TableOffsets, None without the n0 step
+    started: float
+    prepared: PreparedInputs
+
+    @classmethod
+    def of(cls, opts: CalibrateOptions, methods: List[str], ref_ms: str, target_ms: str,
+           started: float, prepared: PreparedInputs) -> "TableSource":
+        run = plan_table_run(opts, methods, ref_ms, target_ms)
+        # every check of the table (type, set, stations, solution interval) before anything
+        # is written
+        transfers = {m: prepare_transfer(opts.reference_table, ref_ms, target_ms,
+                                         wrap_counting=WRAP_COUNTING[m],
+                                         antenna_map=opts.antenna_map)
+                     for m in methods}
+        offsets = None
+        if run.columns.offset and "pwc" in transfers:   # --offset-model / --offset-reference-column
+            transfers["pwc"], offsets = offset_step(run, transfers["pwc"])
+        return cls(run, ref_ms, transfers, offsets, started, prepared)
+
+    def open_transaction(self) -> OutputTransaction:
+        run = self.run
+        tx = OutputTransaction(run.target_ms, run.outputs, run.columns.target_data, run.n_rows,
+                               run.chunk_rows, direct_writes=True)
+        tx.check_space()
+        tx.create_columns()
+        return tx
+
+    def stage(self, tx: OutputTransaction) -> SampleCounts:
+        return write_outputs(self.run, tx, self.transfers)
+
+    def after_commit(self) -> str:
+        return "the report and --caltable" if self.run.opts.caltable else "the report"
+
+    def report(self, tx: OutputTransaction, counts: SampleCounts) -> Dict:
+        return _finish(self.run, self.ref_ms, self.transfers, counts, self.offsets,
+                       self.started, self.prepared)
 
 
 def _finish(run: TableRun, ref_ms: str, transfers: Dict[str, PreparedTransfer],
