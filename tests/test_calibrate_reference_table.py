@@ -28,6 +28,7 @@ from casacore import tables as pt
 from hitops.casa.runner import run_task
 from hitops.casa.tasks import gaincal
 from solutions_scene import fringe_fitted_pair, refant_sets_halfway
+from test_io_metadata import counted_opens  # noqa: F401 - the fixture, shared
 
 pytestmark = pytest.mark.slow
 
@@ -357,3 +358,20 @@ def test_memory_budget_cuts_the_table_path_into_chunks(solved, tmp_path):
     with pt.table(str(whole), ack=False) as a, pt.table(str(chunked), ack=False) as b:
         for column in ("PWC_DATA", "FLAG"):
             np.testing.assert_array_equal(a.getcol(column), b.getcol(column))
+
+
+def test_each_subtable_of_both_sets_is_read_once(solved, tmp_path, counted_opens):
+    """The table path reads each set's subtables once for the whole run (its SetMetadata,
+    passed down to the transfer of every method), counted on python-casacore's own opens."""
+    from hitops.calibrate import calibrate
+
+    pair, table = solved
+    target = _target(pair, tmp_path)
+    counted_opens.clear()
+    calibrate(str(pair.ref_ms), str(target), method="pwc,cfpt", reference_table=str(table),
+              chunk_rows=5000)
+    for ms in (str(pair.ref_ms), str(target)):
+        subtables = {name: n for name, n in counted_opens.items() if name.startswith(ms + "::")}
+        assert set(subtables) == {f"{ms}::{s}" for s in ("ANTENNA", "FIELD", "SPECTRAL_WINDOW",
+                                                           "DATA_DESCRIPTION", "POLARIZATION")}
+        assert set(subtables.values()) == {1}, subtables

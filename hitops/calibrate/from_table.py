@@ -42,8 +42,8 @@ import numpy as np
 from ..errors import InputError
 from ..io.metadata import SetMetadata, read_metadata
 from ..io.table_rows import MainTable
-from ..solutions.api import (PreparedTransfer, TransferReport, prepare_transfer, transfer_report,
-                             write_target_table)
+from ..solutions.api import (PreparedTransfer, TransferReport, pair_table, transfer_paired,
+                             transfer_report, write_target_table)
 from .chunk_io import ChunkIO
 from .table_source import TargetLayout, correct_chunk, target_layout, window_rows
 from .inputs import CalibrateOptions, Columns, check_inputs
@@ -294,10 +294,9 @@ class TableSource:
         run = plan_table_run(opts, methods, ref_ms, target_ms)
         # every check of the table (type, set, stations, solution interval) before anything
         # is written
-        transfers = {m: prepare_transfer(opts.reference_table, ref_ms, target_ms,
-                                         wrap_counting=WRAP_COUNTING[m],
-                                         antenna_map=opts.antenna_map)
-                     for m in methods}
+        paired = pair_table(opts.reference_table, ref_ms, target_ms,
+                            antenna_map=opts.antenna_map, target_meta=run.tgt_meta)
+        transfers = {m: transfer_paired(paired, wrap_counting=WRAP_COUNTING[m]) for m in methods}
         offsets = None
         if run.columns.offset and "pwc" in transfers:   # --offset-model / --offset-reference-column
             transfers["pwc"], offsets = offset_step(run, transfers["pwc"])
