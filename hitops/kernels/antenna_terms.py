@@ -21,16 +21,12 @@ contiguous and of the kernel's types.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numba
 import numpy as np
 
-from .wideband import cis, evenly_spaced
-
-TWO_PI = 2.0 * math.pi
-
+from .wideband import cis, evenly_spaced, rotate_sample
 
 @numba.njit(cache=True, nogil=True)
 def antenna_terms_kernel(data, term_index, ant1, ant2, receptors, phase, delay_s, solved,
@@ -65,15 +61,8 @@ def antenna_terms_kernel(data, term_index, ant1, ant2, receptors, phase, delay_s
                         out[r, k, c] = data[r, k, c]
                 continue
             calibrated[r, c] = True
-            tau = delay_s[t, p, rp] - delay_s[t, q, rq]
-            rotor = cis(-(phase[t, p, rp] - phase[t, q, rq]))
-            first = rotor * cis(-TWO_PI * chan_offset[0] * tau)
-            step = cis(-TWO_PI * step_hz * tau)
-            for k in range(n_chan):
-                if not even:
-                    first = rotor * cis(-TWO_PI * chan_offset[k] * tau)
-                out[r, k, c] = data[r, k, c] * first
-                first *= step
+            rotate_sample(out, data, r, c, cis(-(phase[t, p, rp] - phase[t, q, rq])),
+                          delay_s[t, p, rp] - delay_s[t, q, rq], chan_offset, even, step_hz)
     return out, calibrated
 
 
