@@ -16,11 +16,20 @@ point``, ``--offset-reference-column``) x one chunk or several
 dask.distributed scheduler.  The scenes are simulated once into ``--workdir``
 (default a temporary directory) and each case works on a fresh copy of the
 target set.
+
+``--scenes table`` runs the ``--reference-table`` path (not in the default
+scenes; its own fingerprint file): a pair laid out by casatools.simulator
+(tests/solutions_scene.py, two fields in alternating scans), solved by real CASA
+fringefit (4 s) and gaincal (G Jones, solint 'int'); cases: pwc, pwc,cfpt, the n0
+step (``--offset-model point``, ``--offset-reference-column``), ``--caltable``,
+one chunk or several.  Besides the columns and FLAG it digests the written
+caltable's FPARAM, FLAG and row axes.  ``--only`` matches ``scene/case``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import json
 import logging
@@ -32,6 +41,8 @@ import time
 from pathlib import Path
 
 SCENES = ("demo", "paper")
+#: the --reference-table scene: run with --scenes table
+TABLE_SCENE = "table"
 TRACKERS = ("count", "smooth", "antenna")
 #: the offset reference column: a CFPT calibration of the same data, written once per scene
 OFFSET_REFERENCE = "OFFSET_REFERENCE"
@@ -40,7 +51,17 @@ VOLATILE = {"time_s", "timings_s", "report_path", "ref_ms", "target_ms", "path"}
 
 
 #: --chunk-rows of the chunked cases: several chunks in each scene
-CHUNK_ROWS = {"demo": 3000, "paper": 150_000}
+CHUNK_ROWS = {"demo": 3000, "paper": 150_000, TABLE_SCENE: 500}
+#: the table scene's scans: (field, start s, stop s), two fields alternating
+TABLE_SCANS = (("M87", 0.0, 60.0), ("3C273", 70.0, 130.0), ("M87", 140.0, 200.0),
+               ("3C273", 210.0, 270.0))
+#: the table scene's solution tables (written once per scene) and what solves them
+TABLES = ("fringe", "gain", "flagged")
+#: columns whose digests each case records
+COLUMNS = ["PWC_DATA", "CFPT_DATA", "CWU_DATA", "FLAG", "FLAG_HITOPS_BACKUP"]
+#: the written --caltable's columns whose digests a table case records
+CALTABLE_COLUMNS = ["TIME", "FIELD_ID", "SPECTRAL_WINDOW_ID", "ANTENNA1", "ANTENNA2", "FPARAM",
+                    "FLAG"]
 
 
 def cases(scene: str):
@@ -62,6 +83,72 @@ def cases(scene: str):
     return out
 
 
+def table_cases():
+    """(name, calibrate keyword arguments) of the --reference-table matrix; the table is
+    named by its entry of TABLES and ``caltable`` True asks for a written table."""
+    chunk = {"chunk_rows": CHUNK_ROWS[TABLE_SCENE]}
+    rows = [
+        ("fringe-pwc-whole", {"table": "fringe", "method": "pwc"}),
+        ("fringe-pwc,cfpt-caltable-whole", {"table": "fringe", "method": "pwc,cfpt",
+                                            "caltable": True}),
+        ("fringe-pwc,cfpt-caltable-chunked", {"table": "fringe", "method": "pwc,cfpt",
+                                              "caltable": True, **chunk}),
+        ("fringe-cfpt-chunked", {"table": "fringe", "method": "cfpt", **chunk}),
+        ("fringe-model-caltable-whole", {"table": "fringe", "method": "pwc",
+                                         "offset_model": "point", "caltable": True}),
+        ("fringe-model-caltable-chunked", {"table": "fringe", "method": "pwc,cfpt",
+                                           "offset_model": "point", "caltable": True, **chunk}),
+        ("fringe-reference-chunked", {"table": "fringe", "method": "pwc",
+                                      "offset_reference_column": "MODEL_DATA", **chunk}),
+        ("gain-pwc,cfpt-caltable-whole", {"table": "gain", "method": "pwc,cfpt",
+                                          "caltable": True}),
+        ("gain-model-caltable-chunked", {"table": "gain", "method": "pwc",
+                                         "offset_model": "point", "caltable": True, **chunk}),
+        ("flagged-pwc,cfpt-caltable-chunked", {"table": "flagged", "method": "pwc,cfpt",
+                                               "caltable": True, **chunk}),
+        ("flagged-model-whole", {"table": "flagged", "method": "pwc", "offset_model": "point"}),
+    ]
+    return [(name, {"overwrite": True, **kw}) for name, kw in rows]
+
+
+def simulate_table_scene(workdir: Path):
+    """The table scene's two sets and its solution tables, made once: (ref, tgt, {name: table})."""
+    outdir = workdir / TABLE_SCENE
+    tables = {name: outdir / f"ref.{name}" for name in TABLES}
+    ref, tgt = outdir / "ref.ms", outdir / "target.ms"
+    if not all((t / "table.dat").exists() for t in tables.values()):
+        sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+        from solutions_scene import make_solution_pair
+
+        from hitops.casa.tasks import fringefit, gaincal
+
+        shutil.rmtree(outdir, ignore_errors=True)
+        make_solution_pair(outdir, seed=5, scans=TABLE_SCANS)
+        fringefit(str(ref), str(tables["fringe"]), solint="4s", refant="PV,PB", minsnr=3.0)
+        gaincal(str(ref), str(tables["gain"]), solint="int", refant="PV,PB", calmode="p",
+                minsnr=3.0, minblperant=2)
+        _flag_some(tgt, tables["fringe"], tables["flagged"])
+    return ref, tgt, tables
+
+
+def _flag_some(tgt: Path, fringe: Path, flagged: Path) -> None:
+    """Samples the table path leaves uncalibrated or finds flagged: FLAG set on the target's
+    PV-PB rows in the first 20 s; a copy of the fringefit table with GL's (antenna 3)
+    solutions flagged from the third scan on."""
+    from casacore import tables as pt
+
+    with pt.table(str(tgt), readonly=False, ack=False) as t:
+        time, flag = t.getcol("TIME"), t.getcol("FLAG")
+        rows = (t.getcol("ANTENNA1") == 0) & (t.getcol("ANTENNA2") == 1) & (time < time.min() + 20)
+        flag[rows] = True
+        t.putcol("FLAG", flag)
+    shutil.copytree(fringe, flagged)
+    with pt.table(str(flagged), readonly=False, ack=False) as t:
+        time, flag = t.getcol("TIME"), t.getcol("FLAG")
+        flag[(t.getcol("ANTENNA1") == 3) & (time > time.min() + TABLE_SCANS[2][1])] = True
+        t.putcol("FLAG", flag)
+
+
 def simulate(scene: str, workdir: Path):
     """The scene's two sets (simulated once) and its target set with the offset reference."""
     outdir = workdir / scene
@@ -75,7 +162,7 @@ def simulate(scene: str, workdir: Path):
     return ref, tgt
 
 
-def column_digests(ms: Path, columns) -> dict:
+def column_digests(ms: Path, columns, prefix: str = "") -> dict:
     from casacore import tables as pt
 
     digests = {}
@@ -83,7 +170,7 @@ def column_digests(ms: Path, columns) -> dict:
         present = set(t.colnames())
         for name in columns:
             if name in present:
-                digests[name] = hashlib.sha256(t.getcol(name).tobytes()).hexdigest()
+                digests[prefix + name] = hashlib.sha256(t.getcol(name).tobytes()).hexdigest()
     return digests
 
 
@@ -96,7 +183,7 @@ def stable(report):
     return report
 
 
-def run_case(ref: Path, tgt: Path, kwargs: dict, workdir: Path, client_address):
+def run_case(ref: Path, tgt: Path, kwargs: dict, workdir: Path, scheduler, tables=None):
     from hitops.calibrate import calibrate_flat
 
     # one copy path per scene: dask-ms keeps a table handle of a path open while a cluster
@@ -107,32 +194,60 @@ def run_case(ref: Path, tgt: Path, kwargs: dict, workdir: Path, client_address):
     shutil.copytree(tgt, copy)
     kwargs = dict(kwargs)
     if kwargs.get("scheduler") == "local":
-        kwargs["scheduler"] = client_address
+        kwargs["scheduler"] = scheduler()
+    if "table" in kwargs:
+        kwargs["reference_table"] = str(tables[kwargs.pop("table")])
+    caltable = workdir / "case.caltable"
+    shutil.rmtree(caltable, ignore_errors=True)
+    if kwargs.pop("caltable", False):
+        kwargs["caltable"] = str(caltable)
     started = time.perf_counter()
     report = calibrate_flat(str(ref), str(copy), report=str(workdir / "case.json"), **kwargs)
     elapsed = time.perf_counter() - started
-    digests = column_digests(copy, ["PWC_DATA", "CFPT_DATA", "CWU_DATA", "FLAG",
-                                    "FLAG_HITOPS_BACKUP"])
+    digests = column_digests(copy, COLUMNS)
+    if "caltable" in kwargs:
+        digests.update(column_digests(caltable, CALTABLE_COLUMNS, prefix="caltable:"))
+        shutil.rmtree(caltable)
     text = json.dumps(stable(report), sort_keys=True)
     digests["report"] = hashlib.sha256(text.encode()).hexdigest()
     shutil.rmtree(copy)
     return digests, json.loads(text), elapsed
 
 
-def fingerprint(workdir: Path, scenes, only=None) -> dict:
-    from dask.distributed import Client, LocalCluster
+class LocalScheduler:
+    """A local dask cluster, started for the first case that asks for one (the table scene
+    needs none), closed with the run."""
 
+    def __init__(self, stack: contextlib.ExitStack):
+        self.stack, self.address = stack, None
+
+    def __call__(self) -> str:
+        if self.address is None:
+            from dask.distributed import Client, LocalCluster
+
+            cluster = self.stack.enter_context(LocalCluster(
+                n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None))
+            client = self.stack.enter_context(Client(cluster, set_as_default=False))
+            self.address = client.scheduler.address
+        return self.address
+
+
+def fingerprint(workdir: Path, scenes, only=None) -> dict:
     result = {}
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                      dashboard_address=None) as cluster, \
-            Client(cluster, set_as_default=False) as client:
+    with contextlib.ExitStack() as stack:
+        scheduler = LocalScheduler(stack)
         for scene in scenes:
-            ref, tgt = simulate(scene, workdir)
-            for name, kwargs in cases(scene):
-                if only and only not in name:
-                    continue
-                digests, report, elapsed = run_case(ref, tgt, kwargs, workdir,
-                                                    client.scheduler.address)
+            selected = [(name, kw) for name, kw in
+                        (table_cases() if scene == TABLE_SCENE else cases(scene))
+                        if not only or only in f"{scene}/{name}"]
+            if not selected:
+                continue
+            if scene == TABLE_SCENE:
+                ref, tgt, tables = simulate_table_scene(workdir)
+            else:
+                (ref, tgt), tables = simulate(scene, workdir), None
+            for name, kwargs in selected:
+                digests, report, elapsed = run_case(ref, tgt, kwargs, workdir, scheduler, tables)
                 result[f"{scene}/{name}"] = {"digests": digests, "report": report}
                 print(f"{scene}/{name}: {elapsed:.1f} s", flush=True)
     return result
@@ -174,8 +289,9 @@ def main(argv=None) -> int:
     parser.add_argument("action", choices=("record", "check"))
     parser.add_argument("fingerprints", type=Path, help="JSON file written by record, read by check")
     parser.add_argument("--workdir", type=Path, help="keep the simulated scenes here (reused)")
-    parser.add_argument("--scenes", default=",".join(SCENES))
-    parser.add_argument("--only", help="run only the cases whose name contains this")
+    parser.add_argument("--scenes", default=",".join(SCENES),
+                        help=f"comma-separated, of {', '.join(SCENES + (TABLE_SCENE,))}")
+    parser.add_argument("--only", help="run only the cases whose scene/name contains this")
     args = parser.parse_args(argv)
     # the runs' own log lines would bury the result
     logging.getLogger("hitops").setLevel(logging.ERROR)
@@ -194,8 +310,10 @@ def main(argv=None) -> int:
         print(f"recorded {len(now)} cases in {args.fingerprints}")
         return 0
     before = json.loads(args.fingerprints.read_text())
-    if args.only:
-        before = {k: v for k, v in before.items() if k in now}
+    # the cases this check ran: of the scenes asked for, and matching --only
+    scenes = args.scenes.split(",")
+    before = {k: v for k, v in before.items() if k.split("/")[0] in scenes
+              and (not args.only or args.only in k)}
     lines = differences(before, now)
     for line in lines:
         print(line)

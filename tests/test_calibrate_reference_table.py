@@ -28,6 +28,7 @@ from casacore import tables as pt
 from hitops.casa.runner import run_task
 from hitops.casa.tasks import gaincal
 from solutions_scene import fringe_fitted_pair, refant_sets_halfway
+from test_io_metadata import counted_opens  # noqa: F401 - the fixture, shared
 
 pytestmark = pytest.mark.slow
 
@@ -109,6 +110,22 @@ def test_fringefit_table_to_target_column_and_table(solved, tmp_path):
     assert wraps["PV"] == 0 and min(wraps[s] for s in ("PB", "AP", "GL")) > 10
     assert report["samples"]["not_calibrated"] == 0
     assert report["caltable"]["rows"] == 300 * 4 * 2
+    # the tracking section is what the run tracked: each antenna's counted wraps, which
+    # hitops diagnose reads beside the coherence
+    tracking = report["tracking"]
+    assert tracking["setup"] == {"tracker": "reference-table", "segments": pwc["n_segments"],
+                                 "wrap_counting": True}
+    assert {a["antenna"]: a["wraps"] for a in tracking["antennas"]} == wraps
+    assert {a["antenna"]: a["solutions"] for a in tracking["antennas"]} == \
+        {a["name"]: a["n_solutions"] for a in pwc["antennas"]}
+    # diagnose's reader of the report (hitops diagnose itself refuses this scene's two
+    # polarization setups, one per window)
+    from hitops.diagnose.confidence import cell, load
+
+    info, warnings = load(str(target), str(report_path))
+    assert warnings == [] and info["tracker"] == "reference-table"
+    assert {a: e["wraps"] for a, e in info["antennas"].items()} == wraps
+    assert cell(info["antennas"]["PB"]) == f"{wraps['PB']} wraps"
     # CASA applycal of the written table equals the column (it follows the rates between
     # the 4-s solutions, and so does the column)
     diff, both = _applycal_difference(target, caltable, "PWC_DATA")
@@ -318,3 +335,43 @@ def test_channel_lattice_resolves_what_the_centre_lattice_cannot():
     centre = solve_lattice(12, a, b, np.array(z).sum(axis=1), np.array(n).sum(axis=1),
                            ratios.mean() % 1.0, 50, gauge_order=gauge)
     assert not np.array_equal(centre.k, truth.ravel())
+
+
+def test_memory_budget_cuts_the_table_path_into_chunks(solved, tmp_path):
+    """--memory-budget sets the rows per chunk (hitops/calibrate/memory.py's model, as the
+    visibility path): a budget of about 2500 rows gives several chunks, each read while the
+    one before is corrected, and the same column and flags as one chunk."""
+    from hitops.calibrate import memory
+
+    pair, table = solved
+    whole, chunked = _target(pair, tmp_path, "whole.ms"), _target(pair, tmp_path, "chunked.ms")
+    with pt.table(str(whole), ack=False) as t:
+        n_rows, (n_chan, n_corr) = t.nrows(), t.getcell("DATA", 0).shape
+    per_row = memory.bytes_per_row(n_corr, n_chan, 1) + memory.read_bytes_per_row(n_corr, n_chan)
+    budget = (memory.FIXED_BYTES + memory.LOCAL_ORDER_BYTES_PER_ROW * n_rows + 2500 * per_row)
+    rows = memory.rows_for_budget(budget, n_rows, n_corr, n_chan, 1, local=True)
+    assert 1000 <= rows < n_rows / 3
+    rc, out = hitops(pair.ref_ms, chunked, "--reference-table", table, "--memory-budget", budget)
+    assert rc == 0, out
+    assert f"up to {rows} target rows per chunk" in out
+    assert hitops(pair.ref_ms, whole, "--reference-table", table, "--chunk-rows", n_rows)[0] == 0
+    with pt.table(str(whole), ack=False) as a, pt.table(str(chunked), ack=False) as b:
+        for column in ("PWC_DATA", "FLAG"):
+            np.testing.assert_array_equal(a.getcol(column), b.getcol(column))
+
+
+def test_each_subtable_of_both_sets_is_read_once(solved, tmp_path, counted_opens):
+    """The table path reads each set's subtables once for the whole run (its SetMetadata,
+    passed down to the transfer of every method), counted on python-casacore's own opens."""
+    from hitops.calibrate import calibrate_flat
+
+    pair, table = solved
+    target = _target(pair, tmp_path)
+    counted_opens.clear()
+    calibrate_flat(str(pair.ref_ms), str(target), method="pwc,cfpt", reference_table=str(table),
+              chunk_rows=5000)
+    for ms in (str(pair.ref_ms), str(target)):
+        subtables = {name: n for name, n in counted_opens.items() if name.startswith(ms + "::")}
+        assert set(subtables) == {f"{ms}::{s}" for s in ("ANTENNA", "FIELD", "SPECTRAL_WINDOW",
+                                                           "DATA_DESCRIPTION", "POLARIZATION")}
+        assert set(subtables.values()) == {1}, subtables

@@ -43,10 +43,8 @@ from ..options import flat_entry, section_classes
 from .band_index import INDEX_COLUMNS
 from .from_table import calibrate_from_table
 from .inputs import CalibrateOptions, check_inputs, output_columns, parse_methods
-from .commit import stage_and_commit
 from .modes import Mode, check_options
-from .output import (FLAG_BACKUP, OutputTransaction, drop_stale_columns,
-                     release_cluster_tables)
+from .output import drop_stale_columns
 from .rules import PreparedInputs, prepare_inputs
 
 if TYPE_CHECKING:   # the plan's modules load dask-ms: imported where a run starts
@@ -202,60 +200,9 @@ def _calibrate_visibilities(start: RunStart) -> Dict:
 
 def _run(run: RunPlan, client, start: RunStart) -> Dict:
     """Stages 4-6: every group pair into one OutputTransaction, committed once; then the
-    report."""
-    from .phaseref import check_calibrator_field, phase_reference, settle_n0_warnings
-    from .pipeline import run_group
-    from .report import combined_report, group_report, write_report
+    report (the run skeleton, hitops/calibrate/skeleton.py, with REF_MS's visibilities as
+    its source)."""
+    from .skeleton import run_source
+    from .visibility_source import VisibilitySource
 
-    calibrator = check_calibrator_field(run)   # --calibrator-field, before anything is written
-
-    # everything this run changes in the target set (hitops/calibrate/output.py)
-    tx = OutputTransaction(run.target_ms, run.outputs, run.columns.target_data, None,
-                           run.chunk_rows,
-                           direct_writes=client is None and all(
-                               isinstance(g.match.datasets["tgt"], msio.StorageRows)
-                               for g in run.groups))
-    tx.check_space()
-    if client is not None:
-        release_cluster_tables(client)   # stale handles of an earlier run on this cluster
-    # a target not stored in time order and cut into chunks is written in scattered rows
-    created = tx.create_columns(scattered=any(g.n_chunks > 1 and not g.match.tgt.time_ordered
-                                              for g in run.groups))
-    if client is not None:
-        log.info("created %s in %s before sending work to the cluster", ", ".join(created),
-                 run.target_ms)
-
-    def stage():
-        results = [run_group(run, group, tx, client) for group in run.groups]
-        # the instrumental term solved on the calibrator, applied to the staged columns
-        referencing = phase_reference(run, tx, calibrator)
-        if client is not None:
-            release_cluster_tables(client)
-        return results, referencing
-
-    results, referencing = stage_and_commit(tx, stage, lambda: _committed(run, tx))
-    try:
-        reports = [group_report(run, group, result, tx, start.started)
-                   for group, result in zip(run.groups, results)]
-        report = reports[0] if len(reports) == 1 else combined_report(run, reports)
-        if referencing is not None:
-            report["phase_referencing"] = referencing
-            settle_n0_warnings(report, calibrator)
-        return write_report(run, report, results[0] if len(reports) == 1 else None,
-                            start.started, start.prepared, results)
-    except BaseException as stop:
-        # an interrupt or a failure after the commit: the set is no longer as it was, and
-        # hitops/cli.py says what it holds
-        stop.add_note(_committed(run, tx))
-        raise
-
-
-def _committed(run, tx) -> str:
-    """What the target set holds after the commit, for a run stopped before its end."""
-    columns = ", ".join(run.outputs.values())
-    flags = (f" and the updated FLAG (the flags before hitops in {FLAG_BACKUP})"
-             if tx.flag_written else "")
-    after = "the report" if run.opts.run.no_verdict else "the verdict and the report"
-    return (f"the run had finished writing: {run.target_ms} holds the new {columns}{flags}; "
-            f"what follows the commit ({after}) did not finish; rerun the same command with "
-            "--overwrite to redo it (the columns come out the same)")
+    return run_source(VisibilitySource.of(run, client, start.started, start.prepared))

@@ -21,164 +21,127 @@ is ``pwc`` (GUIDE section 1).  With ``--offset-model`` or ``--offset-reference-c
 ``pwc`` first solves each antenna's integer per segment (the n0 step,
 :mod:`hitops.calibrate.n0.table`) in a pass over the target set.  The output column,
 FLAG and the staging follow the visibility path
-(:class:`~hitops.calibrate.output.OutputTransaction`: whole or not at all).
+(:class:`~hitops.calibrate.output.OutputTransaction`: whole or not at all), and so does the
+chunk loop: rows per chunk from ``--memory-budget`` (hitops/calibrate/memory.py) or
+``--chunk-rows``, each chunk read on :class:`~hitops.calibrate.chunk_io.ChunkIO`'s thread
+while the one before is corrected, its outputs written there too; the target's
+windows, correlations and stations from its :class:`~hitops.io.metadata.SetMetadata`,
+read once.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import time
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Dict, Tuple
+from typing import Callable, Dict, List, Optional
 
 import numpy as np
 
-from ..errors import InputError
-from ..io import tables
-from ..kernels.wideband import rotate_channels
-from ..solutions.api import PreparedTransfer, prepare_transfer, transfer_report, write_target_table
-from ..solutions.apply import all_fields, gains_at
-from .inputs import CalibrateOptions, check_inputs
-from .commit import stage_and_commit
+from ..io.metadata import SetMetadata, read_metadata
+from ..io.table_rows import MainTable
+from ..solutions.api import (PreparedTransfer, TransferReport, pair_table, transfer_paired,
+                             transfer_report, write_target_table)
+from .chunk_io import ChunkIO
+from .table_source import TargetLayout, correct_chunk, target_layout, window_rows
+from .inputs import CalibrateOptions, Columns, check_inputs
 from .output import OutputTransaction
-from .rules import finish_report
+from .rules import PreparedInputs, finish_report
+from .run_report import (AfterCommit, AntennaWraps, RunReport, TableTracking, report_path,
+                         write_run_report)
+from .skeleton import run_source
 
 log = logging.getLogger("hitops.calibrate")
 
-#: receptors (ANTENNA1's, ANTENNA2's) of each correlation type (casacore Stokes codes)
-RECEPTORS = {5: (0, 0), 6: (0, 1), 7: (1, 0), 8: (1, 1),      # RR RL LR LL
-             9: (0, 0), 10: (0, 1), 11: (1, 0), 12: (1, 1)}   # XX XY YX YY
 #: what each method makes of the table's solution phases
 WRAP_COUNTING = {"pwc": True, "cfpt": False}
-#: visibilities (rows x channels x correlations) per chunk when --chunk-rows is 0
-CHUNK_VISIBILITIES = 4_000_000
+#: the main-table columns every chunk reads besides the data, the flags and the n0 column
+ROW_COLUMNS = ("TIME", "ANTENNA1", "ANTENNA2", "DATA_DESC_ID", "FIELD_ID", "FLAG_ROW")
 
 
 @dataclass(frozen=True)
-class TargetLayout:
-    """What the writer needs of TARGET_MS's subtables."""
+class TableRun:
+    """A ``--reference-table`` run, checked and planned; nothing written yet."""
 
-    spw_of_ddid: np.ndarray                 # (n_ddid,) SPECTRAL_WINDOW_ID
-    receptors_of_ddid: Tuple[np.ndarray, ...]   # per DATA_DESC_ID: (n_corr, 2) receptor of ant1, ant2
-    chan_freq: Tuple[np.ndarray, ...]       # per spectral window: (n_chan,) Hz
+    opts: CalibrateOptions
+    methods: List[str]
+    target_ms: str
+    outputs: Dict[str, str]         # method -> column
+    columns: Columns
+    tgt_meta: SetMetadata           # the target's subtables, read once
+    layout: TargetLayout
+    n_rows: int                     # rows of the target set
+    chunk_rows: int                 # rows per chunk: --chunk-rows, else from --memory-budget
 
-
-def read_layout(target_ms: str) -> TargetLayout:
-    with tables.subtable(target_ms, "DATA_DESCRIPTION") as t:
-        spw = t.getcol("SPECTRAL_WINDOW_ID")
-        pol = t.getcol("POLARIZATION_ID")
-    with tables.subtable(target_ms, "POLARIZATION") as t:
-        corr = [np.asarray(t.getcell("CORR_TYPE", int(p)), int) for p in pol]
-    with tables.subtable(target_ms, "SPECTRAL_WINDOW") as t:
-        freq = tuple(np.asarray(t.getcell("CHAN_FREQ", i), float) for i in range(t.nrows()))
-    receptors = []
-    for ddid, types in enumerate(corr):
-        unknown = [int(c) for c in types if int(c) not in RECEPTORS]
-        if unknown:
-            raise InputError(f"TARGET_MS '{target_ms}' data description {ddid} has correlation "
-                             f"type(s) {unknown} (casacore Stokes codes): a table's antenna gains "
-                             "apply to RR/RL/LR/LL or XX/XY/YX/YY; give circular or linear hands")
-        receptors.append(np.array([RECEPTORS[int(c)] for c in types], int))
-    return TargetLayout(spw.astype(int), tuple(receptors), freq)
+    @property
+    def n_chunks(self) -> int:
+        return -(-self.n_rows // self.chunk_rows)
 
 
-@dataclass
-class ChunkOutput:
-    """One chunk's corrected visibilities per method and the samples left uncalibrated."""
+@dataclass(frozen=True)
+class TargetChunk:
+    """Rows [start, start + n) of the target set as read: ``columns`` holds ROW_COLUMNS by
+    name, ``data`` (the target column), ``flag`` (the input flags) and ``offset`` (the n0
+    step's column) when it is read."""
 
+    start: int
     columns: Dict[str, np.ndarray]
-    uncalibrated: np.ndarray    # (n_row, n_corr) bool
+
+    @property
+    def rows(self) -> np.ndarray:
+        return np.arange(self.start, self.start + self.columns["data"].shape[0])
 
 
-def _window_rows(prepared: PreparedTransfer, layout: "TargetLayout", ddid: np.ndarray,
-                 field: np.ndarray):
-    """(index, window, receptors, rows) of every transferred window and data description
-    in the chunk."""
-    for j, window in enumerate(prepared.targets):
-        for d in np.flatnonzero(layout.spw_of_ddid == window.spw):
-            rows = np.flatnonzero((ddid == d) & (field == window.field))
-            if rows.size:
-                yield j, window, layout.receptors_of_ddid[d], rows
-
-
-def correct_chunk(transfers: Dict[str, PreparedTransfer], layout: TargetLayout, cols: Dict) -> ChunkOutput:
-    """The target rows of one chunk corrected by each method's transferred antenna terms.
-
-    Every field's solutions of a window are one series, as applycal interpolates them
-    with its default gainfield (hitops/solutions/apply.py); a window without any stays 0.
-    """
-    data = cols["data"]
-    n_row, _, n_corr = data.shape
-    a1, a2, ddid = cols["ANTENNA1"], cols["ANTENNA2"], cols["DATA_DESC_ID"]
-    out = {m: np.zeros(data.shape, np.complex64) for m in transfers}
-    calibrated = np.ones((n_row, n_corr), bool)
-    for method, prepared in transfers.items():
-        done = np.zeros((n_row, n_corr), bool)
-        merged = all_fields(prepared.targets)
-        for d in np.unique(ddid):
-            window = merged.get(int(layout.spw_of_ddid[d]))
-            if window is None:
-                continue
-            rows = np.flatnonzero(ddid == d)
-            utimes, it = np.unique(cols["TIME"][rows], return_inverse=True)
-            gains = gains_at(window, utimes)
-            # a T Jones source: one receptor for both hands
-            rec = np.minimum(layout.receptors_of_ddid[d], gains.phase.shape[2] - 1)
-            p, q, ti = a1[rows][:, None], a2[rows][:, None], it.ravel()[:, None]
-            phase = gains.phase[ti, p, rec[:, 0]] - gains.phase[ti, q, rec[:, 1]]
-            delay = gains.delay_s[ti, p, rec[:, 0]] - gains.delay_s[ti, q, rec[:, 1]]
-            ok = gains.ok[ti, p, rec[:, 0]] & gains.ok[ti, q, rec[:, 1]]
-            phasor = np.where(ok, np.exp(-1j * phase), 0.0)
-            offset = layout.chan_freq[window.spw] - gains.centre_hz
-            out[method][rows] = rotate_channels(data[rows], phasor, np.where(ok, delay, 0.0), offset)
-            done[rows] = ok
-        calibrated &= done
-    return ChunkOutput(out, ~calibrated)
-
-
-def _chunk_columns(t, columns, start: int, n: int, offset_column=None) -> Dict:
-    cols = {name: t.getcol(name, start, n) for name in
-            ("TIME", "ANTENNA1", "ANTENNA2", "DATA_DESC_ID", "FIELD_ID", "FLAG_ROW")}
-    cols["data"] = t.getcol(columns.target_data, start, n)
-    cols["flag"] = t.getcol(columns.flag, start, n)
+def _read_chunk(run: TableRun, k: int, offset_column: Optional[str]) -> TargetChunk:
+    """Chunk ``k`` of the target set, in storage order (python-casacore, hitops/io)."""
+    start = k * run.chunk_rows
+    stop = min(start + run.chunk_rows, run.n_rows)
+    names = {"data": run.columns.target_data, "flag": run.columns.flag}
     if offset_column:
-        cols["offset"] = t.getcol(offset_column, start, n)
-    return cols
+        names["offset"] = offset_column
+    with MainTable(run.target_ms) as table:
+        read = table.read(list(ROW_COLUMNS) + list(names.values()), start, stop)
+    cols = {name: read[name] for name in ROW_COLUMNS}
+    cols.update({key: read[column] for key, column in names.items()})
+    return TargetChunk(start, cols)
 
 
-def _chunks(target_ms: str, columns, chunk_rows: int, offset_column=None):
-    """(start, n, columns) of every chunk of the target set, read with python-casacore."""
-    with tables.main_table(target_ms) as t:
-        n_total = t.nrows()
-    for start in range(0, n_total, chunk_rows):
-        n = min(chunk_rows, n_total - start)
-        with tables.main_table(target_ms) as t:
-            yield start, n, _chunk_columns(t, columns, start, n, offset_column)
+def each_chunk(run: TableRun, work: Callable[[TargetChunk, ChunkIO], None],
+               offset_column: Optional[str] = None) -> None:
+    """``work(chunk, io)`` on every chunk of the target set in order; chunk k+1 is read on
+    :class:`ChunkIO`'s thread while chunk k is worked on (``io.write`` queues a write there)."""
+    with ChunkIO(lambda k: _read_chunk(run, k, offset_column), run.n_chunks) as io:
+        for k in range(run.n_chunks):
+            chunk = io.chunk(k)
+            io.read_ahead(k + 1)
+            work(chunk, io)
 
 
-def offset_step(prepared: PreparedTransfer, layout: TargetLayout, columns, chunk_rows: int,
-                opts: CalibrateOptions, target_ms: str):
+def offset_step(run: TableRun, prepared: PreparedTransfer):
     """The n0 step (hitops/calibrate/n0/table.py): a first pass over the target set,
     one lattice solve per field and receptor; the transfer with the integers taken out."""
     from .n0.table import accumulate, apply_offsets, solve, solve_windows
 
+    columns, layout = run.columns, run.layout
     offset_column = None if columns.offset_is_model and not columns.model else columns.offset
     solve_on = set(solve_windows(prepared).values())
     sums: Dict = {}
-    for _, _, cols in _chunks(target_ms, columns, chunk_rows, offset_column):
+
+    def add(chunk: TargetChunk, io: ChunkIO) -> None:
+        cols = chunk.columns
         result = correct_chunk({"pwc": prepared}, layout, cols)
         bad = cols["flag"] | cols["FLAG_ROW"][:, None, None] | result.uncalibrated[:, None, :]
-        for j, _, receptors, rows in _window_rows(prepared, layout, cols["DATA_DESC_ID"],
+        for j, _, receptors, rows in window_rows(prepared, layout, cols["DATA_DESC_ID"],
                                                   cols["FIELD_ID"]):
             if j in solve_on:
                 model = np.angle(cols["offset"][rows]) if offset_column else 0.0
                 accumulate(sums, prepared, j, rows, cols, result.columns["pwc"][rows], ~bad[rows],
                            model, receptors)
-    offsets = solve(prepared, sums, opts.n0.max_offset_wraps, _antenna_names(target_ms),
-                    layout.chan_freq)
+
+    each_chunk(run, add, offset_column)
+    offsets = solve(prepared, sums, run.opts.n0.max_offset_wraps,
+                    list(run.tgt_meta.antennas.names), layout.chan_freq)
     for entry in offsets.solves:
         moved = {name: k for name, k in entry["k"].items() if k}
         log.info("n0 step (field %d, receptor %d, %s, mean cos mismatch %.3f): %s",
@@ -187,112 +150,174 @@ def offset_step(prepared: PreparedTransfer, layout: TargetLayout, columns, chunk
     return apply_offsets(prepared, offsets), offsets
 
 
-def _antenna_names(ms: str):
-    with tables.subtable(ms, "ANTENNA") as t:
-        return [str(n) for n in t.getcol("NAME")]
+@dataclass
+class SampleCounts:
+    """Target samples (row x channel x correlation) of the run: the report's ``samples``."""
+
+    n_samples: int = 0
+    flagged_before: int = 0
+    not_calibrated: int = 0
+
+    def add(self, before: np.ndarray, new_flag: np.ndarray) -> None:
+        self.n_samples += int(before.size)
+        self.flagged_before += int(before.sum())
+        self.not_calibrated += int((new_flag & ~before).sum())
 
 
-def _write_outputs(tx: OutputTransaction, transfers, layout, columns, chunk_rows: int) -> Dict:
-    """Every chunk of the target set corrected and staged; the sample counts."""
-    counts = {"n_samples": 0, "flagged_before": 0, "not_calibrated": 0}
-    for start, n, cols in _chunks(tx.target_ms, columns, chunk_rows):
-        result = correct_chunk(transfers, layout, cols)
+def write_outputs(run: TableRun, tx: OutputTransaction,
+                  transfers: Dict[str, PreparedTransfer]) -> SampleCounts:
+    """Every chunk of the target set corrected and staged (on the I/O thread); the counts."""
+    counts = SampleCounts()
+    # FLAG as read is FLAG now (it changes only at the commit): no second read to compare
+    flag_is_read = run.columns.flag == "FLAG"
+
+    def correct(chunk: TargetChunk, io: ChunkIO) -> None:
+        cols = chunk.columns
+        result = correct_chunk(transfers, run.layout, cols)
         before = cols["flag"] | cols["FLAG_ROW"][:, None, None]
         new_flag = before | result.uncalibrated[:, None, :]
-        rows = np.arange(start, start + n)
-        for method, column in result.columns.items():
-            # the corrections are in the column already: one staged write per method
-            tx.write_chunk(rows, column, {method: np.ones((n, column.shape[2]), np.complex64)},
-                           new_flag)
-        counts["n_samples"] += int(before.size)
-        counts["flagged_before"] += int(before.sum())
-        counts["not_calibrated"] += int((new_flag & ~before).sum())
+        io.write(tx.write_outputs, chunk.rows, result.columns, new_flag, None,
+                 cols["flag"] if flag_is_read else None)
+        counts.add(before, new_flag)
+
+    each_chunk(run, correct)
     return counts
 
 
-def _chunk_rows(opts: CalibrateOptions, target_ms: str, target_column: str) -> int:
+def _rows_per_chunk(opts: CalibrateOptions, meta: SetMetadata, n_rows: int,
+                    n_methods: int) -> int:
+    """--chunk-rows, else the rows --memory-budget holds (hitops/calibrate/memory.py's model
+    of a chunk of both bands: the table path reads one, so it stays within the budget)."""
+    from .memory import parse_budget, rows_for_budget
+
     if int(opts.run.chunk_rows) > 0:
         return int(opts.run.chunk_rows)
-    with tables.main_table(target_ms) as t:
-        cell = t.getcell(target_column, 0) if t.nrows() else np.zeros((1, 1))
-    return max(1, CHUNK_VISIBILITIES // int(np.prod(cell.shape)))
+    budget = parse_budget(opts.run.memory_budget)
+    explicit = str(opts.run.memory_budget or "auto").strip().lower() != "auto"
+    n_chan = max([w.num_chan for w in meta.windows] or [1])
+    n_corr = max([len(p.corr_types) for p in meta.polarizations] or [1])
+    rows = rows_for_budget(budget, n_rows, n_corr, n_chan, n_methods, strict=explicit,
+                           local=True)
+    log.info("memory budget %.0f MB: up to %d target rows per chunk (--chunk-rows overrides)",
+             budget / 1e6, rows)
+    return max(1, rows)
 
 
-def _committed(tx: OutputTransaction) -> str:
-    """What the target set holds when the run stops after its commit."""
-    return (f"the run had finished writing: {tx.target_ms} holds the new "
-            f"{', '.join(tx.outputs.values())} and FLAG; the report (and --caltable) did not "
-            "finish; rerun the same command with --overwrite to redo it")
+def plan_table_run(opts: CalibrateOptions, methods: List[str], ref_ms: str,
+                   target_ms: str) -> TableRun:
+    """Every check of the target set (the options were checked in hitops/calibrate/modes.py);
+    the chunks."""
+    from ..io.read import row_count
+
+    outputs, columns = check_inputs(opts, methods, ref_ms, target_ms)
+    meta = read_metadata(target_ms)
+    n_rows = row_count(target_ms)
+    return TableRun(opts, methods, target_ms, outputs, columns, meta, target_layout(meta),
+                    n_rows, _rows_per_chunk(opts, meta, n_rows, len(methods)))
 
 
-def _report(opts, methods, ref_ms, target_ms, outputs, transfers, counts, started) -> Dict:
-    first = transfers[methods[0]]
-    reports = {m: dataclasses.asdict(transfer_report(p, None, 0)) for m, p in transfers.items()}
-    per_antenna = reports[methods[0]]["antennas"]
-    return {
-        "ref_ms": ref_ms, "target_ms": target_ms, "methods": methods, "outputs": outputs,
-        "reference_table": {"path": first.table.path, "kind": first.table.kind, "methods": reports},
-        "samples": counts,
-        # diagnose reads the tracking section: per antenna, no per-baseline tracker here
-        "tracking": {"setup": {"tracker": "reference-table"}, "baselines": [],
-                     "antennas": [{"antenna": a["name"], "wraps": a["n_wraps"],
-                                   "flagged_solutions": a["n_flagged"]} for a in per_antenna]},
-        "verdict": {"skipped": "reference table: no reference-band visibilities are read"},
+def _tracking(report: TransferReport) -> TableTracking:
+    """What the run tracked: each antenna's wraps counted in the first method's solutions."""
+    return TableTracking(
+        tuple(AntennaWraps(a.name, a.n_wraps, a.n_flagged, a.n_solutions, a.max_residual_rad)
+              for a in report.antennas), report.n_segments, report.wrap_counting)
+
+
+def _sections(run: TableRun, ref_ms: str, transfers: Dict[str, PreparedTransfer],
+              counts: SampleCounts, offsets, started: float) -> Dict:
+    """The table path's report sections (the run report's, hitops/calibrate/run_report.py)."""
+    first = transfers[run.methods[0]]
+    reports = {m: transfer_report(p, None, 0) for m, p in transfers.items()}
+    sections = {
+        "ref_ms": ref_ms, "target_ms": run.target_ms, "methods": run.methods,
+        "outputs": run.outputs, "chunks": run.n_chunks,
+        "reference_table": {"path": first.table.path, "kind": first.table.kind,
+                            "methods": {m: dataclasses.asdict(r) for m, r in reports.items()}},
+        "samples": dataclasses.asdict(counts),
+        "tracking": _tracking(reports[run.methods[0]]).as_json(),
         "timings_s": {"total": round(time.perf_counter() - started, 4)},
     }
+    if offsets is not None:
+        sections["offsets"] = {"compared_with": run.columns.offset, "solves": offsets.solves}
+    return sections
 
 
 def calibrate_from_table(start) -> Dict:
     """Stages 2 (the columns) to 6 of the table mode (``--reference-table``; its options
-    refused in hitops/calibrate/modes.py): checks, transfer, column, table, report.
-    ``start``: the run's :class:`hitops.calibrate.api.RunStart`."""
-    opts, methods, ref_ms, target_ms = start.opts, start.methods, start.ref_ms, start.target_ms
-    started, prepared = start.started, start.prepared
-    outputs, columns = check_inputs(opts, methods, ref_ms, target_ms)
-    layout = read_layout(target_ms)
-    # every check of the table (type, set, stations, solution interval) before anything is written
-    transfers = {m: prepare_transfer(opts.input.reference_table, ref_ms, target_ms,
-                                     wrap_counting=WRAP_COUNTING[m], antenna_map=opts.input.antenna_map)
-                 for m in methods}
-    chunk_rows = _chunk_rows(opts, target_ms, columns.target_data)
-    offsets = None
-    if columns.offset and "pwc" in transfers:   # --offset-model / --offset-reference-column
-        transfers["pwc"], offsets = offset_step(transfers["pwc"], layout, columns, chunk_rows,
-                                                opts, target_ms)
-    tx = OutputTransaction(target_ms, outputs, columns.target_data, None, chunk_rows,
-                           direct_writes=True)
-    tx.check_space()
-    tx.create_columns()
-    counts = stage_and_commit(tx, lambda: _write_outputs(tx, transfers, layout, columns,
-                                                         chunk_rows),
-                              lambda: _committed(tx))
-    try:
-        return _finish(opts, methods, ref_ms, target_ms, outputs, transfers, counts, offsets,
-                       columns, started, prepared)
-    except BaseException as stop:
-        stop.add_note(_committed(tx))
-        raise
+    refused in hitops/calibrate/modes.py): checks, transfer, column, table, report (the run
+    skeleton, hitops/calibrate/skeleton.py, with the table as its source).  ``start``: the
+    run's :class:`hitops.calibrate.api.RunStart`."""
+    return run_source(TableSource.of(start.opts, start.methods, start.ref_ms, start.target_ms,
+                                     start.started, start.prepared))
 
 
-def _finish(opts, methods, ref_ms, target_ms, outputs, transfers, counts, offsets, columns,
-            started, prepared) -> Dict:
-    """After the commit: the report, --caltable, --export-uvfits."""
-    report = _report(opts, methods, ref_ms, target_ms, outputs, transfers, counts, started)
-    if offsets is not None:
-        report["offsets"] = {"compared_with": columns.offset, "solves": offsets.solves}
+@dataclass(frozen=True)
+class TableSource:
+    """A planned ``--reference-table`` run: the transfer of every method, checked, and the
+    n0 step's integers taken out (its first pass done); nothing written yet."""
+
+    run: TableRun
+    ref_ms: str
+    transfers: Dict[str, PreparedTransfer]
+    offsets: object             # n0/table.TableOffsets, None without the n0 step
+    started: float
+    prepared: PreparedInputs
+
+    @classmethod
+    def of(cls, opts: CalibrateOptions, methods: List[str], ref_ms: str, target_ms: str,
+           started: float, prepared: PreparedInputs) -> "TableSource":
+        run = plan_table_run(opts, methods, ref_ms, target_ms)
+        # every check of the table (type, set, stations, solution interval) before anything
+        # is written
+        paired = pair_table(opts.input.reference_table, ref_ms, target_ms,
+                            antenna_map=opts.input.antenna_map, target_meta=run.tgt_meta)
+        transfers = {m: transfer_paired(paired, wrap_counting=WRAP_COUNTING[m]) for m in methods}
+        offsets = None
+        if run.columns.offset and "pwc" in transfers:   # --offset-model / --offset-reference-column
+            transfers["pwc"], offsets = offset_step(run, transfers["pwc"])
+        return cls(run, ref_ms, transfers, offsets, started, prepared)
+
+    def open_transaction(self) -> OutputTransaction:
+        run = self.run
+        tx = OutputTransaction(run.target_ms, run.outputs, run.columns.target_data, run.n_rows,
+                               run.chunk_rows, direct_writes=True)
+        tx.check_space()
+        tx.create_columns()
+        return tx
+
+    def stage(self, tx: OutputTransaction) -> SampleCounts:
+        return write_outputs(self.run, tx, self.transfers)
+
+    def after_commit(self) -> str:
+        return "the report and --caltable" if self.run.opts.output.caltable else "the report"
+
+    def report(self, tx: OutputTransaction, counts: SampleCounts) -> Dict:
+        return _finish(self.run, self.ref_ms, self.transfers, counts, self.offsets,
+                       self.started, self.prepared)
+
+
+def _finish(run: TableRun, ref_ms: str, transfers: Dict[str, PreparedTransfer],
+            counts: SampleCounts, offsets, started: float, prepared: PreparedInputs) -> Dict:
+    """After the commit: --caltable, --export-uvfits, the report written once."""
+    opts, method = run.opts, run.methods[0]
     log.info("%d of %d target samples not calibrated by the table (no unflagged solution on "
-             "either side), %d flagged before", counts["not_calibrated"], counts["n_samples"],
-             counts["flagged_before"])
-    report_path = Path(opts.output.report) if opts.output.report else Path(target_ms + ".hitops-calibrate.json")
-    if opts.output.caltable:
-        n_rows = write_target_table(transfers[methods[0]], opts.output.caltable, bool(opts.output.overwrite))
-        report["caltable"] = {"path": str(opts.output.caltable), "kind": "Fringe Jones", "rows": n_rows,
-                              "method": methods[0]}
+             "either side), %d flagged before", counts.not_calibrated, counts.n_samples,
+             counts.flagged_before)
+    report = RunReport(report_path(opts, run.target_ms),
+                       _sections(run, ref_ms, transfers, counts, offsets, started),
+                       AfterCommit(verdict={"skipped": "reference table: no reference-band "
+                                                       "visibilities are read"}))
+
+    def caltable() -> Dict:
+        n_rows = write_target_table(transfers[method], opts.output.caltable, bool(opts.output.overwrite))
         log.info("wrote the target-band Fringe Jones table %s (%d rows, %s)", opts.output.caltable,
-                 n_rows, methods[0])
-    finish_report(report, opts, ref_ms, target_ms, outputs, methods, prepared)
-    report_path.write_text(json.dumps(report, indent=1))
+                 n_rows, method)
+        return {"path": str(opts.output.caltable), "kind": "Fringe Jones", "rows": n_rows,
+                "method": method}
+
+    body = write_run_report(report, caltable if opts.output.caltable else None, lambda after: finish_report(
+        after, opts, ref_ms, run.target_ms, run.outputs, run.methods, prepared))
     log.info("wrote %s to %s from reference table %s; report %s; %.2f s",
-             ", ".join(outputs.values()), target_ms, opts.input.reference_table, report_path,
+             ", ".join(run.outputs.values()), run.target_ms, opts.input.reference_table, report.path,
              time.perf_counter() - started)
-    return report
+    return body

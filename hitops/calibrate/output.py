@@ -204,11 +204,20 @@ class OutputTransaction:
         again here when it is needed).
         """
         if delays is None:
-            arrays = {self.staging[m]: (data * p[:, None, :]).astype(np.complex64, copy=False)
-                      for m, p in phasors.items()}
+            outputs = {m: (data * p[:, None, :]).astype(np.complex64, copy=False)
+                       for m, p in phasors.items()}
         else:
-            arrays = {self.staging[m]: rotate_channels(data, p, delays[m], chan_offset)
-                      for m, p in phasors.items()}
+            outputs = {m: rotate_channels(data, p, delays[m], chan_offset)
+                       for m, p in phasors.items()}
+        self.write_outputs(rows, outputs, new_flag, scheduler, flag_read)
+
+    def write_outputs(self, rows: np.ndarray, outputs: Dict[str, np.ndarray],
+                      new_flag: np.ndarray, scheduler=None,
+                      flag_read: Optional[np.ndarray] = None) -> None:
+        """One chunk's finished outputs (method -> (n, n_chan, n_corr), corrected already)
+        and new flags, staged; ``flag_read`` as in :meth:`write_chunk`."""
+        arrays = {self.staging[m]: np.asarray(out).astype(np.complex64, copy=False)
+                  for m, out in outputs.items()}
         stage_flags = not self.direct_writes or self._flags_change(rows, new_flag, flag_read)
         if stage_flags:
             arrays[self._flag_column()] = new_flag

@@ -2,12 +2,13 @@
 
 :func:`group_report` turns one group pair's :class:`hitops.calibrate.pipeline.GroupResult`
 into its report entry (and log lines); :func:`write_report` adds the verdict,
-the calibration table and the conversions of the run and writes the JSON.
+the calibration table and the conversions of the run and writes the JSON once
+(:class:`~hitops.calibrate.run_report.RunReport`).
 """
 
 from __future__ import annotations
 
-import json
+import functools
 import logging
 import time
 from pathlib import Path
@@ -18,6 +19,7 @@ from .output import FLAG_BACKUP, OutputTransaction
 from .pipeline import GroupResult
 from .plan import GroupPlan, RunPlan
 from .rules import PreparedInputs, finish_report
+from .run_report import AfterCommit, RunReport, report_path, write_run_report
 from .transfer import SampleCounts
 
 log = logging.getLogger("hitops.calibrate")
@@ -131,50 +133,52 @@ def combined_report(run: RunPlan, reports: List[Dict]) -> Dict:
 def write_report(run: RunPlan, report: Dict, result: Optional[GroupResult],
                  started: float, prepared: PreparedInputs,
                  group_results: Sequence[GroupResult] = ()) -> Dict:
-    """The verdict, the calibration table and conversions of a run; the JSON report written.
+    """The verdict, the calibration table and conversions of a run; the JSON report written
+    once (hitops/calibrate/run_report.py).  Returns the report with ``report_path``.
 
-    ``result``: the one group's GroupResult, or None for a run of several groups;
-    ``group_results``: every group's (a per-channel --caltable holds all windows).
+    ``report``: the sections of the run (group_report or combined_report); ``result``:
+    the one group's GroupResult, or None for a run of several groups; ``group_results``:
+    every group's (a per-channel --caltable holds all windows).
     """
     opts = run.opts
-    report_path = Path(opts.output.report) if opts.output.report else Path(run.target_ms + ".hitops-calibrate.json")
-    if opts.run.no_verdict:
-        pass
-    elif result is None:
-        # the verdict reads each band as one group (hitops/calibrate/verdict_sample.py)
-        log.info("no verdict: the sets hold several field/spectral-window groups and the "
-                 "verdict reads each band as one")
-        report["verdict"] = {"skipped": "several groups"}
-    elif result.n_chunks == 1:
-        report["verdict"] = _verdict(run, run.groups[0], str(report_path))
-    else:
-        # a run whose memory is bounded by --chunk-rows makes no verdict
-        log.info("no verdict: the sets are larger than --chunk-rows (%d chunks) and the verdict "
-                 "is made in one-chunk runs only; raise --chunk-rows to get one", result.n_chunks)
-        report["verdict"] = {"skipped": f"{result.n_chunks} chunks"}
+    path = report_path(opts, run.target_ms)
+    out = RunReport(path, report, AfterCommit(verdict=_verdict_entry(run, result, path)))
     if "verdict" in run.timings and "timings_s" in report:   # made after the summary
         report["timings_s"]["verdict"] = round(run.timings["verdict"], 4)
-    report_path.write_text(json.dumps(report, indent=1))
+    caltable = None
     if opts.output.caltable and run.groups[0].channels is not None:
-        report["caltable"] = _write_fringe_table(run, group_results)
-        report_path.write_text(json.dumps(report, indent=1))
+        caltable = functools.partial(_write_fringe_table, run, group_results)
     elif opts.output.caltable:
-        report["caltable"] = _write_caltable(run, run.groups[0], result)
-        report_path.write_text(json.dumps(report, indent=1))
-    # the input conversions in the report, --export-uvfits (hitops/calibrate/rules.py)
-    if finish_report(report, opts, run.ref_ms, run.target_ms, run.outputs, run.methods,
-                     prepared):
-        report_path.write_text(json.dumps(report, indent=1))
+        caltable = functools.partial(_write_caltable, run, run.groups[0], result)
+    body = write_run_report(out, caltable, lambda after: finish_report(
+        after, opts, run.ref_ms, run.target_ms, run.outputs, run.methods, prepared))
     elapsed = time.perf_counter() - started
     log.info("wrote %s to %s; report %s; %.2f s (%s)", ", ".join(run.outputs.values()),
-             run.target_ms, report_path, elapsed,
+             run.target_ms, path, elapsed,
              ", ".join(f"{k} {v:.2f}" for k, v in run.timings.items()))
     warnings = [report["offset_step"]["warning"]] if "offset_step" in report else \
         [e["offset_step"]["warning"] for e in report.get("groups", [])]
     for warning in dict.fromkeys(w for w in warnings if w):
         log.warning(warning)
-    report["report_path"] = str(report_path)
-    return report
+    return body
+
+
+def _verdict_entry(run: RunPlan, result: Optional[GroupResult], path: Path) -> Optional[Dict]:
+    """The report's verdict: made on a one-group, one-chunk run; why not otherwise; None
+    with --no-verdict."""
+    if run.opts.run.no_verdict:
+        return None
+    if result is None:
+        # the verdict reads each band as one group (hitops/calibrate/verdict_sample.py)
+        log.info("no verdict: the sets hold several field/spectral-window groups and the "
+                 "verdict reads each band as one")
+        return {"skipped": "several groups"}
+    if result.n_chunks == 1:
+        return _verdict(run, run.groups[0], str(path))
+    # a run whose memory is bounded by --chunk-rows makes no verdict
+    log.info("no verdict: the sets are larger than --chunk-rows (%d chunks) and the verdict "
+             "is made in one-chunk runs only; raise --chunk-rows to get one", result.n_chunks)
+    return {"skipped": f"{result.n_chunks} chunks"}
 
 
 def no_offset_step_warning(run: RunPlan, group: GroupPlan, solution) -> Optional[str]:

@@ -9,8 +9,9 @@ Issue 13 let ``hitops calibrate`` take UVFITS and FITS-IDI files and write
   ``--overwrite``; no output may be an input), then REF and TARGET are
   converted (or reused) into Measurement Sets.  It returns the conversions as
   a :class:`PreparedInputs`, which the run hands to its report stage;
-* :func:`finish_report`, the run's last step: the conversions in the report,
-  then ``--export-uvfits`` with calibrate's history lines.
+* :func:`finish_report`, the run's last step: the conversions in the report
+  (its :class:`~hitops.calibrate.run_report.AfterCommit`), then ``--export-uvfits``
+  with calibrate's history lines.
 """
 
 from __future__ import annotations
@@ -18,10 +19,13 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List
+from typing import TYPE_CHECKING, Dict, List
 
 from ..errors import InputError, OutputExistsError
 from ..io.convert import Conversion, ensure_ms
+
+if TYPE_CHECKING:
+    from .run_report import AfterCommit
 
 
 @dataclass(frozen=True)
@@ -98,24 +102,18 @@ def history_lines(methods: List[str], tracker: str, ref_ms: str) -> List[str]:
             f"reference band: {Path(ref_ms).name}"]
 
 
-def finish_report(report: Dict, opts, ref_ms: str, target_ms: str, outputs: Dict[str, str],
-                  methods: List[str], inputs: PreparedInputs) -> bool:
-    """calibrate's last step: the conversions in the report, then --export-uvfits.
-
-    Returns True when ``report`` changed (the caller writes it again).
-    """
+def finish_report(after: AfterCommit, opts, ref_ms: str, target_ms: str,
+                  outputs: Dict[str, str], methods: List[str], inputs: PreparedInputs) -> None:
+    """calibrate's last step: the conversions (``after.conversions``), then --export-uvfits
+    (``after.export_uvfits``)."""
     from ..io.uvfits import export_uvfits
 
-    changed = False
     conversions = inputs.report_entries()
     if conversions:
-        report["conversions"] = conversions
-        changed = True
+        after.conversions = conversions
     path = opts.output.export_uvfits
     if path:
-        report["export_uvfits"] = export_uvfits(
+        after.export_uvfits = export_uvfits(
             target_ms, path, outputs[methods[0]], overwrite=bool(opts.output.overwrite),
             role="target-band Measurement Set",
             history=history_lines(methods, opts.tracking.tracker, ref_ms))
-        changed = True
-    return changed

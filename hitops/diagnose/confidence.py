@@ -31,7 +31,8 @@ def load(ms: str, report: Optional[str]) -> Tuple[Optional[dict], List[str]]:
     """(tracking info, warnings) from ``report`` or, when None, the default file beside ``ms``.
 
     Tracking info: ``{"tracker", "baselines": {name: {field: n}},
-    "antennas": {name: {field: n}}, "path"}``; None when there is no report.
+    "antennas": {name: {field: n}}, "path"}`` (an antenna of a ``--reference-table`` run:
+    ``wraps``, the wraps counted in its solutions); None when there is no report.
     An explicitly given report that is missing or unreadable is an error.
     """
     explicit = report is not None and str(report) != ""
@@ -65,7 +66,8 @@ def load(ms: str, report: Optional[str]) -> Tuple[Optional[dict], List[str]]:
     for e in tracking["baselines"]:
         baselines[e["baseline"]] = {k: int(e[k]) for k in FIELDS if k in e}
         baselines[e["baseline"]]["wrap_events"] = int(e.get("wrap_events", 0))
-    antennas = {e["antenna"]: {k: int(e[k]) for k in FIELDS if k in e}
+    # a --reference-table run tracks per antenna: the wraps counted in its solutions
+    antennas = {e["antenna"]: {k: int(e[k]) for k in (*FIELDS, "wraps") if k in e}
                 for e in tracking.get("antennas", [])}
     return {"tracker": tracker, "baselines": baselines, "antennas": antennas,
             "verdict": _verdicts(data.get("verdict")), "path": str(path)}, warnings
@@ -116,6 +118,8 @@ def annotate(comparisons: List[dict], info: Optional[dict]) -> None:
 
 def cell(entry: Optional[dict]) -> str:
     """Compact text cell: slips?/bridged/segments/jumps."""
+    if entry and "wraps" in entry and not any(k in entry for k in FIELDS):
+        return f"{entry['wraps']} wraps"      # a --reference-table run's antenna
     if not entry or not any(k in entry for k in FIELDS):
         return "-"
     return "/".join(str(entry.get(k, 0)) for k in ("suspected_slips", "bridged_gaps",

@@ -336,15 +336,23 @@ def rotate_channels(data, phasor, delay, chan_offset):
             p = complex(phasor[r, c])
             if p == 0j:
                 continue
-            tau = delay[r, c]
-            rotor = p * cis(-TWO_PI * chan_offset[0] * tau)
-            step = cis(-TWO_PI * step_hz * tau)
-            for k in range(n_chan):
-                if not even:
-                    rotor = p * cis(-TWO_PI * chan_offset[k] * tau)
-                out[r, k, c] = data[r, k, c] * rotor
-                rotor *= step
+            rotate_sample(out, data, r, c, p, delay[r, c], chan_offset, even, step_hz)
     return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def rotate_sample(out, data, r, c, phasor, tau, chan_offset, even, step_hz):
+    """``out[r, :, c]`` = ``data[r, :, c]`` * phasor * exp(-2*pi*i*(nu_k - nu_0)*tau): the
+    rotation of one sample's channels, a phasor stepped by the delay's per-channel turn
+    on evenly spaced channels (``even``, ``step_hz``), evaluated per channel otherwise.
+    Writes only ``out``, the caller's own output array."""
+    rotor = phasor * cis(-TWO_PI * chan_offset[0] * tau)
+    step = cis(-TWO_PI * step_hz * tau)
+    for k in range(chan_offset.shape[0]):
+        if not even:
+            rotor = phasor * cis(-TWO_PI * chan_offset[k] * tau)
+        out[r, k, c] = data[r, k, c] * rotor
+        rotor *= step
 
 
 @numba.njit(cache=True, nogil=True)

@@ -11,19 +11,20 @@ written; the table appears whole or not at all.
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 from dataclasses import dataclass
 from typing import Dict, Optional, Tuple
 
 import numpy as np
 
 from ..io.match import pair_antennas, parse_antenna_map
-from ..io.stations import read_stations
+from ..io.stations import stations_of
 from .errors import TableMismatchError, TransferOptionError
 from .read import SolutionTable, WindowSolutions, _ms_time_range, read_solutions
 from .transfer import TargetWindow, UnwrappedWindow, check_interval, transfer_window, unwrap_window
 from .wraps import UNBRIDGED
 from ..io import tables
-from ..io.metadata import read_metadata
+from ..io.metadata import SetMetadata, read_metadata
 
 log = logging.getLogger("hitops.solutions")
 
@@ -62,9 +63,8 @@ class TransferReport:
     refant_changes: Tuple[RefantChange, ...]
 
 
-def _target_windows(target_ms: str):
+def _target_windows(target_ms: str, meta: SetMetadata):
     """(spw id, centre Hz) of every spectral window the target's data use; field names."""
-    meta = read_metadata(target_ms)
     windows = []
     for spw in sorted({d.window for d in meta.data_descriptions}):
         freq = meta.windows[spw].chan_freq
@@ -178,6 +178,64 @@ class PreparedTransfer:
     n_ant_target: int
 
 
+@dataclass(frozen=True)
+class PairedTable:
+    """A reference table read and checked against both sets, before any transfer: what every
+    method's transfer of it starts from (:func:`prepare_transfers`)."""
+
+    table: SolutionTable
+    target_ms: str
+    windows: Tuple[Tuple[int, float], ...]      # (target spw, centre Hz) of the target's data
+    target_fields: Tuple[str, ...]
+    ref_to_tgt: np.ndarray                      # (n_ant_ref,) target ANTENNA row or -1
+    n_ant_target: int
+    by_field: Dict[str, WindowSolutions]        # the reference window used for each field
+    common: Tuple[str, ...]                     # fields in both the table and the target
+
+
+def pair_table(ref_table, ref_ms, target_ms, ref_spw: Optional[int] = None,
+               antenna_map=None, target_meta: Optional[SetMetadata] = None) -> PairedTable:
+    """Read the table solved on ``ref_ms``, check it and pair its stations and fields with
+    ``target_ms``'s (each set read once; ``target_meta``: the target's metadata, when the
+    caller has read it)."""
+    target_ms, ref_ms = str(target_ms).rstrip("/"), str(ref_ms).rstrip("/")
+    ref_meta = read_metadata(ref_ms) if (Path(ref_ms) / "table.dat").is_file() else None
+    table = read_solutions(ref_table, ref_ms, ref_meta)
+    _check_overlap(table, target_ms)
+    meta = target_meta if target_meta is not None else read_metadata(target_ms)
+    windows, target_fields, ant1, ant2 = _target_windows(target_ms, meta)
+    ref_stations = stations_of(ref_ms, ref_meta.antennas, "REF_MS")
+    tgt_stations = stations_of(target_ms, meta.antennas, "TARGET_MS")
+    ref_to_tgt = pair_antennas(ref_stations, tgt_stations, parse_antenna_map(antenna_map),
+                               ant1, ant2)
+    by_field = _reference_windows(table, ref_spw)
+    common = [name for name in by_field if name in target_fields]
+    if not common:
+        raise TableMismatchError(f"no field of reference table '{table.path}' "
+                                 f"({', '.join(by_field)}) is in {target_ms} ({', '.join(target_fields)})")
+    return PairedTable(table, target_ms, tuple(windows), tuple(target_fields), ref_to_tgt,
+                       tgt_stations.n_ant, by_field, tuple(common))
+
+
+def transfer_paired(paired: PairedTable, wrap_counting: bool = True,
+                    max_gap_s: float = 60.0) -> PreparedTransfer:
+    """Count (or not) and transfer a paired table: one method's :class:`PreparedTransfer`."""
+    if not max_gap_s > 0:
+        raise TransferOptionError(f"max_gap_s must be > 0 seconds, not {max_gap_s}")
+    table, fields = paired.table, list(paired.target_fields)
+    unwrapped = tuple(unwrap_window(paired.by_field[name], max_gap_s, wrap_counting,
+                                    table.has_rates) for name in paired.common)
+    if wrap_counting:
+        for u in unwrapped:
+            check_interval(u, table.antenna_names, table.path)
+    targets = tuple(_on_target_antennas(transfer_window(u, spw, fields.index(name), centre,
+                                                        table.has_rates),
+                                        paired.ref_to_tgt, paired.n_ant_target)
+                    for name, u in zip(paired.common, unwrapped) for spw, centre in paired.windows)
+    return PreparedTransfer(table, paired.target_ms, wrap_counting, unwrapped, targets,
+                            tuple(c for _, c in paired.windows), paired.n_ant_target)
+
+
 def prepare_transfer(ref_table, ref_ms, target_ms, *, wrap_counting: bool = True,
                      ref_spw: Optional[int] = None, max_gap_s: float = 60.0,
                      antenna_map=None) -> PreparedTransfer:
@@ -188,29 +246,8 @@ def prepare_transfer(ref_table, ref_ms, target_ms, *, wrap_counting: bool = True
     """
     if not max_gap_s > 0:
         raise TransferOptionError(f"max_gap_s must be > 0 seconds, not {max_gap_s}")
-    target_ms = str(target_ms).rstrip("/")
-    table = read_solutions(ref_table, ref_ms)
-    _check_overlap(table, target_ms)
-    windows, target_fields, ant1, ant2 = _target_windows(target_ms)
-    ref_stations, tgt_stations = read_stations(str(ref_ms), "REF_MS"), read_stations(target_ms, "TARGET_MS")
-    ref_to_tgt = pair_antennas(ref_stations, tgt_stations, parse_antenna_map(antenna_map),
-                               ant1, ant2)
-    by_field = _reference_windows(table, ref_spw)
-    common = [name for name in by_field if name in target_fields]
-    if not common:
-        raise TableMismatchError(f"no field of reference table '{table.path}' "
-                                 f"({', '.join(by_field)}) is in {target_ms} ({', '.join(target_fields)})")
-    unwrapped = tuple(unwrap_window(by_field[name], max_gap_s, wrap_counting, table.has_rates)
-                      for name in common)
-    if wrap_counting:
-        for u in unwrapped:
-            check_interval(u, table.antenna_names, table.path)
-    targets = tuple(_on_target_antennas(transfer_window(u, spw, target_fields.index(name), centre,
-                                                        table.has_rates),
-                                        ref_to_tgt, tgt_stations.n_ant)
-                    for name, u in zip(common, unwrapped) for spw, centre in windows)
-    return PreparedTransfer(table, target_ms, wrap_counting, unwrapped, targets,
-                            tuple(c for _, c in windows), tgt_stations.n_ant)
+    return transfer_paired(pair_table(ref_table, ref_ms, target_ms, ref_spw, antenna_map),
+                           wrap_counting, max_gap_s)
 
 
 def transfer_report(prepared: PreparedTransfer, out_table: Optional[str], n_rows: int) -> TransferReport:

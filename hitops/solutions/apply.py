@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from ..kernels.antenna_terms import AntennaTerms, CorrectedRows, apply_antenna_terms
 from .transfer import TargetWindow
 
 TWO_PI = 2.0 * math.pi
@@ -87,10 +88,8 @@ def rate_aware_series(sol_times, phase, delay_s, rate, valid, centre_hz, times):
 class AntennaGains:
     """One target window's antenna terms at a set of times (applycal's evaluation)."""
 
-    centre_hz: float
-    phase: np.ndarray     # (n_time, n_ant, n_rec) float64 rad at centre_hz: the phase to remove
-    delay_s: np.ndarray   # (n_time, n_ant, n_rec) float64 s: channel k adds 2*pi*delay*(nu_k - nu_c)
-    ok: np.ndarray        # (n_time, n_ant, n_rec) bool
+    centre_hz: float      # nu_c, the table's CHAN_FREQ of the window: the terms' nu_0
+    terms: AntennaTerms   # (n_time, n_ant, n_rec) phases at centre_hz, delays, solved
 
 
 def as_stored(window: TargetWindow):
@@ -139,4 +138,22 @@ def gains_at(window: TargetWindow, times: np.ndarray) -> AntennaGains:
                                         np.ascontiguousarray(window.valid[:, ant, rec]),
                                         float(window.centre_hz), times)
             out_phase[:, ant, rec], out_delay[:, ant, rec], ok[:, ant, rec] = p, d, k
-    return AntennaGains(float(window.centre_hz), out_phase, out_delay, ok)
+    return AntennaGains(float(window.centre_hz), AntennaTerms(out_phase, out_delay, ok))
+
+
+def apply_window(window: TargetWindow, time, ant1, ant2, receptors, data,
+                 chan_freq) -> CorrectedRows:
+    """Target rows of one window corrected as applycal applies the table written from
+    ``window``: each row's antenna terms at its TIME, gathered onto its baseline and
+    correlations (hitops/kernels/antenna_terms.py); samples without a solution on either
+    side come out zero, reported as not calibrated.
+
+    time, ant1, ant2: (n_row,); receptors: (n_corr, 2) of ANTENNA1, ANTENNA2 per
+    correlation; data: (n_row, n_chan, n_corr); chan_freq: (n_chan,) Hz.
+    """
+    times, time_index = np.unique(time, return_inverse=True)
+    gains = gains_at(window, times)
+    # a T Jones source: one receptor for both hands
+    receptors = np.minimum(receptors, gains.terms.phase.shape[2] - 1)
+    return apply_antenna_terms(data, time_index.ravel(), ant1, ant2, receptors, gains.terms,
+                               np.asarray(chan_freq, float) - gains.centre_hz)

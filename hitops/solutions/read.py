@@ -81,8 +81,8 @@ def _table_kind(path: str) -> str:
     return kind
 
 
-def _ms_meta(ms: str):
-    meta = read_metadata(ms)
+def _ms_meta(ms: str, meta=None):
+    meta = meta if meta is not None else read_metadata(ms)
     chan_freq = [w.chan_freq for w in meta.windows]
     ref_freq = np.array([w.ref_frequency for w in meta.windows], np.float64)
     return meta.antennas.names, meta.fields.names, chan_freq, ref_freq
@@ -203,13 +203,14 @@ def _observed_antennas(ms: str, n_ant: int) -> np.ndarray:
     return seen
 
 
-def read_solutions(path, ref_ms) -> SolutionTable:
-    """Read a fringefit/gaincal table solved on ``ref_ms``; refuse one solved on another set."""
+def read_solutions(path, ref_ms, ref_meta=None) -> SolutionTable:
+    """Read a fringefit/gaincal table solved on ``ref_ms``; refuse one solved on another set.
+    ``ref_meta``: REF_MS's :class:`~hitops.io.metadata.SetMetadata`, when already read."""
     path, ms = str(path).rstrip("/"), str(ref_ms).rstrip("/")
     if not (Path(ms) / "table.dat").is_file():
         raise SolutionTableError(f"REF_MS '{ms}' does not exist or is not a Measurement Set")
     kind = _table_kind(path)
-    names, fields, ms_chan_freq, ms_ref_freq = _ms_meta(ms)
+    names, fields, ms_chan_freq, ms_ref_freq = _ms_meta(ms, ref_meta)
     centres = _check_subtables(path, ms, names, fields, ms_chan_freq, ms_ref_freq)
     windows = []
     with tables.open_table(path) as t:
