@@ -55,3 +55,82 @@ def test_transfer_alone_leaves_the_instrumental_term(scene, tmp_path):
     ref, tgt = _copy(scene, tmp_path)
     calibrate(ref, tgt, method="pwc", no_verdict=True)
     assert target_coherence(Path(tgt), "PWC_DATA").min() < 0.5
+
+
+def _target_phase_deg(ms: Path, column: str = "PWC_DATA") -> np.ndarray:
+    """Phase (deg) of the whole-track vector mean per target baseline, channel and hand:
+    0 for the point target at its phase centre once every term is gone."""
+    with pt.table(str(ms), ack=False) as t:
+        sel = t.getcol("FIELD_ID") == 0
+        a1, a2 = t.getcol("ANTENNA1")[sel], t.getcol("ANTENNA2")[sel]
+        data = t.getcol(column)[sel]
+    return np.array([np.degrees(np.angle(data[(a1 == p) & (a2 == q)].sum(axis=0)))
+                     for p, q in sorted(set(zip(a1.tolist(), a2.tolist())))])
+
+
+def _run(scene, tmp_path: Path, **options):
+    ref, tgt = _copy(scene, tmp_path)
+    report = calibrate(ref, tgt, method="pwc", no_verdict=True, calibrator_field="CAL",
+                       ref_model_column="MODEL_DATA", **options)
+    return report, Path(tgt)
+
+
+def test_every_target_series_restored(scene, tmp_path):
+    """Issue 38's bar: whole-track coherence >= 0.99 on every target baseline x channel x
+    hand, and the point target's phase back at 0 (within 1 deg) on each."""
+    report, tgt = _run(scene, tmp_path)
+    coherence = target_coherence(tgt, "PWC_DATA")
+    assert coherence.shape == (6, 16, 2)
+    assert coherence.min() >= COHERENCE, coherence.min()
+    assert np.abs(_target_phase_deg(tgt)).max() < 1.0
+    window = report["phase_referencing"]["methods"]["PWC_DATA"][0]
+    assert window["calibrator_model"] == "MODEL_DATA"
+    assert window["integers"]["rule"] == "delay"
+    # the slews moved the counts: most scans' integers are not the first scan's
+    assert window["integers"]["calibrator"]["nonzero"] > 0
+    assert window["integers"]["target"]["nonzero"] > 0
+    assert window["target_rows_flagged"] == 0
+
+
+def test_the_count_carried_across_the_slews_fails(scene, tmp_path, monkeypatch):
+    """The plausible old way (issue 27): the count carried across every slew."""
+    from hitops.calibrate.phaseref import step
+
+    monkeypatch.setattr(step, "integer_rule", lambda frame: "carried")
+    report, tgt = _run(scene, tmp_path)
+    assert report["phase_referencing"]["methods"]["PWC_DATA"][0]["integers"]["rule"] == "carried"
+    assert target_coherence(tgt, "PWC_DATA").min() < COHERENCE
+
+
+def test_one_integer_per_baseline_for_the_track_fails(scene, tmp_path, monkeypatch):
+    """Every scan's integer taken to be the first's (one per baseline for the whole
+    track): the scans' 2 pi R_k n stay, on the calibrator and the target."""
+    from hitops.calibrate.phaseref import apply as target_side
+    from hitops.calibrate.phaseref import solve as calibrator_side
+
+    found = target_side.target_integers
+
+    def first_only(times, sums, counts, frame):
+        shape = (sums.shape[0], sums.shape[1], sums.shape[3])
+        return calibrator_side.CalibratorIntegers(np.zeros(shape, np.int64),
+                                                  np.full(shape, np.nan), "first")
+
+    def none_on_target(scans, left, n_left, frame, n_ant):
+        out = found(scans, left, n_left, frame, n_ant)
+        return target_side.TargetIntegers(out.scans, out.baselines, 0 * out.integers,
+                                          out.margin, out.valid)
+
+    monkeypatch.setattr(calibrator_side, "calibrator_integers", first_only)
+    monkeypatch.setattr(target_side, "target_integers", none_on_target)
+    _, tgt = _run(scene, tmp_path)
+    assert target_coherence(tgt, "PWC_DATA").min() < COHERENCE
+
+
+def test_a_point_model_on_the_resolved_calibrator_fails(scene, tmp_path):
+    """The calibrator taken for a point (no model in either band): its structure goes
+    into the solutions and onto the target."""
+    ref, tgt = _copy(scene, tmp_path)
+    calibrate(ref, tgt, method="pwc", no_verdict=True, calibrator_field="CAL",
+              calibrator_model_column="point")
+    coherence = target_coherence(Path(tgt), "PWC_DATA")
+    assert coherence.min() < COHERENCE or np.abs(_target_phase_deg(Path(tgt))).max() > 5.0

@@ -54,7 +54,7 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
               jump_window=0, jump_action="segment", refant=None, solve_half_window=-1,
               no_elevation_scaling=False, memory_budget="auto", chunk_rows=0, report=None, scheduler=None,
               lock_timeout=60.0, no_verdict=False, verdict_interval=60.0, caltable=None,
-              calibrator_field=None, restore_flags=None, save_flags=None) -> Dict:
+              calibrator_field=None, calibrator_model_column=None, restore_flags=None, save_flags=None) -> Dict:
     """Frequency phase transfer from ``ref_ms`` (reference band) to ``target_ms``.
 
     Writes one column per method into ``target_ms`` (PWC_DATA, CFPT_DATA,
@@ -105,7 +105,7 @@ def calibrate(ref_ms, target_ms, method="pwc", ref_column="DATA", target_column=
             workdir=workdir, export_uvfits=export_uvfits, scheduler=scheduler,
             lock_timeout=lock_timeout, caltable=caltable, no_verdict=no_verdict,
             verdict_interval=verdict_interval, calibrator_field=calibrator_field,
-            reference_table=reference_table, restore_flags=restore_flags,
+            calibrator_model_column=calibrator_model_column, reference_table=reference_table, restore_flags=restore_flags,
             save_flags=save_flags))
         run = calibrate_from_table if opts.reference_table else _calibrate_locked
         try:

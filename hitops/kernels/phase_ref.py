@@ -172,3 +172,82 @@ def model_residuals(sums, counts, ant1, ant2, phase, delay, valid, chan_offset):
                          + two_pi * chan_offset[k] * (delay[p, h] - delay[q, h]))
                 out[b, k, h] = sums[b, k, h] * np.exp(-1j * model)
     return out
+
+
+#: the phase error (rad) that weighs as much as one wrap's delay in the calibrator
+#: scans' integer decision: the 2 pi eps n lattice's points lie 121 deg (n = 1) and
+#: 3.6 deg (n = 3, at 35 ps) apart at 229.1 / 86 GHz, so a third of a turn keeps n = 1
+#: far while a delay drift of a wrap between scans is still read from the phase
+PHASE_PER_WRAP = np.pi / 3.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _wrapped(x):
+    return x - 2.0 * np.pi * np.round(x / (2.0 * np.pi))
+
+
+@numba.njit(cache=True, nogil=True)
+def _extrapolated(t, t1, v1, t2, v2, n_done):
+    """The next value from the last two (a straight line), the last one alone after one."""
+    if n_done < 2 or t2 == t1:
+        return v2
+    return v2 + (v2 - v1) * (t - t2) / (t2 - t1)
+
+
+@numba.njit(cache=True, nogil=True)
+def scan_integers(times, phase, delay, valid, wrap_delay, ratio):
+    """Each calibrator scan's integer m of 2 pi R_k m from its phase and delay.
+
+    What FPT leaves on a scan is the instrumental term (slow) plus 2 pi R_k m, one
+    integer per scan and series (baseline and hand) because every scan's wrap count
+    starts afresh: a delay m * wrap_delay (1 / nu_ref, 11.6 ps at 86 GHz) and a phase
+    2 pi R_0 m at the window's centre on top of the instrumental ones.  Scan by scan,
+    the instrumental phase and delay are predicted from the scans already resolved (a
+    straight line through the last two, the last one alone after the first scan) and m
+    is the integer whose (delay, phase) lies nearest what was measured, the delay in
+    wraps and the phase in PHASE_PER_WRAP: the delay alone cannot tell an instrumental
+    delay drift of a wrap between scans (0.14 ns/h at 5-min cycles) from m = 1, the
+    phase alone cannot tell m = 3 (3.6 deg) from 0.  The first valid scan of a series is
+    m = 0 (a constant per series, which the interpolated calibrator term carries).
+
+    times (n_scan,) s; phase (rad at nu_0), delay (s), valid: (n_scan, n_series);
+    wrap_delay s; ratio R_0.  Returns (m (n_scan, n_series) int64, 0 where not valid;
+    margin (n_scan, n_series): the distance of the second-nearest integer less the
+    nearest's, in those units; NaN where m was set, not measured).
+    """
+    n_scan, n_series = delay.shape
+    m = np.zeros((n_scan, n_series), dtype=np.int64)
+    margin = np.full((n_scan, n_series), np.nan)
+    two_pi = 2.0 * np.pi
+    for s in range(n_series):
+        n_done = 0
+        t1 = t2 = d1 = d2 = p1 = p2 = 0.0      # the last two resolved scans
+        for j in range(n_scan):
+            if not valid[j, s]:
+                continue
+            k = 0
+            if n_done > 0:
+                d_ex = (delay[j, s] - _extrapolated(times[j], t1, d1, t2, d2, n_done)) / wrap_delay
+                p_ex = phase[j, s] - _extrapolated(times[j], t1, p1, t2, p2, n_done)
+                centre = int(np.round(d_ex))
+                best = second = 1e300
+                for cand in range(centre - 4, centre + 5):
+                    turns = ratio * cand
+                    dp = _wrapped(p_ex - two_pi * (turns - np.round(turns))) / PHASE_PER_WRAP
+                    cost = np.sqrt((d_ex - cand) ** 2 + dp ** 2)
+                    if cost < best:
+                        second, best, k = best, cost, cand
+                    elif cost < second:
+                        second = cost
+                margin[j, s] = second - best
+            m[j, s] = k
+            turns = ratio * k
+            d_now = delay[j, s] - k * wrap_delay
+            p_now = phase[j, s] - two_pi * (turns - np.round(turns))
+            if n_done > 0:   # the phase continued from the prediction: unwrapped in time
+                p_pred = _extrapolated(times[j], t1, p1, t2, p2, n_done)
+                p_now = p_pred + _wrapped(p_now - p_pred)
+            t1, d1, p1 = t2, d2, p2
+            t2, d2, p2 = times[j], d_now, p_now
+            n_done += 1
+    return m, margin

@@ -63,6 +63,8 @@ class PhaserefSpec:
     target_centre_hz: float = 229.1e9
     coherence_time_230_s: float = 10.0   # t_c of the shared path at 230 GHz
     own_fraction: float = 0.4            # the own part's rms against the shared part's
+    phase_drift_deg_h: float = 30.0      # instrumental drifts per station, band and hand
+    delay_drift_ns_h: float = 0.03
     companion_jy: float = 0.6            # the calibrator's second component
     companion_uas: Tuple[float, float] = (120.0, -80.0)   # its (l, m) offset
     seed: int = 7
@@ -186,16 +188,18 @@ def excess_paths(spec: PhaserefSpec, times: np.ndarray,
     return {name: shared + spec.own_fraction * draw() for name in (TARGET[0], CALIBRATOR[0])}
 
 
-def draw_instrument(n_ant: int, rng: np.random.Generator) -> Instrument:
-    """ASSUMED instrumental terms of the size real VLBI stations show after correlation:
-    any phase, delays within +-0.4 ns, drifts up to 90 deg/h and 0.2 ns/h; the hands share
-    the delay and differ in phase."""
+def draw_instrument(n_ant: int, rng: np.random.Generator, phase_drift_deg_h: float,
+                    delay_drift_ns_h: float) -> Instrument:
+    """ASSUMED instrumental terms (what is left after correlation once the clock, common
+    to both bands, is gone): any phase, delays within +-0.4 ns, drifts up to
+    ``phase_drift_deg_h`` and ``delay_drift_ns_h``; the hands share the delay and differ
+    in phase."""
     shape = (n_ant, 2, 2)
     hour = 3600.0
     delay = np.repeat(rng.uniform(-0.4e-9, 0.4e-9, (n_ant, 2, 1)), 2, axis=2)
-    delay_rate = np.repeat(rng.uniform(-0.2e-9, 0.2e-9, (n_ant, 2, 1)) / hour, 2, axis=2)
+    delay_rate = np.repeat(rng.uniform(-1, 1, (n_ant, 2, 1)), 2, axis=2) * delay_drift_ns_h * 1e-9 / hour
     return Instrument(phase=rng.uniform(-np.pi, np.pi, shape),
-                      phase_rate=np.radians(rng.uniform(-90, 90, shape)) / hour,
+                      phase_rate=np.radians(rng.uniform(-1, 1, shape) * phase_drift_deg_h) / hour,
                       delay=delay, delay_rate=delay_rate)
 
 
@@ -257,7 +261,8 @@ def make_phaseref_pair(workdir: Path, spec: PhaserefSpec = PhaserefSpec()) -> Ph
         times = np.unique(t.getcol("TIME"))
     rng = np.random.default_rng(spec.seed)
     pair = PhaserefPair(ref_ms, target_ms, spec, times, excess_paths(spec, times, rng),
-                        draw_instrument(len(spec.stations), rng))
+                        draw_instrument(len(spec.stations), rng, spec.phase_drift_deg_h,
+                                        spec.delay_drift_ns_h))
     write_visibilities(ref_ms, 0, spec.ref_centre_hz, pair)
     write_visibilities(target_ms, 1, spec.target_centre_hz, pair)
     return pair
