@@ -134,3 +134,83 @@ def test_a_point_model_on_the_resolved_calibrator_fails(scene, tmp_path):
               calibrator_model_column="point")
     coherence = target_coherence(Path(tgt), "PWC_DATA")
     assert coherence.min() < COHERENCE or np.abs(_target_phase_deg(Path(tgt))).max() > 5.0
+
+
+def _cli(*args):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "hitops.cli", "calibrate", *args],
+                          capture_output=True, text=True, timeout=300)
+
+
+def _one_error_line(result, expect: str) -> str:
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert "Traceback" not in result.stderr
+    # an error met after writing began also has the rollback's own line ("the set is as it
+    # was before this run"), which says nothing was left written
+    lines = [ln for ln in result.stderr.strip().splitlines() if ("ERROR" in ln or "Error" in ln)
+             and "is as it was before this run" not in ln]
+    assert len(lines) == 1 and expect in lines[0], result.stderr[-2000:]
+    return lines[0]
+
+
+def _columns(ms: str):
+    with pt.table(ms, ack=False) as t:
+        return sorted(t.colnames())
+
+
+@pytest.fixture(scope="module")
+def short_scene(tmp_path_factory):
+    """15 minutes of the 60-s-slew scene: enough for the checks of bad input."""
+    return make_phaseref_pair(tmp_path_factory.mktemp("short"), PhaserefSpec(duration_s=900.0))
+
+
+@pytest.fixture(scope="module")
+def faint(tmp_path_factory):
+    """The calibrator 50 times fainter (20 mJy core) under thermal noise of 0.25 Jy per
+    visibility part (what SEFDs near 7000 Jy give in 125 MHz and 4 s): its scans cannot
+    tell their integers apart."""
+    spec = PhaserefSpec(calibrator_jy=0.02, companion_jy=0.012, noise_jy=0.25,
+                        duration_s=900.0)
+    return make_phaseref_pair(tmp_path_factory.mktemp("faint"), spec)
+
+
+def test_too_faint_a_calibrator_is_one_line_naming_its_scans(faint, tmp_path):
+    ref, tgt = _copy(faint, tmp_path)
+    before = _columns(tgt)
+    line = _one_error_line(_cli(ref, tgt, "--calibrator-field", "CAL", "--ref-model-column",
+                                "MODEL_DATA"), "too faint")
+    assert "calibrator scan(s)" in line and "brighter calibrator" in line
+    assert _columns(tgt) == before
+
+
+@pytest.mark.parametrize("case", ["model-zero", "model-missing", "reference-model",
+                                  "model-without-calibrator", "no-reference-scans"])
+def test_bad_calibrator_input_one_line_nothing_written(short_scene, tmp_path, case):
+    ref, tgt = _copy(short_scene, tmp_path)
+    args = [ref, tgt, "--calibrator-field", "CAL", "--ref-model-column", "MODEL_DATA"]
+    if case == "model-zero":        # a model never filled where the calibrator is
+        with pt.table(tgt, readonly=False, ack=False) as t:
+            model = t.getcol("MODEL_DATA")
+            model[t.getcol("FIELD_ID") == 1] = 0
+            t.putcol("MODEL_DATA", model)
+        expect = "is zero on calibrator scan(s) 1, 3"
+    elif case == "model-missing":
+        args += ["--calibrator-model-column", "CAL_MODEL"]
+        expect = "--calibrator-model-column CAL_MODEL"
+    elif case == "reference-model":   # a resolved model, but none for the reference band
+        args = args[:4]
+        expect = "--ref-model-column MODEL_DATA"
+    elif case == "model-without-calibrator":
+        args = [ref, tgt, "--calibrator-model-column", "MODEL_DATA"]
+        expect = "--calibrator-field NAME"
+    else:                             # the calibrator in the target band only
+        with pt.table(ref, readonly=False, ack=False) as t:
+            flag = t.getcol("FLAG")
+            flag[t.getcol("FIELD_ID") == 1] = True
+            t.putcol("FLAG", flag)
+        expect = "has unflagged data in both bands"
+    before = _columns(tgt)
+    _one_error_line(_cli(*args), expect)
+    assert _columns(tgt) == before

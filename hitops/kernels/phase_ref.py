@@ -174,11 +174,19 @@ def model_residuals(sums, counts, ant1, ant2, phase, delay, valid, chan_offset):
     return out
 
 
-#: the phase error (rad) that weighs as much as one wrap's delay in the calibrator
-#: scans' integer decision: the 2 pi eps n lattice's points lie 121 deg (n = 1) and
-#: 3.6 deg (n = 3, at 35 ps) apart at 229.1 / 86 GHz, so a third of a turn keeps n = 1
-#: far while a delay drift of a wrap between scans is still read from the phase
-PHASE_PER_WRAP = np.pi / 3.0
+#: what weighs as one unit in the calibrator scans' integer decision: a delay error of
+#: DELAY_SCALE_WRAPS wraps, a phase error of PHASE_SCALE rad.  Across 2 GHz the delay
+#: is the coarse measure (11.6 ps per wrap against ~4.5 ps rms from 15 samples of SNR 4
+#: per channel) and the phase at the centre the fine one (< 1 deg there): the 2 pi eps n
+#: lattice's points lie 121 deg (n = 1) and 3.6 deg (n = 3, at 3 wraps) apart at
+#: 229.1 / 86 GHz, so the phase picks n among its neighbours and the delay among every
+#: third; the phase scale leaves room for the instrumental drift between two scans
+DELAY_SCALE_WRAPS = 1.5
+PHASE_SCALE = np.pi / 6.0
+#: resolved scans the sequential pass's delay prediction is fitted through (a straight
+#: line), and the sweeps of the refinement against every other scan after it
+DELAY_FIT_SCANS = 8
+REFINE_SWEEPS = 3
 
 
 @numba.njit(cache=True, nogil=True)
@@ -187,11 +195,76 @@ def _wrapped(x):
 
 
 @numba.njit(cache=True, nogil=True)
-def _extrapolated(t, t1, v1, t2, v2, n_done):
-    """The next value from the last two (a straight line), the last one alone after one."""
-    if n_done < 2 or t2 == t1:
-        return v2
-    return v2 + (v2 - v1) * (t - t2) / (t2 - t1)
+def _line_at(t, times, values, n):
+    """A least-squares straight line through the n (times, values) given, at t; their
+    one value for n = 1."""
+    if n == 1:
+        return values[0]
+    mt = mv = 0.0
+    for i in range(n):
+        mt += times[i] / n
+        mv += values[i] / n
+    sxx = sxy = 0.0
+    for i in range(n):
+        sxx += (times[i] - mt) ** 2
+        sxy += (times[i] - mt) * (values[i] - mv)
+    return mv + (sxy / sxx) * (t - mt) if sxx > 0.0 else mv
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_integer(d_ex, p_ex, ratio):
+    """(m, margin): the integer whose (delay, phase) = (m wraps, 2 pi R_0 m) lies nearest
+    the excess measured (``d_ex`` wraps, ``p_ex`` rad), and how much further the next is."""
+    centre = int(np.round(d_ex))
+    best = second = 1e300
+    k = 0
+    for cand in range(centre - 6, centre + 7):
+        turns = ratio * cand
+        dp = _wrapped(p_ex - 2.0 * np.pi * (turns - np.round(turns))) / PHASE_SCALE
+        cost = np.sqrt(((d_ex - cand) / DELAY_SCALE_WRAPS) ** 2 + dp ** 2)
+        if cost < best:
+            second, best, k = best, cost, cand
+        elif cost < second:
+            second = cost
+    return k, second - best
+
+
+@numba.njit(cache=True, nogil=True)
+def _refined(times, phase, delay, m, margin, wrap_delay, ratio, sweeps):
+    """Each scan's integer decided again against every other scan of its series: the
+    delay predicted by a straight line through all the others (the sequential pass
+    predicts the early scans from one or two), the phase by the straight line between
+    its neighbours.  phase, delay, m, margin: one series' valid scans, changed in place
+    (the caller's own copies)."""
+    n = times.size
+    two_pi = 2.0 * np.pi
+    if n < 3:
+        return
+    others_t = np.zeros(n - 1)
+    others_d = np.zeros(n - 1)
+    for _ in range(sweeps):
+        clean_d = delay - m * wrap_delay
+        clean_p = np.zeros(n)
+        for j in range(n):
+            turns = ratio * m[j]
+            clean_p[j] = phase[j] - two_pi * (turns - np.round(turns))
+            if j > 0:     # unwrapped in time
+                clean_p[j] = clean_p[j - 1] + _wrapped(clean_p[j] - clean_p[j - 1])
+        for j in range(n):
+            i = 0
+            for o in range(n):
+                if o != j:
+                    others_t[i] = times[o]
+                    others_d[i] = clean_d[o]
+                    i += 1
+            d_pred = _line_at(times[j], others_t, others_d, n - 1)
+            lo, hi = (j - 1, j + 1) if 0 < j < n - 1 else ((1, 2) if j == 0 else (n - 3, n - 2))
+            p_pred = clean_p[lo] + (clean_p[hi] - clean_p[lo]) * (times[j] - times[lo]) \
+                / (times[hi] - times[lo])
+            k, gap = _nearest_integer((delay[j] - d_pred) / wrap_delay,
+                                      phase[j] - p_pred, ratio)
+            m[j] = k
+            margin[j] = gap
 
 
 @numba.njit(cache=True, nogil=True)
@@ -202,13 +275,14 @@ def scan_integers(times, phase, delay, valid, wrap_delay, ratio):
     integer per scan and series (baseline and hand) because every scan's wrap count
     starts afresh: a delay m * wrap_delay (1 / nu_ref, 11.6 ps at 86 GHz) and a phase
     2 pi R_0 m at the window's centre on top of the instrumental ones.  Scan by scan,
-    the instrumental phase and delay are predicted from the scans already resolved (a
-    straight line through the last two, the last one alone after the first scan) and m
-    is the integer whose (delay, phase) lies nearest what was measured, the delay in
-    wraps and the phase in PHASE_PER_WRAP: the delay alone cannot tell an instrumental
-    delay drift of a wrap between scans (0.14 ns/h at 5-min cycles) from m = 1, the
-    phase alone cannot tell m = 3 (3.6 deg) from 0.  The first valid scan of a series is
-    m = 0 (a constant per series, which the interpolated calibrator term carries).
+    the instrumental delay is predicted by a straight line through the last
+    DELAY_FIT_SCANS resolved scans and the phase by one through the last two (their
+    last values after the first scan), and m is the integer whose (delay, phase) lies
+    nearest what was measured, in DELAY_SCALE_WRAPS and PHASE_SCALE: the delay alone
+    cannot tell an instrumental delay drift of a wrap between scans from m = 1 nor is
+    it precise across a narrow window, the phase alone cannot tell m = 3 (3.6 deg) from
+    0.  The first valid scan of a series is m = 0 (a constant per series, which the
+    interpolated calibrator term carries to the target).
 
     times (n_scan,) s; phase (rad at nu_0), delay (s), valid: (n_scan, n_series);
     wrap_delay s; ratio R_0.  Returns (m (n_scan, n_series) int64, 0 where not valid;
@@ -219,35 +293,39 @@ def scan_integers(times, phase, delay, valid, wrap_delay, ratio):
     m = np.zeros((n_scan, n_series), dtype=np.int64)
     margin = np.full((n_scan, n_series), np.nan)
     two_pi = 2.0 * np.pi
+    done_t = np.zeros(n_scan)
+    done_d = np.zeros(n_scan)
+    done_p = np.zeros(n_scan)
     for s in range(n_series):
         n_done = 0
-        t1 = t2 = d1 = d2 = p1 = p2 = 0.0      # the last two resolved scans
         for j in range(n_scan):
             if not valid[j, s]:
                 continue
             k = 0
+            p_pred = phase[j, s]
             if n_done > 0:
-                d_ex = (delay[j, s] - _extrapolated(times[j], t1, d1, t2, d2, n_done)) / wrap_delay
-                p_ex = phase[j, s] - _extrapolated(times[j], t1, p1, t2, p2, n_done)
-                centre = int(np.round(d_ex))
-                best = second = 1e300
-                for cand in range(centre - 4, centre + 5):
-                    turns = ratio * cand
-                    dp = _wrapped(p_ex - two_pi * (turns - np.round(turns))) / PHASE_PER_WRAP
-                    cost = np.sqrt((d_ex - cand) ** 2 + dp ** 2)
-                    if cost < best:
-                        second, best, k = best, cost, cand
-                    elif cost < second:
-                        second = cost
-                margin[j, s] = second - best
+                first = max(0, n_done - DELAY_FIT_SCANS)
+                d_pred = _line_at(times[j], done_t[first:n_done], done_d[first:n_done],
+                                  n_done - first)
+                p_first = max(0, n_done - 2)
+                p_pred = _line_at(times[j], done_t[p_first:n_done], done_p[p_first:n_done],
+                                  n_done - p_first)
+                k, margin[j, s] = _nearest_integer((delay[j, s] - d_pred) / wrap_delay,
+                                                   phase[j, s] - p_pred, ratio)
             m[j, s] = k
             turns = ratio * k
-            d_now = delay[j, s] - k * wrap_delay
             p_now = phase[j, s] - two_pi * (turns - np.round(turns))
-            if n_done > 0:   # the phase continued from the prediction: unwrapped in time
-                p_pred = _extrapolated(times[j], t1, p1, t2, p2, n_done)
-                p_now = p_pred + _wrapped(p_now - p_pred)
-            t1, d1, p1 = t2, d2, p2
-            t2, d2, p2 = times[j], d_now, p_now
+            done_t[n_done] = times[j]
+            done_d[n_done] = delay[j, s] - k * wrap_delay
+            # the phase continued from the prediction: unwrapped in time
+            done_p[n_done] = p_pred + _wrapped(p_now - p_pred)
             n_done += 1
+        idx = np.flatnonzero(valid[:, s])
+        if idx.size >= 3:
+            m_s, margin_s = m[idx, s].copy(), margin[idx, s].copy()
+            _refined(times[idx], phase[idx, s].copy(), delay[idx, s].copy(), m_s, margin_s,
+                     wrap_delay, ratio, REFINE_SWEEPS)
+            m[idx, s] = m_s - m_s[0]     # the first valid scan stays the zero
+            margin[idx, s] = margin_s
+            margin[idx[0], s] = np.nan
     return m, margin

@@ -12,11 +12,11 @@ with numpy from the physics alone (no hitops code computes them):
   linearly: theta(nu, t) = phi0 + phi1 t + 2 pi (nu - nu_c)(tau0 + tau1 t), nu_c the
   band's centre;
 * the target is a point source of 1 Jy at its phase centre; the calibrator has two
-  components (1 Jy at its phase centre, ``companion_jy`` at ``companion_uas``), so it is
+  components (``calibrator_jy`` at its phase centre, ``companion_jy`` at ``companion_uas``), so it is
   resolved on these baselines, and its visibility is written to MODEL_DATA of both sets
   (1 on the target's rows, CASA's point-source default);
 * V_pq = model_pq exp(i (theta_p - theta_q + 2 pi nu (L_p - L_q) / c)), the convention
-  V_pq = g_p g_q^* of CASA's measurement equation; noise-free.
+  V_pq = g_p g_q^* of CASA's measurement equation; noise-free unless ``noise_jy``.
 
 The temporal structure of L is Kolmogorov's (phase structure function (dt / t_c)^(5/3)
 rad^2 at 230 GHz, generated as a power-law spectrum f^(-8/3) on a grid 4x the track).
@@ -67,6 +67,8 @@ class PhaserefSpec:
     delay_drift_ns_h: float = 0.03
     companion_jy: float = 0.6            # the calibrator's second component
     companion_uas: Tuple[float, float] = (120.0, -80.0)   # its (l, m) offset
+    calibrator_jy: float = 1.0           # the calibrator's central component
+    noise_jy: float = 0.0                # thermal noise per visibility, real and imaginary
     seed: int = 7
     start_utc: str = "2023/04/10/03:00:00"
     stations: Tuple[str, ...] = ("PV", "PB", "AP", "GL")
@@ -208,7 +210,7 @@ def calibrator_model(uvw: np.ndarray, chan_freq: np.ndarray, spec: PhaserefSpec)
     exp(-2 pi i (u l + v m) nu / c))."""
     l_off, m_off = (x * UAS for x in spec.companion_uas)
     geometric = (uvw[:, 0:1] * l_off + uvw[:, 1:2] * m_off) * chan_freq[None, :] / C_LIGHT
-    return 1.0 + spec.companion_jy * np.exp(-2j * np.pi * geometric)
+    return spec.calibrator_jy + spec.companion_jy * np.exp(-2j * np.pi * geometric)
 
 
 def write_visibilities(ms: Path, band: int, centre_hz: float, pair: PhaserefPair) -> None:
@@ -243,7 +245,12 @@ def write_visibilities(ms: Path, band: int, centre_hz: float, pair: PhaserefPair
             tropo = 2 * np.pi * chan_freq[None, :] * path[:, None] / C_LIGHT
             data[:, :, hand] = np.exp(1j * (theta(a1) - theta(a2) + tropo))
             model[cal, :, hand] = sky
-        t.putcol("DATA", (data * model).astype(np.complex64))
+        vis = data * model
+        if pair.spec.noise_jy > 0:
+            noise = np.random.default_rng(pair.spec.seed + 1000 * (band + 1))
+            vis = vis + pair.spec.noise_jy * (noise.normal(size=vis.shape)
+                                              + 1j * noise.normal(size=vis.shape))
+        t.putcol("DATA", vis.astype(np.complex64))
         t.putcol("MODEL_DATA", model.astype(np.complex64))
         t.putcol("FLAG", np.zeros(data.shape, bool))
 

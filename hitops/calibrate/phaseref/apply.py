@@ -20,6 +20,12 @@ from ...kernels.phase_ref import baseline_sums, phase_and_delay
 from ...kernels.wideband import rotate_channels
 from .solve import WindowFrame, WindowSolution
 
+#: a target scan's integer is taken when the delay of what is left lies within
+#: 0.5 - MIN_TARGET_MARGIN wraps of it (noise-free scenes: within 0.08 wraps, measured on
+#: tests/test_sfpr.py's); a scan whose delay falls further from every integer is flagged
+#: on its baseline and hand rather than given a guess
+MIN_TARGET_MARGIN = 0.2
+
 
 @dataclass(frozen=True)
 class TargetIntegers:
@@ -30,6 +36,11 @@ class TargetIntegers:
     integers: np.ndarray         # (n_scan, n_bl, n_hand) int64
     margin: np.ndarray           # (n_scan, n_bl, n_hand) wraps from the rounding boundary
     valid: np.ndarray            # (n_scan, n_bl, n_hand) bool
+
+    @property
+    def undecided(self) -> np.ndarray:
+        """(n_scan, n_bl, n_hand) measured, but too far from every integer to take one."""
+        return self.valid & (self.margin < MIN_TARGET_MARGIN)
 
 
 def baseline_factors(solution: WindowSolution, ant1, ant2, corr_hands, n_ant: int):
@@ -108,10 +119,10 @@ def target_integers(scans: np.ndarray, left: np.ndarray, n_left: np.ndarray,
 
 def row_counts(scan_of_row: np.ndarray, scans: np.ndarray, bl_of_row: np.ndarray,
                integers: np.ndarray, corr_hands: np.ndarray) -> np.ndarray:
-    """(n_row, n_corr) int64: each row's integer on its parallel hands (0 on cross hands),
-    from ``integers`` (n_scan, n_bl, n_hand) indexed by the row's scan and baseline."""
+    """(n_row, n_corr): each row's value on its parallel hands (0 on cross hands), from
+    ``integers`` (n_scan, n_bl, n_hand) indexed by the row's scan and baseline."""
     j = np.searchsorted(scans, scan_of_row)
-    out = np.zeros((scan_of_row.size, corr_hands.shape[0]), np.int64)
+    out = np.zeros((scan_of_row.size, corr_hands.shape[0]), integers.dtype)
     for c, (h1, h2) in enumerate(corr_hands):
         if h1 >= 0 and h1 == h2:
             out[:, c] = integers[j, bl_of_row, h1]
@@ -132,3 +143,14 @@ def remove_integers(table, tx, column: str, rows: np.ndarray, counts: np.ndarray
         phasor = np.exp(-2j * np.pi * (turns - np.round(turns)))
         tx.restage(part, {column: rotate_channels(read(column), phasor, n * frame.wrap_delay,
                                                   frame.chan_offset)})
+
+
+def flag_rows(table, tx, rows: np.ndarray, mask: np.ndarray, block: int) -> int:
+    """Flags of ``rows`` raised on the correlations of ``mask`` (n_row, n_corr) bool,
+    staged for the commit; the number of rows touched."""
+    hit = mask.any(axis=1)
+    rows, mask = rows[hit], mask[hit]
+    for start in range(0, rows.size, block):
+        part = rows[start:start + block]
+        tx.restage(part, {}, tx.flags_now(table, part) | mask[start:start + block, None, :])
+    return int(rows.size)

@@ -26,6 +26,11 @@ from ...io import read as msio
 from ...kernels.phase_ref import (antenna_phasors, baseline_sums, model_residuals,
                                   phase_and_delay, scan_integers)
 
+#: a calibrator scan's integer is taken when the second-nearest candidate lies at least
+#: this much further from the measured (delay in wraps, phase in PHASE_PER_WRAP) than the
+#: nearest (noise-free: >= 2.2 after the first cycle, kernels/phase_ref.py)
+MIN_CALIBRATOR_MARGIN = 0.5
+
 #: iterations of the per-channel antenna phase solve (converged to < 1e-6 rad on the
 #: noise-free pairs of tests/test_phase_referencing.py well before this)
 SOLVE_ITERATIONS = 60
@@ -142,23 +147,17 @@ def window_rows(meta: Dict[str, np.ndarray], written: np.ndarray, ddid: int, cal
                       scan_of_row[target_rows])
 
 
-def model_divided(vis: np.ndarray, model: Optional[np.ndarray], model_name: str,
-                  target_ms: str, cal_name: str, scan: int) -> np.ndarray:
+def model_divided(vis: np.ndarray, model: Optional[np.ndarray]) -> np.ndarray:
     """The calibrator's visibilities divided by its model's phase (gaincal's and
-    fringefit's use of MODEL_DATA); a model of zero where the calibrator is: one line."""
+    fringefit's use of MODEL_DATA; zeros were refused before: step.check_model)."""
     if model is None:
         return vis
     size = np.abs(model)
-    if (size == 0).any():
-        raise InputError(f"--calibrator-field {cal_name}: {model_name} of {target_ms} is zero "
-                         f"on {int((size == 0).any(axis=(1, 2)).sum())} of the calibrator's rows "
-                         f"in scan {scan} (no model there to divide by); fill it (CASA setjy/ft, "
-                         "wsclean -predict) or give --calibrator-model-column point")
-    return vis * (np.conj(model) / size)
+    return vis * (np.conj(model) / np.where(size > 0, size, 1.0))
 
 
 def scan_sums(table, tx, column: str, rows: WindowRows, hand_corr: np.ndarray,
-              model_column: Optional[str], run, cal_name: str):
+              model_column: Optional[str]):
     """Per tracking scan of the calibrator: (scan ids, mean times, sums (n_scan, n_bl,
     n_chan, n_hand), counts) of the staged column over the scan, model divided."""
     scans = np.unique(rows.cal_scan)
@@ -166,8 +165,7 @@ def scan_sums(table, tx, column: str, rows: WindowRows, hand_corr: np.ndarray,
     for scan in scans:
         pick = rows.cal_rows[rows.cal_scan == scan]
         read = msio.rows_reader(table, pick)
-        vis = model_divided(read(column), read(model_column) if model_column else None,
-                            model_column, run.target_ms, cal_name, int(scan))
+        vis = model_divided(read(column), read(model_column) if model_column else None)
         s, c = baseline_sums(vis, tx.flags_now(table, pick), rows.cal_bl[rows.cal_scan == scan],
                              hand_corr, rows.ant1.size)
         sums.append(s)
@@ -192,6 +190,22 @@ def calibrator_integers(times: np.ndarray, sums: np.ndarray, counts: np.ndarray,
                               valid.reshape(n_scan, -1), frame.wrap_delay, frame.ratio)
     return CalibratorIntegers(m.reshape(n_scan, n_bl, n_hand),
                               margin.reshape(n_scan, n_bl, n_hand), "delay")
+
+
+def check_decided(integers: CalibratorIntegers, scan_numbers: List[int], labels: List[str],
+                  cal_name: str, spw: int) -> None:
+    """Every calibrator scan's integer clear of the next candidate, or one line naming the
+    scans: a wrong integer there would move every target scan near it."""
+    unclear = np.isfinite(integers.margin) & (integers.margin < MIN_CALIBRATOR_MARGIN)
+    if not unclear.any():
+        return
+    scans = sorted({scan_numbers[j] for j in np.flatnonzero(unclear.any(axis=(1, 2)))})
+    worst = sorted({labels[b] for b in np.flatnonzero(unclear.any(axis=(0, 2)))})
+    raise InputError(f"--calibrator-field {cal_name}: too faint for each scan's integer in "
+                     f"spectral window {spw}: calibrator scan(s) {', '.join(map(str, scans))} "
+                     f"on {', '.join(worst)} leave two integers nearly as likely (margin "
+                     f"{float(integers.margin[unclear].min()):.2f} < {MIN_CALIBRATOR_MARGIN}); "
+                     "use a brighter calibrator, longer calibrator scans or a wider window")
 
 
 def without_integers(sums: np.ndarray, integers: np.ndarray, ratios: np.ndarray) -> np.ndarray:

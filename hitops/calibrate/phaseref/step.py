@@ -121,7 +121,9 @@ def check_calibrator_field(run) -> Optional[CalibratorField]:
         raise InputError(f"--calibrator-field {name}: it is the only field of {run.target_ms} "
                          "with calibrated rows, so there is no target to apply it to; name the "
                          "calibrator, not the target")
-    return CalibratorField(name, int(paired[name]), targets, _model_column(run, name))
+    cal = CalibratorField(name, int(paired[name]), targets, _model_column(run, name))
+    check_model(run, cal)
+    return cal
 
 
 def _hands(corr: Tuple[int, ...]) -> Tuple[Tuple[str, ...], np.ndarray, np.ndarray]:
@@ -163,13 +165,28 @@ def _integer_summary(integers: np.ndarray, margin: np.ndarray, valid: np.ndarray
             "min_margin": round(float(margin[measured].min()), 4) if measured.any() else None}
 
 
-def _check_reference_model(run, table, cal: CalibratorField, rows) -> None:
-    """A model with structure on the target band needs the reference band's too: FPT
-    leaves Psi_k - R_k psi of the calibrator's own phases otherwise."""
-    if cal.model_column is None or run.columns.ref_model is not None:
+def check_model(run, cal: CalibratorField) -> None:
+    """The calibrator's model checked before anything is written: no zeros where the
+    calibrator is (nothing to divide by), and a resolved one (phases not all 0) only
+    with the reference band's model too (FPT leaves Psi_k - R_k psi of the calibrator's
+    own phases otherwise).  Read in blocks of the calibrator's rows."""
+    if cal.model_column is None:
         return
-    model = msio.rows_reader(table, rows)(cal.model_column)
-    if np.abs(np.angle(model[np.abs(model) > 0])).max(initial=0.0) > 1e-6:
+    with tables.main_table(run.target_ms) as table:
+        rows = np.flatnonzero(table.getcol("FIELD_ID") == cal.field_id)
+        resolved, zero_scans = False, set()
+        for start in range(0, rows.size, max(run.chunk_rows, 1)):
+            read = msio.rows_reader(table, rows[start:start + run.chunk_rows])
+            model = read(cal.model_column)
+            zero = (np.abs(model) == 0).any(axis=(1, 2))
+            zero_scans.update(np.unique(read("SCAN_NUMBER")[zero]).tolist())
+            resolved |= bool(np.abs(np.angle(model[~zero])).max(initial=0.0) > 1e-6)
+    if zero_scans:
+        raise InputError(f"--calibrator-field {cal.name}: {cal.model_column} of {run.target_ms} "
+                         f"is zero on calibrator scan(s) {', '.join(map(str, sorted(zero_scans)))} "
+                         "(no model there to divide by); fill it (CASA setjy/ft, wsclean "
+                         "-predict) or give --calibrator-model-column point")
+    if resolved and run.columns.ref_model is None:
         raise InputError(f"--calibrator-field {cal.name}: {cal.model_column} of "
                          f"{run.target_ms} holds a resolved calibrator (non-zero phases), "
                          "whose reference-band phases the transfer must remove too: add "
@@ -196,15 +213,19 @@ def _reference_window(run, tx, table, column, meta, cal, ddid, groups, bridge) -
         raise InputError(f"--calibrator-field {cal.name}: spectral window "
                          f"{group.pair.tgt.spw} of {run.target_ms} has no parallel-hand "
                          "correlation (RR, LL, XX, YY) to solve on")
-    _check_reference_model(run, table, cal, rows.cal_rows)
     block = run.chunk_rows
     if bridge is not None:    # one channel: the count carried across the switches
         both = np.union1d(rows.cal_rows, rows.target_rows)
         target_side.remove_integers(table, tx, column, both, bridge.counts, frame, block)
     scans, times, sums, counts = calibrator_side.scan_sums(
-        table, tx, column, rows, hand_corr, cal.model_column, run, cal.name)
+        table, tx, column, rows, hand_corr, cal.model_column)
+    scan_numbers = [int(meta["SCAN_NUMBER"][rows.cal_rows[np.flatnonzero(rows.cal_scan == s)[0]]])
+                    for s in scans]
     if bridge is None:
         integers = calibrator_side.calibrator_integers(times, sums, counts, frame)
+        calibrator_side.check_decided(integers, scan_numbers, [
+            f"{names[p]}-{names[q]}" for p, q in zip(rows.ant1, rows.ant2)], cal.name,
+            group.pair.tgt.spw)
         target_side.remove_integers(table, tx, column, rows.cal_rows, target_side.row_counts(
             rows.cal_scan, scans, rows.cal_bl, integers.integers, corr_hands), frame, block)
     else:
@@ -213,11 +234,15 @@ def _reference_window(run, tx, table, column, meta, cal, ddid, groups, bridge) -
     refant = _refant(run, names, np.concatenate([rows.ant1, rows.ant2]))
     solution = calibrator_side.solve_window(scans, times, sums, counts, rows, frame, integers,
                                             refant, n_ant, (ddid, group.pair.tgt.spw, hands))
+    if not any(scan.valid.any() for scan in solution.scans):
+        raise InputError(f"--calibrator-field {cal.name}: no calibrator scan of spectral window "
+                         f"{group.pair.tgt.spw} has unflagged data in both bands (REF_MS "
+                         f"{run.ref_ms}, TARGET_MS {run.target_ms}) to solve on; unflag it or "
+                         "name a calibrator observed in both bands")
     n_flagged, left, n_left = target_side.apply_window(table, tx, column, rows, meta, solution,
                                                        corr_hands, frame, block, n_ant)
     entry = window_report(solution, names, rows.target_rows.size, n_flagged)
-    entry["scans"] = [dict(s, scan_number=int(meta["SCAN_NUMBER"][rows.cal_rows[
-        np.flatnonzero(rows.cal_scan == scan)[0]]])) for s, scan in zip(entry["scans"], scans)]
+    entry["scans"] = [dict(s, scan_number=n) for s, n in zip(entry["scans"], scan_numbers)]
     entry["calibrator_model"] = cal.model_label
     entry["integers"] = {"rule": integers.rule, "calibrator": _integer_summary(
         integers.integers, integers.margin, counts.sum(axis=2) > 0)}
@@ -231,7 +256,18 @@ def _reference_window(run, tx, table, column, meta, cal, ddid, groups, bridge) -
         + meta["ANTENNA2"][rows.target_rows]
     target_side.remove_integers(table, tx, column, rows.target_rows, target_side.row_counts(
         rows.target_scan, found.scans, t_bl, found.integers, corr_hands), frame, block)
-    entry["integers"]["target"] = _integer_summary(found.integers, found.margin, found.valid)
+    undecided = target_side.row_counts(rows.target_scan, found.scans, t_bl, found.undecided,
+                                       corr_hands)
+    n_undecided = target_side.flag_rows(table, tx, rows.target_rows, undecided, block)
+    entry["integers"]["target"] = dict(
+        _integer_summary(found.integers, found.margin, found.valid),
+        undecided_scans=int(found.undecided.sum()), rows_flagged=n_undecided)
+    if n_undecided:
+        log.warning("--calibrator-field %s: %d target scan x baseline x hand series of window "
+                    "%d had no clear integer (the delay left lay more than %.2f wraps from "
+                    "every one); their %d rows are flagged", cal.name,
+                    int(found.undecided.sum()), group.pair.tgt.spw,
+                    0.5 - target_side.MIN_TARGET_MARGIN, n_undecided)
     return entry
 
 
