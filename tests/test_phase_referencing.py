@@ -205,8 +205,8 @@ def test_without_the_per_scan_integers_fails(pair, tmp_path, monkeypatch):
 
     found = target_side.target_integers
 
-    def no_target_integers(scans, left, n_left, frame, n_ant):
-        out = found(scans, left, n_left, frame, n_ant)
+    def no_target_integers(*args):
+        out = found(*args)
         return target_side.TargetIntegers(out.scans, out.baselines, 0 * out.integers,
                                           out.margin, out.valid)
 

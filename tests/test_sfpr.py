@@ -115,8 +115,8 @@ def test_one_integer_per_baseline_for_the_track_fails(scene, tmp_path, monkeypat
         return calibrator_side.CalibratorIntegers(np.zeros(shape, np.int64),
                                                   np.full(shape, np.nan), "first")
 
-    def none_on_target(scans, left, n_left, frame, n_ant):
-        out = found(scans, left, n_left, frame, n_ant)
+    def none_on_target(*args):
+        out = found(*args)
         return target_side.TargetIntegers(out.scans, out.baselines, 0 * out.integers,
                                           out.margin, out.valid)
 

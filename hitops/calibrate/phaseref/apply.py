@@ -16,15 +16,17 @@ from typing import Tuple
 import numpy as np
 
 from ...io import read as msio
-from ...kernels.phase_ref import baseline_sums, phase_and_delay
+from ...kernels.phase_ref import baseline_sums, phase_and_delay, scan_integers
 from ...kernels.wideband import rotate_channels
 from .solve import WindowFrame, WindowSolution
 
-#: a target scan's integer is taken when the delay of what is left lies within
-#: 0.5 - MIN_TARGET_MARGIN wraps of it (noise-free scenes: within 0.08 wraps, measured on
-#: tests/test_sfpr.py's); a scan whose delay falls further from every integer is flagged
-#: on its baseline and hand rather than given a guess
+#: a target series' offset is taken when its mean delay left lies within
+#: 0.5 - MIN_TARGET_MARGIN wraps of a whole number (noise-free scenes: within 0.08 wraps,
+#: measured on tests/test_sfpr.py's), and a scan's step from its neighbours when the
+#: next candidate lies MIN_STEP_MARGIN further (kernels/phase_ref.py's units); a scan or
+#: series that misses either is flagged on its baseline and hand rather than guessed
 MIN_TARGET_MARGIN = 0.2
+MIN_STEP_MARGIN = 0.5
 
 
 @dataclass(frozen=True)
@@ -35,6 +37,7 @@ class TargetIntegers:
     baselines: np.ndarray        # (n_bl,) ant1 * n_ant + ant2
     integers: np.ndarray         # (n_scan, n_bl, n_hand) int64
     margin: np.ndarray           # (n_scan, n_bl, n_hand) wraps from the rounding boundary
+    #                              (the series' offset; 0 where the scan's step was unclear)
     valid: np.ndarray            # (n_scan, n_bl, n_hand) bool
 
     @property
@@ -104,17 +107,30 @@ def apply_window(table, tx, column: str, rows, meta, solution: WindowSolution,
     return n_flagged, left, n_left
 
 
-def target_integers(scans: np.ndarray, left: np.ndarray, n_left: np.ndarray,
-                    frame: WindowFrame, n_ant: int) -> TargetIntegers:
-    """Each target scan's integer per baseline and hand: the nearest whole number of
-    wraps to the delay of what the calibrator's terms left on it."""
-    n_bl = n_ant * n_ant
-    _, delay, valid = phase_and_delay(left, n_left > 0, frame.chan_offset)
-    wraps = delay / frame.wrap_delay
-    shape = (scans.size, n_bl, left.shape[2])
-    integers = np.where(valid, np.round(wraps), 0).astype(np.int64).reshape(shape)
-    margin = (0.5 - np.abs(wraps - np.round(wraps))).reshape(shape)
-    return TargetIntegers(scans, np.arange(n_bl), integers, margin, valid.reshape(shape))
+def target_integers(scans: np.ndarray, times: np.ndarray, left: np.ndarray,
+                    n_left: np.ndarray, frame: WindowFrame, n_ant: int) -> TargetIntegers:
+    """Each target scan's integer per baseline and hand from what the calibrator's terms
+    left on it: from scan to scan as on the calibrator (its phase and delay across the
+    window continue: kernels/phase_ref.scan_integers; a compact target's own phase moves
+    slowly between its scans), then one offset per series, the nearest whole number of
+    wraps to the mean delay left over all its scans (its noise shrinks with their number).
+    ``times``: each scan's mean time."""
+    n_bl, n_hand = n_ant * n_ant, left.shape[2]
+    phase, delay, valid = phase_and_delay(left, n_left > 0, frame.chan_offset)
+    shape = (scans.size, n_bl * n_hand)
+    phase, delay, valid = phase.reshape(shape), delay.reshape(shape), valid.reshape(shape)
+    steps, step_margin = scan_integers(times, phase, delay, valid, frame.wrap_delay,
+                                       frame.ratio)
+    left_wraps = np.where(valid, delay / frame.wrap_delay - steps, 0.0)
+    n_valid = valid.sum(axis=0)
+    mean = left_wraps.sum(axis=0) / np.maximum(n_valid, 1)
+    offset = np.round(mean)
+    integers = np.where(valid, steps + offset[None, :], 0).astype(np.int64)
+    margin = np.broadcast_to(0.5 - np.abs(mean - offset), shape)
+    unclear = np.isfinite(step_margin) & (step_margin < MIN_STEP_MARGIN)
+    out = (scans.size, n_bl, n_hand)
+    return TargetIntegers(scans, np.arange(n_bl), integers.reshape(out),
+                          np.where(unclear, 0.0, margin).reshape(out), valid.reshape(out))
 
 
 def row_counts(scan_of_row: np.ndarray, scans: np.ndarray, bl_of_row: np.ndarray,

@@ -251,7 +251,10 @@ def _reference_window(run, tx, table, column, meta, cal, ddid, groups, bridge) -
                              "largest_step_deg": round(bridge.largest_step_deg, 3),
                              "steps_over_90_deg": bridge.n_risky}
         return entry
-    found = target_side.target_integers(np.unique(rows.target_scan), left, n_left, frame, n_ant)
+    t_scans = np.unique(rows.target_scan)
+    t_times = np.array([meta["TIME"][rows.target_rows[rows.target_scan == s]].mean()
+                        for s in t_scans])
+    found = target_side.target_integers(t_scans, t_times, left, n_left, frame, n_ant)
     t_bl = meta["ANTENNA1"][rows.target_rows].astype(np.int64) * n_ant \
         + meta["ANTENNA2"][rows.target_rows]
     target_side.remove_integers(table, tx, column, rows.target_rows, target_side.row_counts(
