@@ -214,3 +214,30 @@ def test_bad_calibrator_input_one_line_nothing_written(short_scene, tmp_path, ca
     before = _columns(tgt)
     _one_error_line(_cli(*args), expect)
     assert _columns(tgt) == before
+
+
+def test_a_target_scan_without_a_clear_integer_is_flagged_and_counted(short_scene, tmp_path):
+    """One target scan of PV-AP moved to midway between two integers (a delay of 1.5 wraps
+    and half the 2 pi R_0 * 3 phase): flagged on both hands and counted, not guessed;
+    every other target series stays coherent."""
+    ref, tgt = _copy(short_scene, tmp_path)
+    nu_ref, centre = short_scene.spec.ref_centre_hz, short_scene.spec.target_centre_hz
+    turns = 3 * centre / nu_ref
+    phase = np.pi * (turns - np.round(turns))          # half of n = 3's phase
+    with pt.table(tgt, readonly=False, ack=False) as t:
+        chan = pt.table(f"{tgt}::SPECTRAL_WINDOW", ack=False).getcol("CHAN_FREQ")[0]
+        field, scan = t.getcol("FIELD_ID"), t.getcol("SCAN_NUMBER")
+        a1, a2 = t.getcol("ANTENNA1"), t.getcol("ANTENNA2")
+        middle = np.unique(scan[field == 0])[1]
+        moved = (scan == middle) & (a1 == 0) & (a2 == 2)
+        data = t.getcol("DATA")
+        data[moved] *= np.exp(1j * (phase + 2 * np.pi * (chan - centre) * 1.5 / nu_ref))[:, None]
+        t.putcol("DATA", data)
+    report = calibrate(ref, tgt, method="pwc", no_verdict=True, calibrator_field="CAL",
+                       ref_model_column="MODEL_DATA")
+    found = report["phase_referencing"]["methods"]["PWC_DATA"][0]["integers"]["target"]
+    assert found["undecided_scans"] == 2 and found["rows_flagged"] == int(moved.sum())
+    with pt.table(tgt, ack=False) as t:
+        flag = t.getcol("FLAG")
+    assert flag[moved].all() and not flag[(field == 0) & ~moved].any()
+    assert target_coherence(Path(tgt), "PWC_DATA")[[0, 2, 3, 4, 5]].min() >= COHERENCE

@@ -121,13 +121,14 @@ def target_integers(scans: np.ndarray, times: np.ndarray, left: np.ndarray,
     phase, delay, valid = phase.reshape(shape), delay.reshape(shape), valid.reshape(shape)
     steps, step_margin = scan_integers(times, phase, delay, valid, frame.wrap_delay,
                                        frame.ratio)
-    left_wraps = np.where(valid, delay / frame.wrap_delay - steps, 0.0)
-    n_valid = valid.sum(axis=0)
-    mean = left_wraps.sum(axis=0) / np.maximum(n_valid, 1)
+    unclear = np.isfinite(step_margin) & (step_margin < MIN_STEP_MARGIN)
+    # the offset from the scans whose step is clear (an unclear one is flagged anyway)
+    counted = valid & ~unclear
+    left_wraps = np.where(counted, delay / frame.wrap_delay - steps, 0.0)
+    mean = left_wraps.sum(axis=0) / np.maximum(counted.sum(axis=0), 1)
     offset = np.round(mean)
     integers = np.where(valid, steps + offset[None, :], 0).astype(np.int64)
     margin = np.broadcast_to(0.5 - np.abs(mean - offset), shape)
-    unclear = np.isfinite(step_margin) & (step_margin < MIN_STEP_MARGIN)
     out = (scans.size, n_bl, n_hand)
     return TargetIntegers(scans, np.arange(n_bl), integers.reshape(out),
                           np.where(unclear, 0.0, margin).reshape(out), valid.reshape(out))
