@@ -195,23 +195,9 @@ def test_phase_without_delay_fails(pair, tmp_path):
 def test_without_the_per_scan_integers_fails(pair, tmp_path, monkeypatch):
     """Solving and interpolating on scans whose integers are left in (every scan's count
     restarts: no integer found per scan) cannot work."""
-    from hitops.calibrate.phaseref import apply as target_side
-    from hitops.calibrate.phaseref import solve as calibrator_side
+    from hitops.testing.phaseref_scene import one_integer_per_baseline
 
-    def no_integers(times, sums, counts, frame):
-        shape = (sums.shape[0], sums.shape[1], sums.shape[3])
-        return calibrator_side.CalibratorIntegers(np.zeros(shape, np.int64),
-                                                  np.full(shape, np.nan), "none")
-
-    found = target_side.target_integers
-
-    def no_target_integers(*args):
-        out = found(*args)
-        return target_side.TargetIntegers(out.scans, out.baselines, 0 * out.integers,
-                                          out.margin, out.valid)
-
-    monkeypatch.setattr(calibrator_side, "calibrator_integers", no_integers)
-    monkeypatch.setattr(target_side, "target_integers", no_target_integers)
+    one_integer_per_baseline(monkeypatch)
     ref, tgt = _copy(pair, tmp_path)
     calibrate(ref, tgt, calibrator_field="3C273", no_verdict=True)
     assert _target_coherence(tgt).min() < COHERENCE

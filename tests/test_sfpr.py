@@ -14,7 +14,8 @@ import pytest
 from casacore import tables as pt
 
 from hitops.calibrate import calibrate
-from hitops.testing.phaseref_scene import PhaserefSpec, make_phaseref_pair, target_coherence
+from hitops.testing.phaseref_scene import (PhaserefSpec, make_phaseref_pair,
+                                           one_integer_per_baseline, target_coherence)
 
 #: what the step must reach on every target baseline x channel x hand, noise-free (issue 38)
 COHERENCE = 0.99
@@ -105,23 +106,7 @@ def test_the_count_carried_across_the_slews_fails(scene, tmp_path, monkeypatch):
 def test_one_integer_per_baseline_for_the_track_fails(scene, tmp_path, monkeypatch):
     """Every scan's integer taken to be the first's (one per baseline for the whole
     track): the scans' 2 pi R_k n stay, on the calibrator and the target."""
-    from hitops.calibrate.phaseref import apply as target_side
-    from hitops.calibrate.phaseref import solve as calibrator_side
-
-    found = target_side.target_integers
-
-    def first_only(times, sums, counts, frame):
-        shape = (sums.shape[0], sums.shape[1], sums.shape[3])
-        return calibrator_side.CalibratorIntegers(np.zeros(shape, np.int64),
-                                                  np.full(shape, np.nan), "first")
-
-    def none_on_target(*args):
-        out = found(*args)
-        return target_side.TargetIntegers(out.scans, out.baselines, 0 * out.integers,
-                                          out.margin, out.valid)
-
-    monkeypatch.setattr(calibrator_side, "calibrator_integers", first_only)
-    monkeypatch.setattr(target_side, "target_integers", none_on_target)
+    one_integer_per_baseline(monkeypatch)
     _, tgt = _run(scene, tmp_path)
     assert target_coherence(tgt, "PWC_DATA").min() < COHERENCE
 

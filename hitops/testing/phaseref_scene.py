@@ -35,13 +35,6 @@ from typing import Dict, List, Tuple
 import numpy as np
 
 C_LIGHT = 299_792_458.0
-#: the paper's stations (ITRF metres, GUIDE section 2) that see M87 together at 03:00 UTC
-STATIONS = {
-    "PV": (5088967.74544, -301681.18586, 3825012.20561),
-    "PB": (4524000.43, 468042.14, 4460309.76),
-    "AP": (2225039.5297, -5441197.6292, -2479303.3597),
-    "GL": (541547.0, -1387978.6, 6180982.0),
-}
 TARGET = ("M87", "12h30m49.42s", "+12d23m28.04s")
 #: 2.64 deg west of M87 (an ASSUMED calibrator position, not a catalogue source)
 CALIBRATOR = ("CAL", "12h20m00.00s", "+12d23m28.04s")
@@ -71,6 +64,7 @@ class PhaserefSpec:
     noise_jy: float = 0.0                # thermal noise per visibility, real and imaginary
     seed: int = 7
     start_utc: str = "2023/04/10/03:00:00"
+    #: four of the paper's stations that see M87 together at 03:00 UTC
     stations: Tuple[str, ...] = ("PV", "PB", "AP", "GL")
 
     def schedule(self) -> List[Tuple[str, float, float]]:
@@ -109,6 +103,18 @@ class PhaserefPair:
     instrument: Instrument = None
 
 
+def station_positions(codes) -> np.ndarray:
+    """(n, 3) ITRF metres of ``codes`` from the package's station catalogue
+    (hitops/scenes/stations.yml: public EHT station lists, GUIDE section 2)."""
+    import importlib.resources
+
+    import yaml
+
+    text = importlib.resources.files("hitops.scenes").joinpath("stations.yml").read_text()
+    catalogue = yaml.safe_load(text)
+    return np.array([catalogue[code]["itrf"] for code in codes], float)
+
+
 def lay_out(ms: Path, centre_hz: float, spec: PhaserefSpec) -> None:
     """An empty set laid out by casatools.simulator, in a process of its own (its observe
     has crashed inside a pytest process that ran other CASA tools: tests/solutions_scene.py)."""
@@ -131,7 +137,7 @@ def _lay_out_here(ms: str, centre_hz: float, n_chan: int, scans, start_utc: str,
 
     me, sm = measures(), simulator()
     shutil.rmtree(ms, ignore_errors=True)
-    xyz = np.array([STATIONS[s] for s in stations])
+    xyz = station_positions(stations)
     sm.open(ms)
     sm.setconfig(telescopename="EHT", x=xyz[:, 0].tolist(), y=xyz[:, 1].tolist(),
                  z=xyz[:, 2].tolist(), dishdiameter=[12.0] * len(stations),
@@ -296,3 +302,26 @@ def target_coherence(ms: Path, column: str) -> np.ndarray:
         mine = (a1 == p) & (a2 == q)
         out.append(np.abs(unit[mine].sum(axis=0)) / mine.sum())
     return np.array(out)
+
+
+def one_integer_per_baseline(monkeypatch) -> None:
+    """The plausible wrong calibrator step for tests: every scan's integer taken to be the
+    first's (one per baseline for the whole track), on the calibrator and the target;
+    ``monkeypatch``: pytest's, which undoes it after the test."""
+    from hitops.calibrate.phaseref import apply as target_side
+    from hitops.calibrate.phaseref import solve as calibrator_side
+
+    found = target_side.target_integers
+
+    def first_only(times, sums, counts, frame):
+        shape = (sums.shape[0], sums.shape[1], sums.shape[3])
+        return calibrator_side.CalibratorIntegers(np.zeros(shape, np.int64),
+                                                  np.full(shape, np.nan), "first")
+
+    def none_on_target(*args):
+        out = found(*args)
+        return target_side.TargetIntegers(out.scans, out.baselines, 0 * out.integers,
+                                          out.margin, out.valid)
+
+    monkeypatch.setattr(calibrator_side, "calibrator_integers", first_only)
+    monkeypatch.setattr(target_side, "target_integers", none_on_target)
