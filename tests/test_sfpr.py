@@ -226,3 +226,50 @@ def test_a_target_scan_without_a_clear_integer_is_flagged_and_counted(short_scen
         flag = t.getcol("FLAG")
     assert flag[moved].all() and not flag[(field == 0) & ~moved].any()
     assert target_coherence(Path(tgt), "PWC_DATA")[[0, 2, 3, 4, 5]].min() >= COHERENCE
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    """hitops simulate's packaged phaseref scene, 20 min noise-free, with 60-s slews and
+    each field's own troposphere (calibrator.own_troposphere 0.4)."""
+    from hitops.simulate import simulate
+    from hitops.simulate.scene import load_scene_mapping
+
+    scene = load_scene_mapping("phaseref")[0]
+    scene["observation"].update(duration=1200, scan_gap=60)
+    scene["corruptions"]["noise"] = False
+    scene["calibrator"]["own_troposphere"] = 0.4
+    return simulate(scene, tmp_path_factory.mktemp("simulated"))
+
+
+def test_simulated_own_troposphere_and_slews(simulated, tmp_path, monkeypatch):
+    """On hitops simulate's scene with slews and each field's own path: the step restores
+    every target series; the count carried across the slews does not."""
+    out = []
+    for rule in ("delay", "carried"):
+        work = tmp_path / rule
+        work.mkdir()
+        ref, tgt = str(work / "ref.ms"), str(work / "tgt.ms")
+        shutil.copytree(simulated["86"], ref)
+        shutil.copytree(simulated["230"], tgt)
+        if rule == "carried":
+            from hitops.calibrate.phaseref import step
+
+            monkeypatch.setattr(step, "integer_rule", lambda frame: "carried")
+        calibrate(ref, tgt, method="pwc", no_verdict=True, calibrator_field="3C273")
+        with pt.table(tgt, ack=False) as t:
+            sel = t.getcol("FIELD_ID") == 0
+            a1, a2, data = t.getcol("ANTENNA1")[sel], t.getcol("ANTENNA2")[sel], t.getcol("PWC_DATA")[sel]
+        out.append(min(float(np.abs((data[(a1 == p) & (a2 == q)] / np.abs(data[(a1 == p) & (a2 == q)])).mean(axis=0)).min())
+                       for p, q in set(zip(a1.tolist(), a2.tolist()))))
+    assert out[0] >= COHERENCE and out[1] < COHERENCE, out
+
+
+def test_scene_own_troposphere_must_not_be_negative():
+    from hitops.errors import SceneError
+    from hitops.simulate.scene import load_scene_mapping, parse_scene
+
+    scene = load_scene_mapping("phaseref")[0]
+    scene["calibrator"]["own_troposphere"] = -0.1
+    with pytest.raises(SceneError, match=r"calibrator\.own_troposphere"):
+        parse_scene(scene)
