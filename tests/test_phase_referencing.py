@@ -307,3 +307,32 @@ def test_station_without_calibrator_solutions_is_flagged_on_the_target(pair, tmp
     others = ~target_lost
     assert not (after[others] & ~before[others]).any()
     assert _target_coherence(tgt).min() >= COHERENCE
+
+
+@pytest.fixture(scope="module")
+def one_channel_pair(tmp_path_factory):
+    """The scene with one 2-GHz channel at 230 GHz: no delay across the window to find
+    each scan's integer from, so the count is carried across the switches (no slews)."""
+    import copy
+
+    scene = copy.deepcopy(SCENE)
+    scene["bands"][1]["n_chan"] = 1
+    return simulate(scene, tmp_path_factory.mktemp("one-channel"))
+
+
+def test_one_channel_window_carries_the_count(one_channel_pair, tmp_path):
+    ref, tgt = _copy(one_channel_pair, tmp_path)
+    report = calibrate(ref, tgt, calibrator_field="3C273", no_verdict=True)
+    window = report["phase_referencing"]["methods"]["PWC_DATA"][0]
+    assert window["integers"]["rule"] == "carried" and "switches" in window
+    assert _target_coherence(tgt).min() >= COHERENCE
+
+
+def test_one_channel_window_refuses_another_tracker(one_channel_pair, tmp_path):
+    ref, tgt = _copy(one_channel_pair, tmp_path)
+    before = _columns(tgt)
+    result = _cli(ref, tgt, "--calibrator-field", "3C273", "--tracker", "antenna")
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr[-2000:]
+    lines = [ln for ln in result.stderr.strip().splitlines() if "ERROR" in ln]
+    assert len(lines) == 1 and "one-channel target window" in lines[0], result.stderr[-2000:]
+    assert _columns(tgt) == before
