@@ -268,6 +268,63 @@ def _refined(times, phase, delay, m, margin, wrap_delay, ratio, sweeps):
 
 
 @numba.njit(cache=True, nogil=True)
+def _misfit(times, phase, delay, m, wrap_delay, ratio):
+    """How far a series' scans, their integers removed, lie from a straight line in delay
+    and in (time-unwrapped) phase: the sum of squares in DELAY_SCALE_WRAPS and PHASE_SCALE."""
+    n = times.size
+    clean_d = (delay - m * wrap_delay) / (DELAY_SCALE_WRAPS * wrap_delay)
+    clean_p = np.zeros(n)
+    for j in range(n):
+        turns = ratio * m[j]
+        clean_p[j] = phase[j] - 2.0 * np.pi * (turns - np.round(turns))
+        if j > 0:
+            clean_p[j] = clean_p[j - 1] + _wrapped(clean_p[j] - clean_p[j - 1])
+    clean_p = clean_p / PHASE_SCALE
+    total = 0.0
+    for values in (clean_d, clean_p):
+        for j in range(n):
+            total += (values[j] - _line_at(times[j], times, values, n)) ** 2
+    return total
+
+
+@numba.njit(cache=True, nogil=True)
+def _phase_preserving_step(ratio):
+    """The smallest integer step d (1..12) whose 2 pi R_0 d lies nearest a whole turn: the
+    step a delay error can take unseen by the phase (3 at 229.1 / 86 GHz: 2.9 deg)."""
+    best, step = 1e300, 1
+    for d in range(1, 13):
+        turns = ratio * d
+        off = abs(turns - np.round(turns))
+        if off < best:
+            best, step = off, d
+    return step
+
+
+@numba.njit(cache=True, nogil=True)
+def _block_shifted(times, phase, delay, m, wrap_delay, ratio):
+    """Every block of scans from one scan to the last moved by the phase-preserving step
+    (up or down) while that lowers the series' misfit: a wrong integer decided early is
+    carried by the predictions to every later scan, and no single scan's change undoes
+    it.  m changed in place."""
+    n = times.size
+    step = _phase_preserving_step(ratio)
+    now = _misfit(times, phase, delay, m, wrap_delay, ratio)
+    for _ in range(n):
+        improved = False
+        for j in range(1, n):
+            for sign in (-1, 1):
+                trial = m.copy()
+                trial[j:] += sign * step
+                cost = _misfit(times, phase, delay, trial, wrap_delay, ratio)
+                if cost < now - 1e-9:
+                    m[:] = trial
+                    now = cost
+                    improved = True
+        if not improved:
+            break
+
+
+@numba.njit(cache=True, nogil=True)
 def scan_integers(times, phase, delay, valid, wrap_delay, ratio):
     """Each calibrator scan's integer m of 2 pi R_k m from its phase and delay.
 
@@ -323,6 +380,7 @@ def scan_integers(times, phase, delay, valid, wrap_delay, ratio):
         idx = np.flatnonzero(valid[:, s])
         if idx.size >= 3:
             m_s, margin_s = m[idx, s].copy(), margin[idx, s].copy()
+            _block_shifted(times[idx], phase[idx, s], delay[idx, s], m_s, wrap_delay, ratio)
             _refined(times[idx], phase[idx, s].copy(), delay[idx, s].copy(), m_s, margin_s,
                      wrap_delay, ratio, REFINE_SWEEPS)
             m[idx, s] = m_s - m_s[0]     # the first valid scan stays the zero
