@@ -338,8 +338,11 @@ def scan_integers(times, phase, delay, valid, wrap_delay, ratio):
     nearest what was measured, in DELAY_SCALE_WRAPS and PHASE_SCALE: the delay alone
     cannot tell an instrumental delay drift of a wrap between scans from m = 1 nor is
     it precise across a narrow window, the phase alone cannot tell m = 3 (3.6 deg) from
-    0.  The first valid scan of a series is m = 0 (a constant per series, which the
-    interpolated calibrator term carries to the target).
+    0.  Then blocks of scans from one scan to the last are moved by the phase-preserving
+    step while that brings the series nearer a straight line (``_block_shifted``), and
+    each scan is decided again against all the others (``_refined``).  The first valid
+    scan of a series is m = 0 (a constant per series, which the interpolated calibrator
+    term carries to the target).
 
     times (n_scan,) s; phase (rad at nu_0), delay (s), valid: (n_scan, n_series);
     wrap_delay s; ratio R_0.  Returns (m (n_scan, n_series) int64, 0 where not valid;
