@@ -229,7 +229,7 @@ def _reference_window(run, tx, table, column, meta, cal, ddid, groups, bridge) -
         target_side.remove_integers(table, tx, column, rows.cal_rows, target_side.row_counts(
             rows.cal_scan, scans, rows.cal_bl, integers.integers, corr_hands), frame, block)
     else:
-        zero = np.zeros((scans.size, rows.ant1.size, hands.__len__()), np.int64)
+        zero = np.zeros((scans.size, rows.ant1.size, len(hands)), np.int64)
         integers = CalibratorIntegers(zero, np.full(zero.shape, 0.5), "carried")
     refant = _refant(run, names, np.concatenate([rows.ant1, rows.ant2]))
     solution = calibrator_side.solve_window(scans, times, sums, counts, rows, frame, integers,
