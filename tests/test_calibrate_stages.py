@@ -32,6 +32,7 @@ TRIGGERS = {
     "--scheduler": {"scheduler": "tcp://x:8786"},
     "--tracker other than count": {"tracker": "smooth"},
     "the n0 step": {"offset_model": "point"},
+    "--calibrator-model-column without --calibrator-field": {"calibrator_model_column": "MODEL_DATA"},
 }
 MODE_FLAGS = {Mode.VISIBILITIES: {}, Mode.TABLE: {"reference_table": "ref.fringe"},
               Mode.CALIBRATOR: {"calibrator_field": "CAL"}}

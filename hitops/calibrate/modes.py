@@ -78,10 +78,18 @@ _CALTABLE_NEEDS_ANTENNA = Refused(
                  "table holds one phase per antenna, and only the antenna tracker solves per "
                  f"antenna (--tracker {o.tracking.tracker} works per baseline)")
 
+#: the calibrator's model column means nothing without a calibrator
+_MODEL_NEEDS_CALIBRATOR = Refused(
+    "--calibrator-model-column without --calibrator-field",
+    lambda o, m: bool(o.input.calibrator_model_column) and not o.input.calibrator_field,
+    lambda o, m: f"--calibrator-model-column {o.input.calibrator_model_column} is the model of "
+                 "--calibrator-field's calibrator: give --calibrator-field NAME too, or drop it")
+
 #: what each mode refuses, checked in this order (the first that applies is reported)
 REFUSED: Dict[Mode, Tuple[Refused, ...]] = {
     Mode.VISIBILITIES: (
         _CALTABLE_NEEDS_ANTENNA,
+        _MODEL_NEEDS_CALIBRATOR,
     ),
     Mode.TABLE: (
         Refused("--method cwu", lambda o, m: "cwu" in m,
@@ -93,6 +101,7 @@ REFUSED: Dict[Mode, Tuple[Refused, ...]] = {
                 lambda o, m: f"{_n0_flag(o)} with {_table(o)} and --method {','.join(m)}: the "
                              "n0 step solves the integers of the counted transfer; add pwc to "
                              "--method"),
+        _MODEL_NEEDS_CALIBRATOR,
         Refused("--calibrator-field", lambda o, m: bool(o.input.calibrator_field),
                 lambda o, m: f"--calibrator-field {o.input.calibrator_field} with {_table(o)}: "
                              "the calibrator step works on the visibility path's per-baseline "
@@ -112,14 +121,12 @@ REFUSED: Dict[Mode, Tuple[Refused, ...]] = {
     ),
     Mode.CALIBRATOR: (
         _CALTABLE_NEEDS_ANTENNA,
-        Refused("--tracker other than count", lambda o, m: o.tracking.tracker != "count",
-                lambda o, m: f"--calibrator-field {o.input.calibrator_field} works on the "
-                             "count tracker's output without an n0 step (its per-scan counts "
-                             "are carried across the field switches; docs/solutions.md): drop "
-                             f"--tracker {o.tracking.tracker}"),
+        # a tracker other than count is refused on one-channel target windows only, which
+        # needs the sets: hitops/calibrate/phaseref/step.py:check_calibrator_field
         Refused("the n0 step", lambda o, m: _n0_step(o),
                 lambda o, m: f"--calibrator-field {o.input.calibrator_field} replaces the n0 "
-                             "offset step: drop --offset-model / --offset-reference-column"),
+                             "offset step (each scan's integer is solved on the calibrator and "
+                             "the target): drop --offset-model / --offset-reference-column"),
     ),
 }
 

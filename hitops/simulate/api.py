@@ -116,10 +116,26 @@ def observe(scene: Scene) -> Observation:
         air = radiometer.airmass(floor_el)
         first_up = np.where(up.any(axis=1), up.argmax(axis=1), 0)
         phase_ref = troposphere.station_phases(n_time, scene.integration, t_c, air, first_up, rng)
+        phase_ref = _own_paths(scene, field_id, phase_ref, t_c, air, first_up)
     else:
         phase_ref = np.zeros((n_station, n_time))
     return Observation(times, scan, elevation, station_uvw, time_index, ant1, ant2, uvw, phase_ref,
                        t_c, weather, field_id)
+
+
+def _own_paths(scene: Scene, field_id, shared: np.ndarray, t_c, air, first_up) -> np.ndarray:
+    """Each field's line of sight its own path beside the shared one (issue 38): a screen
+    of the same statistics per station and field, ``calibrator.own_troposphere`` times
+    the shared part, added on that field's integrations.  Nothing is drawn without it
+    (scenes without the key are written as before, byte for byte)."""
+    own = 0.0 if scene.calibrator is None else scene.calibrator.own_troposphere
+    if not own:
+        return shared
+    rng = np.random.default_rng(np.random.SeedSequence([scene.seed, 2]))
+    n_time = shared.shape[1]
+    per_field = [troposphere.station_phases(n_time, scene.integration, t_c, air, first_up, rng)
+                 for _ in range(2)]
+    return shared + own * np.where(field_id[None, :] == 1, per_field[1], per_field[0])
 
 
 def station_weathers(scene: Scene, times: np.ndarray) -> List:

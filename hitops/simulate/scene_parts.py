@@ -30,6 +30,8 @@ INSTRUMENTAL_KEYS = ("phase_deg", "delay_ns", "phase_drift_deg_per_hour",
                      "delay_drift_ns_per_hour")
 BAND_KEYS = ("name", "freq_ghz", "bandwidth_ghz", "n_chan", "chan_width_mhz", "windows_ghz")
 CALIBRATOR_KEYS = ("name", "ra", "dec", "flux", "scan_length")
+#: optional keys of the calibrator mapping
+CALIBRATOR_OPTIONAL = ("own_troposphere",)
 
 
 @dataclass(frozen=True)
@@ -94,6 +96,9 @@ class Calibrator:
     dec: float               # rad, J2000
     flux: Dict[str, float]   # Jy per band
     scan_length: float       # s, each calibrator scan
+    # each field's own part of the path, as a fraction of the shared part's rms (0: both
+    # fields see one troposphere, as before)
+    own_troposphere: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -193,7 +198,7 @@ def parse_calibrator(reader, raw, target_name: str, angle, per_band, band_names)
     (right ascension / declination text, {band: value} mappings)."""
     if not isinstance(raw, dict):
         reader.fail("calibrator", "must be a mapping {name, ra, dec, flux, scan_length}")
-    reader.check_keys(raw, CALIBRATOR_KEYS, "calibrator")
+    reader.check_keys(raw, CALIBRATOR_KEYS + CALIBRATOR_OPTIONAL, "calibrator")
     for key in CALIBRATOR_KEYS:
         if raw.get(key) is None:
             reader.fail(f"calibrator.{key}", "is missing")
@@ -206,4 +211,6 @@ def parse_calibrator(reader, raw, target_name: str, angle, per_band, band_names)
         reader.fail("calibrator.dec", "must lie within +-90 degrees")
     return Calibrator(name, angle(reader, raw["ra"], "calibrator.ra", "right ascension"), dec,
                       per_band(reader, raw["flux"], "calibrator.flux", band_names, 0.0),
-                      reader.number(raw, "scan_length", "calibrator", strictly_positive=True))
+                      reader.number(raw, "scan_length", "calibrator", strictly_positive=True),
+                      reader.number(raw, "own_troposphere", "calibrator", default=0.0,
+                                    minimum=0.0))

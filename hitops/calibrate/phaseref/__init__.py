@@ -1,8 +1,12 @@
 """``--calibrator-field``: source-frequency phase referencing after the transfer.
 
-* :mod:`.step`: the step as calibrate runs it (checks, the solve per calibrator scan,
-  the interpolation, the correction of the target's rows in the staged column);
-* :mod:`.bridge`: the reference wrap count carried across scan and field switches;
+* :mod:`.step`: the step as calibrate runs it (checks, the calibrator's model, the order
+  of the work per window and staged column);
+* :mod:`.solve`: the calibrator's side: scan sums, each scan's integer, antenna terms;
+* :mod:`.apply`: the target's side: the interpolated terms removed, each target scan's
+  integer found and removed (or its rows flagged);
+* :mod:`.bridge`: the reference wrap count carried across scan and field switches (one-
+  channel windows, where there is no delay to find a scan's integer from);
 * :mod:`.report`: the per-antenna report and the log's summary line.
 
 The kernels are in :mod:`hitops.kernels.phase_ref`.

@@ -119,7 +119,7 @@ def switch_counts(run, groups: List, tgt_meta: Dict[str, np.ndarray],
     corr_map = correlation_map(pair.ref.corr, pair.tgt.corr)
     t_a1, t_a2 = tgt_meta["ANTENNA1"][tgt_rows], tgt_meta["ANTENNA2"][tgt_rows]
     t_time = tgt_meta["TIME"][tgt_rows]
-    t_scan = _tracking_scans(groups, t_time, tgt_meta["FIELD_ID"][tgt_rows])
+    t_scan = tracking_scans(groups, t_time, tgt_meta["FIELD_ID"][tgt_rows])
     r_a1, r_a2 = to_tgt[meta["ANTENNA1"]], to_tgt[meta["ANTENNA2"]]
     counts = np.zeros((tgt_rows.size, len(pair.tgt.corr)), np.int64)
     steps: List[float] = []
@@ -146,7 +146,7 @@ def switch_counts(run, groups: List, tgt_meta: Dict[str, np.ndarray],
                         int((steps_deg > RISKY_STEP_DEG).sum()))
 
 
-def _tracking_scans(groups: List, time: np.ndarray, field: np.ndarray) -> np.ndarray:
+def tracking_scans(groups: List, time: np.ndarray, field: np.ndarray) -> np.ndarray:
     """The transfer's own tracking scan of each row (SCAN_NUMBER, split where calibrate
     split it at long gaps: each group's ``grid.scans.scan_of_time``), numbered apart per field."""
     out = np.zeros(time.size, np.int64)

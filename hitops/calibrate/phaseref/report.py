@@ -49,8 +49,25 @@ def window_report(solution, names: List[str], n_target_rows: int, n_flagged: int
             "antennas": antennas, "baseline_residual_deg": baselines}
 
 
+def _integers_text(windows: List[Dict]) -> str:
+    """How each window's per-scan integers were found, for the log line."""
+    parts = []
+    for w in windows:
+        found = w.get("integers", {})
+        if found.get("rule") == "carried":
+            parts.append(f"window {w['spw']}: counts carried across the switches")
+            continue
+        cal, tgt = found.get("calibrator", {}), found.get("target", {})
+        parts.append(f"window {w['spw']}: each scan's integer from its delay and phase "
+                     f"({cal.get('nonzero', 0)} calibrator and {tgt.get('nonzero', 0)} target "
+                     f"scan series moved, {tgt.get('undecided_scans', 0)} target series "
+                     "flagged unclear)")
+    return "; ".join(parts)
+
+
 def log_summary(entry: Dict) -> None:
-    """One line: scans, rows, the largest scan-to-scan movement and where."""
+    """One line per column: scans, rows, the largest scan-to-scan movement and where, the
+    integers' rule and counts, the model used."""
     for column, windows in entry["methods"].items():
         worst_phase, worst_delay = (0.0, "-"), (0.0, "-")
         n_scans = rows = flagged = 0
@@ -66,8 +83,9 @@ def log_summary(entry: Dict) -> None:
                         worst_phase = (v["phase_rms_between_scans_deg"], f"{name} {hand}")
                     if v["delay_rms_between_scans_ns"] >= worst_delay[0]:
                         worst_delay = (v["delay_rms_between_scans_ns"], f"{name} {hand}")
-        log.info("phase referencing on %s: %d calibrator scan(s), %d target rows of %s "
-                 "corrected (%d flagged: antenna unsolved); largest rms between scans "
-                 "%.2f deg (%s), %.4f ns (%s); per antenna in the report",
-                 entry["calibrator_field"], n_scans, rows, column, flagged, worst_phase[0],
+        log.info("phase referencing on %s (model: %s): %d calibrator scan(s), %d target rows "
+                 "of %s corrected (%d flagged: antenna unsolved); %s; largest rms between "
+                 "scans %.2f deg (%s), %.4f ns (%s); per antenna in the report",
+                 entry["calibrator_field"], entry.get("calibrator_model", "point"), n_scans,
+                 rows, column, flagged, _integers_text(windows), worst_phase[0],
                  worst_phase[1], worst_delay[0], worst_delay[1])

@@ -3,36 +3,33 @@
 FPT leaves the target band with Phi_inst - R*phi_inst per station (the paper's
 eq. for Phi_FPT): each band's instrumental phase and delay, slowly varying, the same
 for every source.  With a calibrator observed in scans alternating with the target's,
-source-frequency phase referencing (Rioja & Dodson 2011, AJ 141, 114) removes it:
+source-frequency phase referencing (Rioja & Dodson 2011, AJ 141, 114) removes it.
+Every scan also keeps 2 pi R_k m, one integer per scan and baseline: the reference wrap
+count starts afresh at every scan, and a slew of a minute is too long to carry it across
+(the 86-GHz phase moves by radians meanwhile).  Per target window:
 
-1. per calibrator scan and spectral window, the FPT output (this run's staged
-   column) is summed over the scan per baseline and channel, antenna phases are
-   solved per channel from every baseline at once (a point source at the phase
-   centre), and one phase (at the window's mean frequency) and one delay are fitted
-   per antenna and parallel hand across the channels (hitops/kernels/phase_ref.py);
-2. per antenna, phase (unwrapped from scan to scan) and delay are interpolated
-   linearly in time between the calibrator scans (held before the first and after the
-   last);
-3. every other field's rows of the same column are multiplied by
-   exp(-i (phi_p - phi_q)) exp(-2 pi i (nu_k - nu_0)(tau_p - tau_q)), hands p and q
-   taken from the correlation (RL: p's R, q's L), and, on the parallel hands, by the
-   conjugate phase of what the antenna model leaves on the calibrator's same baseline
-   and channel over all its scans.  That part is real: the count tracker counts wraps
-   per baseline, so a baseline whose reference phase starts a whole turn away from its
-   antennas' difference carries 2 pi R_k m that no antenna term absorbs, the same on
-   both fields (it assumes a point-like calibrator: any closure phase of its own would
-   be copied onto the target).
-
-Before the solve, every scan of both fields is multiplied by exp(-i 2 pi R_k N), N the
-reference wrap count continued across the scan and field switches
-(hitops/calibrate/phaseref/bridge.py): the count tracker restarts at every scan, and
-without this each scan would carry its own 2 pi R_k n0.
+1. per calibrator scan, the FPT output (this run's staged column) divided by the
+   calibrator's model (``--calibrator-model-column``, MODEL_DATA when the set has it) is
+   summed per baseline and channel; each scan's integer m per baseline and hand comes
+   from the scan-to-scan change of its delay across the window (m / nu_ref: 11.6 ps per
+   wrap at 86 GHz) and is removed (:mod:`.solve`); with one channel there is no delay to
+   see and the count is carried across the switches instead (:mod:`.bridge`);
+2. antenna phases are solved per channel from every baseline at once, one phase (at the
+   window's centre) and one delay fitted per antenna and parallel hand, and what the
+   antenna model leaves per baseline (over all scans) kept: the first scan's integers,
+   which need not close (hitops/kernels/phase_ref.py);
+3. per antenna, phase (unwrapped from scan to scan) and delay are interpolated linearly
+   in time between the calibrator scans (held before the first and after the last) and
+   removed from every other field's rows of the same column, with the per-baseline
+   residual; then each target scan's own integer j is the delay of what is left, in
+   wraps, and 2 pi R_k j is removed too (:mod:`.apply`).
 
 The correction is written into the staged output column itself (the same
 :class:`~hitops.calibrate.output.OutputTransaction`, committed or rolled back with the
 transfer), so PWC_DATA holds the phase-referenced target: one column, as diagnose,
-export and the recipes expect.  The calibrator's own rows stay as transferred, to be
-checked.  Rows of an antenna with no solution on any calibrator scan are flagged.
+export and the recipes expect.  The calibrator's rows keep the transfer's output with
+their integers removed, to be checked.  Rows of an antenna with no solution on any
+calibrator scan are flagged.
 
 docs/solutions.md, "The instrumental term", has the measurements and the limits.
 """
@@ -45,74 +42,47 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from ...errors import InputError
+from ...errors import ColumnError, InputError
 from ...io import read as msio
 from ...io import tables
 from ...io.ms_create import CORR_NAMES
-from ...kernels.phase_ref import antenna_phasors, baseline_sums, model_residuals, phase_and_delay
-from ...kernels.wideband import rotate_channels
+from . import apply as target_side
+from . import solve as calibrator_side
+from .solve import CalibratorIntegers, WindowFrame
 
 log = logging.getLogger("hitops.calibrate")
-
-#: iterations of the per-channel antenna phase solve (converged to < 1e-6 rad on the
-#: noise-free pairs of tests/test_phase_referencing.py well before this)
-SOLVE_ITERATIONS = 60
 
 
 @dataclass(frozen=True)
 class CalibratorField:
-    """The calibrator of a run: its FIELD_ID in the target set and the fields it calibrates."""
+    """The calibrator of a run: its FIELD_ID in the target set, the fields it calibrates,
+    and the column of TARGET_MS holding its model (None: a point at the phase centre)."""
 
     name: str
     field_id: int
     target_field_ids: Tuple[int, ...]
+    model_column: Optional[str] = None
+
+    @property
+    def model_label(self) -> str:
+        """What the report says of the model used."""
+        return self.model_column or "point (a point source at the phase centre)"
 
 
-@dataclass(frozen=True)
-class ScanSolution:
-    """One calibrator scan's antenna phases and delays in one spectral window."""
-
-    scan: int
-    time: float                  # s, mean TIME of the scan's rows
-    phase: np.ndarray            # (n_ant, n_hand) rad at the window's mean frequency
-    delay: np.ndarray            # (n_ant, n_hand) s
-    valid: np.ndarray            # (n_ant, n_hand) bool
-
-
-@dataclass(frozen=True)
-class WindowSolution:
-    """Every calibrator scan of one target spectral window, and what the window is."""
-
-    ddid: int
-    spw: int
-    freq: float                  # nu_0 (Hz): the window's mean channel frequency
-    hands: Tuple[str, ...]       # the receptor letters of the parallel hands ('R', 'L')
-    refant: int
-    scans: List[ScanSolution]
-    # what the antenna model leaves per calibrator baseline (ant1 * n_ant + ant2 in
-    # ``baselines``), channel and hand, summed over every scan: its phase is removed
-    # from the target's same baseline (hitops/kernels/phase_ref.py: model_residuals)
-    baselines: np.ndarray = None        # (n_bl,) int64
-    residual: np.ndarray = None         # (n_bl, n_chan, n_hand) complex128
-
-    def at(self, times: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(phase, delay) (n_time, n_ant, n_hand) interpolated at ``times``; solved
-        (n_ant, n_hand): antennas with at least one valid scan."""
-        t = np.array([s.time for s in self.scans])
-        phase = np.stack([s.phase for s in self.scans])
-        delay = np.stack([s.delay for s in self.scans])
-        valid = np.stack([s.valid for s in self.scans])
-        n_ant, n_hand = phase.shape[1:]
-        out_phase = np.zeros((times.size, n_ant, n_hand))
-        out_delay = np.zeros_like(out_phase)
-        for a in range(n_ant):
-            for h in range(n_hand):
-                ok = valid[:, a, h]
-                if ok.any():
-                    # the phase moves slowly from scan to scan: unwrap it in time
-                    out_phase[:, a, h] = np.interp(times, t[ok], np.unwrap(phase[ok, a, h]))
-                    out_delay[:, a, h] = np.interp(times, t[ok], delay[ok, a, h])
-        return out_phase, out_delay, valid.any(axis=0)
+def _model_column(run, name: str) -> Optional[str]:
+    """--calibrator-model-column resolved: 'point' -> None; unset -> MODEL_DATA when
+    TARGET_MS has it (CASA's convention: setjy, ft, wsclean -predict write it), else None;
+    a named column must exist."""
+    given = run.opts.input.calibrator_model_column
+    if given == "point":
+        return None
+    present = tables.column_names(run.target_ms)
+    if given is None:
+        return "MODEL_DATA" if "MODEL_DATA" in present else None
+    if given not in present:
+        raise ColumnError(f"--calibrator-model-column {given}: {run.target_ms} has no such "
+                          "column; give a model column it has (e.g. MODEL_DATA) or 'point'")
+    return given
 
 
 def check_calibrator_field(run) -> Optional[CalibratorField]:
@@ -122,7 +92,14 @@ def check_calibrator_field(run) -> Optional[CalibratorField]:
     name = run.opts.input.calibrator_field
     if not name:
         return None
-    # the options it refuses (a robust tracker, the n0 step): hitops/calibrate/modes.py
+    # the options the calibrator mode refuses (the n0 step; the model column without a
+    # calibrator): hitops/calibrate/modes.py; what needs the sets is checked here
+    one_channel = any(g.channels is None or not g.channels.across_channels for g in run.groups)
+    if one_channel and run.opts.tracking.tracker != "count":
+        raise InputError(f"--calibrator-field {name} on a one-channel target window carries "
+                         "the count tracker's per-scan counts across the field switches "
+                         "(no delay across the window to find each scan's integer from; "
+                         f"docs/solutions.md): drop --tracker {run.opts.tracking.tracker}")
     names = [str(n) for n in msio.read_subtable(run.target_ms, "FIELD", ["NAME"])["NAME"]]
     if name not in names:
         raise InputError(f"--calibrator-field {name}: no such field in {run.target_ms} "
@@ -138,7 +115,9 @@ def check_calibrator_field(run) -> Optional[CalibratorField]:
         raise InputError(f"--calibrator-field {name}: it is the only field of {run.target_ms} "
                          "with calibrated rows, so there is no target to apply it to; name the "
                          "calibrator, not the target")
-    return CalibratorField(name, int(paired[name]), targets)
+    cal = CalibratorField(name, int(paired[name]), targets, _model_column(run, name))
+    check_model(run, cal)
+    return cal
 
 
 def _hands(corr: Tuple[int, ...]) -> Tuple[Tuple[str, ...], np.ndarray, np.ndarray]:
@@ -156,101 +135,6 @@ def _hands(corr: Tuple[int, ...]) -> Tuple[Tuple[str, ...], np.ndarray, np.ndarr
     return tuple(names), hand_corr, index
 
 
-@dataclass(frozen=True)
-class _WindowRows:
-    """The rows of one target window this run wrote, split into calibrator and target."""
-
-    cal_rows: np.ndarray
-    cal_scan: np.ndarray
-    cal_bl: np.ndarray           # baseline index of each calibrator row
-    ant1: np.ndarray             # (n_bl,) of the calibrator's baselines
-    ant2: np.ndarray
-    target_rows: np.ndarray
-
-
-def _window_rows(meta: Dict[str, np.ndarray], written: np.ndarray, ddid: int,
-                 cal: CalibratorField, n_ant: int) -> _WindowRows:
-    here = written & (meta["DATA_DESC_ID"] == ddid)
-    cal_rows = np.flatnonzero(here & (meta["FIELD_ID"] == cal.field_id))
-    target_rows = np.flatnonzero(here & np.isin(meta["FIELD_ID"], cal.target_field_ids))
-    code = meta["ANTENNA1"][cal_rows].astype(np.int64) * n_ant + meta["ANTENNA2"][cal_rows]
-    baselines, cal_bl = np.unique(code, return_inverse=True)
-    return _WindowRows(cal_rows, meta["SCAN_NUMBER"][cal_rows], cal_bl.astype(np.int64),
-                       baselines // n_ant, baselines % n_ant, target_rows)
-
-
-def _solve_window(table, tx, column: str, rows: _WindowRows, group, hands, hand_corr,
-                  refant: int, n_ant: int, ddid: int, times: np.ndarray,
-                  chan_offset: np.ndarray) -> WindowSolution:
-    """Every calibrator scan of one window solved (hitops/kernels/phase_ref.py);
-    ``chan_offset``: each channel's frequency from the window's centre (Hz)."""
-    scans = []
-    residual = 0j
-    for scan in np.unique(rows.cal_scan):
-        pick = rows.cal_scan == scan
-        read = msio.rows_reader(table, rows.cal_rows[pick])
-        sums, counts = baseline_sums(read(column), tx.flags_now(table, rows.cal_rows[pick]),
-                                     rows.cal_bl[pick], hand_corr, rows.ant1.size)
-        g, solved = antenna_phasors(sums, counts, rows.ant1, rows.ant2, n_ant, refant,
-                                    SOLVE_ITERATIONS)
-        phase, delay, valid = phase_and_delay(g, solved, chan_offset)
-        residual = residual + model_residuals(sums, counts, rows.ant1, rows.ant2, phase, delay,
-                                              valid, chan_offset)
-        scans.append(ScanSolution(int(scan), float(np.mean(times[rows.cal_rows[pick]])),
-                                  phase, delay, valid))
-    return WindowSolution(ddid, group.pair.tgt.spw, group.pair.tgt.freq, hands, refant, scans,
-                          rows.ant1.astype(np.int64) * n_ant + rows.ant2, residual)
-
-
-def _baseline_factors(solution: WindowSolution, ant1, ant2, corr_hands, n_ant: int):
-    """(n_row, n_chan, n_corr) complex64: exp(-i x the calibrator's model residual phase)
-    of each row's baseline on its parallel hands; 1 for cross hands and baselines the
-    calibrator did not observe."""
-    n_chan = solution.residual.shape[1]
-    out = np.ones((ant1.size, n_chan, corr_hands.shape[0]), np.complex64)
-    pos = np.searchsorted(solution.baselines, ant1.astype(np.int64) * n_ant + ant2)
-    pos = np.minimum(pos, solution.baselines.size - 1)
-    seen = solution.baselines[pos] == ant1.astype(np.int64) * n_ant + ant2
-    for c, (h1, h2) in enumerate(corr_hands):
-        if h1 < 0 or h1 != h2:
-            continue
-        res = solution.residual[pos[seen], :, h1]
-        out[seen, :, c] = np.where(np.abs(res) > 0, np.conj(res) / np.maximum(np.abs(res), 1e-300),
-                                   1.0)
-    return out
-
-
-def _apply_window(table, tx, column: str, rows: np.ndarray, meta, solution: WindowSolution,
-                  corr_hands: np.ndarray, chan_offset: np.ndarray, block: int,
-                  n_ant: int) -> int:
-    """The interpolated correction applied to the target rows of one window, block by
-    block, written through the transaction's own write path; rows touching an antenna
-    without a solution are flagged.  Returns the number of rows flagged."""
-    n_flagged = 0
-    for start in range(0, rows.size, block):
-        part = rows[start:start + block]
-        phase, delay, solved = solution.at(meta["TIME"][part])
-        a1, a2 = meta["ANTENNA1"][part][:, None], meta["ANTENNA2"][part][:, None]
-        i = np.arange(part.size)[:, None]
-        known = (corr_hands[:, 0] >= 0) & (corr_hands[:, 1] >= 0)
-        h1 = np.where(known, corr_hands[:, 0], 0)[None, :]
-        h2 = np.where(known, corr_hands[:, 1], 0)[None, :]
-        ok = known[None, :] & solved[a1, h1] & solved[a2, h2]
-        dphi = phase[i, a1, h1] - phase[i, a2, h2]
-        dtau = delay[i, a1, h1] - delay[i, a2, h2]
-        phasor = np.where(ok, np.exp(-1j * dphi), 1.0 + 0j)
-        read = msio.rows_reader(table, part)
-        rotated = rotate_channels(read(column), phasor, np.where(ok, dtau, 0.0), chan_offset)
-        arrays = {column: rotated * _baseline_factors(solution, a1[:, 0], a2[:, 0], corr_hands,
-                                                      n_ant)}
-        new_flag = None
-        if not ok.all():
-            new_flag = tx.flags_now(table, part) | ~ok[:, None, :]
-            n_flagged += int((~ok).any(axis=1).sum())
-        tx.restage(part, arrays, new_flag)
-    return n_flagged
-
-
 def _refant(run, names: List[str], cal_ant: np.ndarray) -> int:
     """--refant's first station present on the calibrator, else the one in most rows."""
     present = set(np.unique(cal_ant).tolist())
@@ -260,58 +144,134 @@ def _refant(run, names: List[str], cal_ant: np.ndarray) -> int:
     return int(np.bincount(cal_ant, minlength=len(names)).argmax())
 
 
-def _bridge_window(table, tx, column: str, rows: np.ndarray, counts: np.ndarray, group,
-                   block: int) -> None:
-    """Every scan's rows times exp(-i 2 pi R_k N) (hitops/calibrate/phaseref/bridge.py):
-    as a phase at nu_0 and a delay N / nu_ref, the per-channel transfer's own form."""
-    if group.channels is not None:
-        ratio, centre = group.channels.ratio, group.channels.tgt_centre
-    else:
-        ratio, centre = group.ratio, group.pair.tgt.freq
-    chan_offset = np.asarray(group.pair.tgt.chan_freq) - centre
-    moved = rows[(counts != 0).any(axis=1)]
-    counts = counts[(counts != 0).any(axis=1)]
-    for start in range(0, moved.size, block):
-        part, n = moved[start:start + block], counts[start:start + block]
-        read = msio.rows_reader(table, part)
-        phasor = np.exp(-2j * np.pi * ratio * n)
-        arrays = {column: rotate_channels(read(column), phasor, n * (ratio / centre),
-                                          chan_offset)}
-        tx.restage(part, arrays)
+def integer_rule(frame: WindowFrame) -> str:
+    """How a window's per-scan integers are found: "delay" (each scan's from its delay
+    across the window) with several channels, "carried" (the count carried across the
+    switches, which needs slews shorter than the reference band's coherence time) with
+    one, where there is no delay to see."""
+    return "delay" if frame.chan_offset.size > 1 else "carried"
+
+
+def _integer_summary(integers: np.ndarray, margin: np.ndarray, valid: np.ndarray) -> Dict:
+    """How many scan x baseline x hand integers were not 0, and the smallest margin."""
+    measured = valid & np.isfinite(margin)
+    return {"decided": int(valid.sum()), "nonzero": int((integers[valid] != 0).sum()),
+            "min_margin": round(float(margin[measured].min()), 4) if measured.any() else None}
+
+
+def check_model(run, cal: CalibratorField) -> None:
+    """The calibrator's model checked before anything is written: no zeros where the
+    calibrator is (nothing to divide by), and a resolved one (phases not all 0) only
+    with the reference band's model too (FPT leaves Psi_k - R_k psi of the calibrator's
+    own phases otherwise).  Read in blocks of the calibrator's rows."""
+    if cal.model_column is None:
+        return
+    with tables.main_table(run.target_ms) as table:
+        rows = np.flatnonzero(table.getcol("FIELD_ID") == cal.field_id)
+        resolved, zero_scans = False, set()
+        for start in range(0, rows.size, max(run.chunk_rows, 1)):
+            read = msio.rows_reader(table, rows[start:start + run.chunk_rows])
+            model = read(cal.model_column)
+            zero = (np.abs(model) == 0).any(axis=(1, 2))
+            zero_scans.update(np.unique(read("SCAN_NUMBER")[zero]).tolist())
+            resolved |= bool(np.abs(np.angle(model[~zero])).max(initial=0.0) > 1e-6)
+    if zero_scans:
+        raise InputError(f"--calibrator-field {cal.name}: {cal.model_column} of {run.target_ms} "
+                         f"is zero on calibrator scan(s) {', '.join(map(str, sorted(zero_scans)))} "
+                         "(no model there to divide by); fill it (CASA setjy/ft, wsclean "
+                         "-predict) or give --calibrator-model-column point")
+    if resolved and run.columns.ref_model is None:
+        raise InputError(f"--calibrator-field {cal.name}: {cal.model_column} of "
+                         f"{run.target_ms} holds a resolved calibrator (non-zero phases), "
+                         "whose reference-band phases the transfer must remove too: add "
+                         f"--ref-model-column {cal.model_column} (REF_MS's model), or "
+                         "--calibrator-model-column point")
 
 
 def _reference_window(run, tx, table, column, meta, cal, ddid, groups, bridge) -> Dict:
-    """One target window of one staged column: bridged, solved on the calibrator,
-    applied to the other fields; its report entry."""
+    """One target window of one staged column: each calibrator scan's integers removed,
+    solved on the calibrator, applied to the other fields with each target scan's own
+    integer; its report entry."""
+    from .bridge import tracking_scans
     from .report import window_report
 
     group = groups[0]
-    names = group.antenna_names
-    rows = _window_rows(meta, tx.rows_written, ddid, cal, len(names))
+    names, n_ant = group.antenna_names, len(group.antenna_names)
+    frame = WindowFrame.of_group(group)
+    here = np.flatnonzero(tx.rows_written & (meta["DATA_DESC_ID"] == ddid))
+    scan_of_row = np.zeros(meta["TIME"].size, np.int64)
+    scan_of_row[here] = tracking_scans(groups, meta["TIME"][here], meta["FIELD_ID"][here])
+    rows = calibrator_side.window_rows(meta, tx.rows_written, ddid, cal, n_ant, scan_of_row)
     hands, hand_corr, corr_hands = _hands(group.pair.tgt.corr)
     if not hands:
         raise InputError(f"--calibrator-field {cal.name}: spectral window "
                          f"{group.pair.tgt.spw} of {run.target_ms} has no parallel-hand "
                          "correlation (RR, LL, XX, YY) to solve on")
-    both = np.union1d(rows.cal_rows, rows.target_rows)
-    _bridge_window(table, tx, column, both, bridge.counts, group, run.chunk_rows)
-    refant = _refant(run, names, np.concatenate([meta["ANTENNA1"][rows.cal_rows],
-                                                 meta["ANTENNA2"][rows.cal_rows]]))
-    chan_offset = np.asarray(group.pair.tgt.chan_freq) - group.pair.tgt.freq
-    solution = _solve_window(table, tx, column, rows, group, hands, hand_corr, refant,
-                             len(names), ddid, meta["TIME"], chan_offset)
-    n_flagged = _apply_window(table, tx, column, rows.target_rows, meta, solution,
-                              corr_hands, chan_offset, run.chunk_rows, len(names))
+    block = run.chunk_rows
+    if bridge is not None:    # one channel: the count carried across the switches
+        both = np.union1d(rows.cal_rows, rows.target_rows)
+        target_side.remove_integers(table, tx, column, both, bridge.counts, frame, block)
+    scans, times, sums, counts = calibrator_side.scan_sums(
+        table, tx, column, rows, hand_corr, cal.model_column)
+    scan_numbers = [int(meta["SCAN_NUMBER"][rows.cal_rows[np.flatnonzero(rows.cal_scan == s)[0]]])
+                    for s in scans]
+    if bridge is None:
+        integers = calibrator_side.calibrator_integers(times, sums, counts, frame)
+        calibrator_side.check_decided(integers, scan_numbers, [
+            f"{names[p]}-{names[q]}" for p, q in zip(rows.ant1, rows.ant2)], cal.name,
+            group.pair.tgt.spw)
+        target_side.remove_integers(table, tx, column, rows.cal_rows, target_side.row_counts(
+            rows.cal_scan, scans, rows.cal_bl, integers.integers, corr_hands), frame, block)
+    else:
+        zero = np.zeros((scans.size, rows.ant1.size, len(hands)), np.int64)
+        integers = CalibratorIntegers(zero, np.full(zero.shape, 0.5), "carried")
+    refant = _refant(run, names, np.concatenate([rows.ant1, rows.ant2]))
+    solution = calibrator_side.solve_window(scans, times, sums, counts, rows, frame, integers,
+                                            refant, n_ant, (ddid, group.pair.tgt.spw, hands))
+    if not any(scan.valid.any() for scan in solution.scans):
+        raise InputError(f"--calibrator-field {cal.name}: no calibrator scan of spectral window "
+                         f"{group.pair.tgt.spw} has unflagged data in both bands (REF_MS "
+                         f"{run.ref_ms}, TARGET_MS {run.target_ms}) to solve on; unflag it or "
+                         "name a calibrator observed in both bands")
+    n_flagged, left, n_left = target_side.apply_window(table, tx, column, rows, meta, solution,
+                                                       corr_hands, frame, block, n_ant)
     entry = window_report(solution, names, rows.target_rows.size, n_flagged)
-    entry["switches"] = {"scan_starts": bridge.n_scan_starts,
-                         "largest_step_deg": round(bridge.largest_step_deg, 3),
-                         "steps_over_90_deg": bridge.n_risky}
+    entry["scans"] = [dict(s, scan_number=n) for s, n in zip(entry["scans"], scan_numbers)]
+    entry["calibrator_model"] = cal.model_label
+    entry["integers"] = {"rule": integers.rule, "calibrator": _integer_summary(
+        integers.integers, integers.margin, counts.sum(axis=2) > 0)}
+    if bridge is not None:
+        entry["switches"] = {"scan_starts": bridge.n_scan_starts,
+                             "largest_step_deg": round(bridge.largest_step_deg, 3),
+                             "steps_over_90_deg": bridge.n_risky}
+        return entry
+    t_scans = np.unique(rows.target_scan)
+    t_times = np.array([meta["TIME"][rows.target_rows[rows.target_scan == s]].mean()
+                        for s in t_scans])
+    found = target_side.target_integers(t_scans, t_times, left, n_left, frame, n_ant)
+    t_bl = meta["ANTENNA1"][rows.target_rows].astype(np.int64) * n_ant \
+        + meta["ANTENNA2"][rows.target_rows]
+    target_side.remove_integers(table, tx, column, rows.target_rows, target_side.row_counts(
+        rows.target_scan, found.scans, t_bl, found.integers, corr_hands), frame, block)
+    undecided = target_side.row_counts(rows.target_scan, found.scans, t_bl, found.undecided,
+                                       corr_hands)
+    n_undecided = target_side.flag_rows(table, tx, rows.target_rows, undecided, block)
+    entry["integers"]["target"] = dict(
+        _integer_summary(found.integers, found.margin, found.valid),
+        undecided_scans=int(found.undecided.sum()), rows_flagged=n_undecided)
+    if n_undecided:
+        log.warning("--calibrator-field %s: %d target scan x baseline x hand series of window "
+                    "%d had no clear integer (the delay left lay more than %.2f wraps from "
+                    "every one); their %d rows are flagged", cal.name,
+                    int(found.undecided.sum()), group.pair.tgt.spw,
+                    0.5 - target_side.MIN_TARGET_MARGIN, n_undecided)
     return entry
 
 
 def phase_reference(run, tx, cal: Optional[CalibratorField]) -> Optional[Dict]:
-    """Bridge the scans, solve on the calibrator's, apply to the other fields' rows, in
-    every staged output column of ``tx``; the report's entry (None without a calibrator)."""
+    """Each scan's integers removed, solved on the calibrator's scans, applied to the other
+    fields' rows, in every staged output column of ``tx``; the report's entry (None
+    without a calibrator)."""
     from .bridge import switch_counts
     from .report import log_summary
 
@@ -325,7 +285,8 @@ def phase_reference(run, tx, cal: Optional[CalibratorField]) -> Optional[Dict]:
             log.warning("--calibrator-field %s: no calibrator rows in target spectral window %d; "
                         "its rows are left as transferred", cal.name, groups[0].pair.tgt.spw)
     entry: Dict = {"calibrator_field": cal.name, "field_id": cal.field_id,
-                   "target_field_ids": list(cal.target_field_ids), "methods": {}}
+                   "target_field_ids": list(cal.target_field_ids),
+                   "calibrator_model": cal.model_label, "methods": {}}
     with tables.main_table(run.target_ms) as table:
         meta = {c: table.getcol(c) for c in ("TIME", "ANTENNA1", "ANTENNA2", "FIELD_ID",
                                              "DATA_DESC_ID", "SCAN_NUMBER")}
@@ -333,10 +294,13 @@ def phase_reference(run, tx, cal: Optional[CalibratorField]) -> Optional[Dict]:
         for ddid, groups in windows.items():
             if groups[0].pair.tgt.field != cal.name:
                 continue     # a window the calibrator was not observed in
-            n_ant = len(groups[0].antenna_names)
-            rows = _window_rows(meta, tx.rows_written, ddid, cal, n_ant)
-            bridges[ddid] = switch_counts(run, groups, meta,
-                                          np.union1d(rows.cal_rows, rows.target_rows))
+            bridges[ddid] = None
+            if integer_rule(WindowFrame.of_group(groups[0])) == "delay":
+                continue     # each scan's integer from its delay across the window
+            here = tx.rows_written & (meta["DATA_DESC_ID"] == ddid)
+            both = np.flatnonzero(here & np.isin(meta["FIELD_ID"],
+                                                 (cal.field_id,) + cal.target_field_ids))
+            bridges[ddid] = switch_counts(run, groups, meta, both)
         for method, column in tx.staging.items():
             entry["methods"][run.outputs[method]] = [
                 _reference_window(run, tx, table, column, meta, cal, ddid, windows[ddid],
@@ -352,6 +316,6 @@ def settle_n0_warnings(report: Dict, cal: CalibratorField) -> None:
         step = entry.get("offset_step", {})
         if entry.get("field") != cal.name and step.get("warning"):
             step["warning"] = None
-            step["note"] = (f"no n0 step: the per-scan 2 pi eps n0 were carried across the scans "
-                            f"and the per-baseline constant removed with {cal.name}'s "
-                            "(--calibrator-field)")
+            step["note"] = (f"no n0 step: each scan's 2 pi R_k n was solved on {cal.name} and "
+                            "the target (--calibrator-field) and the per-baseline constant "
+                            f"removed with {cal.name}'s")
