@@ -112,9 +112,9 @@ Machine: {machine_line()}; 1-minute load average {load[0]:.1f} before and {load[
 after.  Pair: 8 stations, 43 200 s of 1 s, 4 correlations (1 209 600 rows per band).
 A `distributed.LocalCluster` (worker processes, one thread each) is started by the
 benchmark; `hitops calibrate --method pwc --scheduler tcp://127.0.0.1:PORT` is a separate
-process that connects to it: the FPT kernel tasks (one per baseline group) run in the
+process that connects to it: the FPT kernel tasks (one per baseline batch) run in the
 workers, while the calibrate process reads the columns (dask-ms, on its own threads),
-matches the bands, grids each chunk, ships each baseline group's arrays to a worker and
+matches the bands, grids each chunk, ships each baseline batch's arrays to a worker and
 writes the outputs.  The table reads and writes stay in the calibrate process: a
 graph of dask-ms reads sent to a cluster is unpickled by its scheduler, whose copies of
 the table handles kept the table read-locked after the run (the next run's commit

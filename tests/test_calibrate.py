@@ -384,8 +384,8 @@ def test_distributed_local_cluster_gives_identical_output(new_pair):
         # the kernel tasks went to the cluster, the table reads and writes did not (a
         # scheduler that unpickles dask-ms handles keeps the table open after the run)
         prefixes = set(cluster.scheduler.task_prefixes)
-        assert "transfer_group" in prefixes, prefixes
-        assert prefixes <= {"transfer_group", "finalize"}, prefixes
+        assert "transfer_batch" in prefixes, prefixes
+        assert prefixes <= {"transfer_batch", "finalize"}, prefixes
     for c, value in threads.items():
         assert np.array_equal(col(truth.target_ms, c), value), c
     assert report["rows"]["matched"] == truth.time.size

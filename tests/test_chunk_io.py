@@ -6,7 +6,7 @@
   chunk k+2 starts (two chunks in memory, as the budget assumes), and a failed job
   raises in the caller.
 * A time-ordered set read in several chunks takes each chunk's baselines and times
-  from the index pass (:meth:`hitops.calibrate.chunks.ChunkMatch.rows_from_index`)
+  from the index pass (:meth:`hitops.calibrate.chunks.GroupMatch.rows_from_index`)
   instead of reading ANTENNA1/2 again: the rows must be exactly those the re-read gives,
   and a TIME changed after the index pass must still be refused.
 """
@@ -168,7 +168,7 @@ def test_a_time_changed_after_the_index_pass_is_refused_and_nothing_is_written(n
 
     truth = new_pair(PairSpec(n_time=300, seed=32, storage=Storage(time_order=True)))
     before = {c: col(truth.target_ms, c) for c in ("DATA", "FLAG")}
-    original = chunks.ChunkMatch.check
+    original = chunks.GroupMatch.check
 
     def check_then_change(self, *args, **kwargs):
         out = original(self, *args, **kwargs)
@@ -177,7 +177,7 @@ def test_a_time_changed_after_the_index_pass_is_refused_and_nothing_is_written(n
             t.putcell("TIME", last, t.getcell("TIME", last) + 0.25)
         return out
 
-    monkeypatch.setattr(chunks.ChunkMatch, "check", check_then_change)
+    monkeypatch.setattr(chunks.GroupMatch, "check", check_then_change)
     with pytest.raises(MeasurementSetError, match="TIME changed while it was being read"):
         calibrate_flat(truth.ref_ms, truth.target_ms, chunk_rows=400)
     with pt.table(str(truth.target_ms), ack=False) as t:

@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hitops.calibrate import calibrate_flat, rules
+from hitops.calibrate import calibrate_flat
+from hitops.calibrate import files as calibrate_files
 from hitops.testing import PairSpec, Signal
 from hitops.errors import InputError, OutputExistsError, StationError
 from hitops.io import convert
@@ -384,5 +385,5 @@ def test_caltable_checks_for_the_lead(demo, tmp_path):
     old = options(caltable=str(tmp_path / "old.G"), tracker="antenna")
     check_options(old, ["pwc"])
     with pytest.raises(OutputExistsError, match=r"--caltable '.*old\.G' exists; pass --overwrite"):
-        rules.prepare_inputs(old)
+        calibrate_files.prepare_inputs(old)
     assert not (tmp_path / "w").exists()

@@ -1,7 +1,7 @@
 """The count tracker behind the one WrapTracker interface (issue 25), as calibrate drives it.
 
 calibrate asks every tracker the same things per chunk: ``track_chunk`` -> a
-ChunkTracking, one share per baseline group (``for_group``) resolved inside the
+ChunkTracking, one share per baseline batch (``for_batch``) resolved inside the
 group's task, ``absorb`` of what each task carried, ``finish_chunk``.  The count
 tracker's shares count inside the tasks from a carried sample; these tests hold
 that path to the tracker's own whole-track counting on the grid (``track``), which
@@ -49,7 +49,7 @@ def test_count_shares_in_the_tasks_equal_the_tracker_on_the_whole_grid(chunk, gr
         tracked = tracker.track_chunk(t0, t1, None)
         assert isinstance(tracked, ChunkTracking) and tracked.segment_keys is None
         assert tracked.with_segment_offsets({(0, 0, 5): 3}) is tracked
-        shares = [(np.asarray(bls), tracked.for_group(np.asarray(bls))) for bls in groups]
+        shares = [(np.asarray(bls), tracked.for_batch(np.asarray(bls))) for bls in groups]
         for bls, share in shares:   # as the tasks do: every share made before any absorb
             resolved = share.resolve(phase[bls][..., t0:t1], valid[bls][..., t0:t1],
                                      scan[t0:t1])
@@ -76,7 +76,7 @@ def test_a_gridded_trackers_share_is_its_slice_with_exclusions_and_model():
     keys = np.full((n_bl, n_corr, n_time), 4, np.int64)
     tracked = Tracked(wraps, exclude, keys, model)
     bls = np.array([1, 2])
-    share = tracked.for_group(bls)
+    share = tracked.for_batch(bls)
     assert isinstance(share, TrackedWraps)
     phase = rng.uniform(-np.pi, np.pi, (2, n_corr, n_time))
     valid = np.ones((2, n_corr, n_time), bool)

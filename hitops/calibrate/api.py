@@ -6,7 +6,7 @@ One run goes down the stages of :mod:`hitops.calibrate.stages` (docs/architectur
    ``CalibrateOptions``; the mode (visibilities, table, calibrator) and what it
    refuses (:mod:`~hitops.calibrate.modes`);
 2. prepare: output files checked, UVFITS / FITS-IDI inputs converted
-   (:mod:`~hitops.calibrate.rules`), paths, subtables, write access and locks
+   (:mod:`~hitops.calibrate.files`), paths, subtables, write access and locks
    (:mod:`hitops.io.access`), the columns each band reads
    (:mod:`~hitops.calibrate.inputs`);
 3. plan: both sets' metadata, the group pairs, the chunks
@@ -45,7 +45,7 @@ from .from_table import calibrate_from_table
 from .inputs import CalibrateOptions, check_inputs, output_columns, parse_methods
 from .modes import Mode, check_options
 from .output import drop_stale_columns
-from .rules import PreparedInputs, prepare_inputs
+from .files import PreparedInputs, prepare_inputs
 
 if TYPE_CHECKING:   # the plan's modules load dask-ms: imported where a run starts
     from .plan import RunPlan

@@ -5,7 +5,7 @@ each :class:`BandSource` in blocks of at most ``block_rows`` rows and builds one
 :class:`BandIndex` per band, whole, with summaries (distinct times and their row counts, antenna pairs, scans,
 smallest INTERVAL), and for a band in time order each row's antenna pair (two
 bytes per row), so the checks of every chunk need not read the metadata again
-(:meth:`hitops.calibrate.chunks.ChunkMatch.check`).  A table stored out of time
+(:meth:`hitops.calibrate.chunks.GroupMatch.check`).  A table stored out of time
 order and read in time order (:class:`hitops.io.time_sorted.TimeSortedRows`) is
 indexed in storage order instead, each row's pair key then placed at its position
 in the time order (:func:`_index_in_storage_order`).
@@ -137,7 +137,7 @@ def index_bands(sources: List[BandSource], columns: List[List[str]], block_rows:
     antenna pair (``pair_key``: 2 bytes per row up to 256 stations) and the scan
     at each time (``time_scan``): with the rows' times, which follow from their
     positions, that is all the checks of every chunk need, so they read nothing
-    again (:meth:`hitops.calibrate.chunks.ChunkMatch.check`).
+    again (:meth:`hitops.calibrate.chunks.GroupMatch.check`).
     """
     passes = [_Pass(source, block_rows) for source in sources]
     n_blocks = max(-(-s.n_row // block_rows) for s in sources)

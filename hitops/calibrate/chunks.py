@@ -9,16 +9,16 @@ per time chunk:
 1. :func:`hitops.calibrate.band_index.index_bands` reads the per-row metadata
    in blocks of at most ``block_rows`` rows and keeps small summaries (distinct
    times, antenna pairs, scans, smallest INTERVAL) and the rows' pair keys;
-2. :class:`ChunkMatch` builds the union time axis, the target baselines and
+2. :class:`GroupMatch` builds the union time axis, the target baselines and
    the reference-pair tables from those summaries (sizes n_time, n_bl,
    n_ant^2);
-3. :meth:`ChunkMatch.check` takes each time chunk's baselines and times (from
+3. :meth:`GroupMatch.check` takes each time chunk's baselines and times (from
    the pair keys and the rows' positions, or read again when they were not
    kept), checks for duplicate cells, counts matched rows and finds the scan
    of each time, all before anything is written, and returns them as a
    :class:`MatchCheck` (the match itself is not changed);
-4. :meth:`ChunkMatch.row_numbers` and :meth:`ChunkMatch.rows_from_index` (from the
-   pair keys) or :meth:`ChunkMatch.index_rows` (from metadata read again) give a
+4. :meth:`GroupMatch.row_numbers` and :meth:`GroupMatch.rows_from_index` (from the
+   pair keys) or :meth:`GroupMatch.index_rows` (from metadata read again) give a
    chunk's row numbers, baseline and time indices when it is processed.
 
 The matching rules are those of :mod:`hitops.io.match` (same tolerance, same
@@ -58,7 +58,7 @@ class ChunkRows:
 
 @dataclass(frozen=True)
 class MatchCheck:
-    """What :meth:`ChunkMatch.check` found in every chunk (nothing of it is kept on the match)."""
+    """What :meth:`GroupMatch.check` found in every chunk (nothing of it is kept on the match)."""
 
     n_matched: int                  # target rows with a reference row in their cell
     n_ref_unused: int               # reference rows without a target row in their cell
@@ -67,7 +67,7 @@ class MatchCheck:
     first_chunk: Optional[Tuple[ChunkRows, ChunkRows]]
 
 
-class ChunkMatch(GridShape):
+class GroupMatch(GridShape):
     """The two bands' common grid (times, baselines) without per-row arrays.
 
     Built whole here, then only read: the common grid (times, ant1, ant2,
@@ -140,7 +140,7 @@ class ChunkMatch(GridShape):
             return slice(0, band.n_row)
         return band.rows_in(*self._time_range(band, group, t0, t1))
 
-    def with_datasets(self, datasets: Dict[str, object]) -> "ChunkMatch":
+    def with_datasets(self, datasets: Dict[str, object]) -> "GroupMatch":
         """A copy of this match reading the bands named in ``datasets`` ("tgt", "ref")
         through those datasets (the grid's arrays are shared, not copied)."""
         other = copy.copy(self)

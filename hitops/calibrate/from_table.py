@@ -47,7 +47,7 @@ from .chunk_io import ChunkIO
 from .table_source import TargetLayout, correct_chunk, target_layout, window_rows
 from .inputs import CalibrateOptions, Columns, check_inputs
 from .output import OutputTransaction
-from .rules import PreparedInputs, finish_report
+from .files import PreparedInputs, record_conversions_and_export
 from .run_report import (AfterCommit, AntennaWraps, RunReport, TableTracking, report_path,
                          write_run_report)
 from .skeleton import run_source
@@ -315,8 +315,10 @@ def _finish(run: TableRun, ref_ms: str, transfers: Dict[str, PreparedTransfer],
         return {"path": str(opts.output.caltable), "kind": "Fringe Jones", "rows": n_rows,
                 "method": method}
 
-    body = write_run_report(report, caltable if opts.output.caltable else None, lambda after: finish_report(
-        after, opts, ref_ms, run.target_ms, run.outputs, run.methods, prepared))
+    body = write_run_report(
+        report, caltable if opts.output.caltable else None,
+        lambda after: record_conversions_and_export(after, opts, ref_ms, run.target_ms,
+                                                    run.outputs, run.methods, prepared))
     log.info("wrote %s to %s from reference table %s; report %s; %.2f s",
              ", ".join(run.outputs.values()), run.target_ms, opts.input.reference_table, report.path,
              time.perf_counter() - started)

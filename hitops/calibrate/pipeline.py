@@ -5,12 +5,12 @@ For each time chunk of the plan, in time order:
 1. read both bands (:func:`hitops.calibrate.chunk_read.read_chunk`);
 2. track the reference wraps through the tracker's one interface
    (:class:`hitops.tracking.base.WrapTracker`: ``track_chunk`` ->
-   :class:`~hitops.tracking.base.ChunkTracking`, one share per baseline group,
+   :class:`~hitops.tracking.base.ChunkTracking`, one share per baseline batch,
    ``absorb`` and ``finish_chunk``): the smooth and antenna trackers track the
    whole chunk here with their context; the count tracker's share counts
    inside each group's task from a carried sample;
-3. transfer: :func:`hitops.calibrate.transfer.transfer_group` on baseline groups
-   (:class:`hitops.calibrate.group_tasks.GroupTasks`: threads, or a dask cluster; a
+3. transfer: :func:`hitops.calibrate.transfer.transfer_batch` on baseline batches
+   (:class:`hitops.calibrate.batch_tasks.BatchTasks`: threads, or a dask cluster; a
    :class:`~hitops.calibrate.transfer.TransferInputs` in, a
    :class:`~hitops.calibrate.transfer.TransferResult` out; the numba kernels of
    :mod:`hitops.kernels.fpt`);
@@ -46,13 +46,13 @@ from ..tracking.count import Carry
 from ..tracking.factory import new_tracker
 from .chunk_io import ChunkIO
 from .chunk_read import ChunkData, read_chunk, read_target
-from .group_tasks import GroupTasks, StartedGroups
+from .batch_tasks import BatchTasks, StartedGroups
 from .n0.step import (OffsetSolution, OffsetSums, channel_sums, offset_shifted_rows,
                       offset_step_needed, solve_offsets)
 from .output import OutputTransaction
-from .row_outputs import PlacedGroup, RowOutputs, rows_of_groups
+from .row_outputs import PlacedGroup, RowOutputs, rows_of_batches
 from .plan import GroupPlan, RunPlan
-from .transfer import SampleCounts, TransferInputs, group_rows, plan_groups
+from .transfer import SampleCounts, TransferInputs, batch_rows, plan_groups
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -124,16 +124,16 @@ class GroupPipeline:
         self.codes = [fpt.METHOD_CODES[m] for m in run.methods]
         n_workers = (len(client.scheduler_info()["workers"]) if client is not None
                      else (os.cpu_count() or 1))
-        self.tasks = GroupTasks(client, n_workers)
-        self.baseline_groups = plan_groups(group.match.n_bl, 2 * n_workers)
+        self.tasks = BatchTasks(client, n_workers)
+        self.baseline_batches = plan_groups(group.match.n_bl, 2 * n_workers)
         self.timings = run.timings
         for key in ("read", "transfer", "write"):
             self.timings[key] = 0.0
         self._cache: Dict[int, ChunkData] = {}
         # what to read: the tracker's context does not depend on its state
         self._reader = self.new_tracker()
-        log.info("%d chunk(s) of <= %d target rows; %d baseline groups; scheduler %s",
-                 group.n_chunks, run.chunk_rows, len(self.baseline_groups),
+        log.info("%d chunk(s) of <= %d target rows; %d baseline batches; scheduler %s",
+                 group.n_chunks, run.chunk_rows, len(self.baseline_batches),
                  run.opts.run.scheduler or "threads")
 
     @property
@@ -169,7 +169,7 @@ class GroupPipeline:
     def start_transfer(self, chunk: ChunkData, tracked: ChunkTracking,
                        offsets: Optional[np.ndarray], tgt_carry: Carry, sum_in_groups: bool,
                        offset_k: Optional[np.ndarray] = None) -> "StartedTransfer":
-        """The chunk's baseline-group tasks, started (:class:`GroupTasks`)."""
+        """The chunk's baseline-group tasks, started (:class:`BatchTasks`)."""
         match, group = self.group.match, self.group
         scans = group.grid.scans
         scan_local = scans.scan_of_time[chunk.t0:chunk.t1]
@@ -177,8 +177,8 @@ class GroupPipeline:
         sum_segments = (tracked.segment_keys is not None and offsets is None
                         and bool(self.run.columns.offset))
         placed, group_inputs = [], []
-        for bls in self.baseline_groups:
-            rows, picked = group_rows(bls, chunk.tgt_grid, chunk.ref_grid, chunk.tgt_vis,
+        for bls in self.baseline_batches:
+            rows, picked = batch_rows(bls, chunk.tgt_grid, chunk.ref_grid, chunk.tgt_vis,
                                       chunk.tgt_ok, chunk.ref_vis, chunk.ref_ok,
                                       chunk.ref_swapped,
                                       chunk.off_vis if sum_in_groups else None,
@@ -187,7 +187,7 @@ class GroupPipeline:
             inputs = TransferInputs(
                 rows=rows, corr_map=match.corr_map, scan_of_time=scan_local,
                 n_scan=scans.n_scan, methods=self.codes, ratio=group.ratio, eps=group.eps,
-                reference=tracked.for_group(bls), tgt_carry=tgt_carry.subset(bls),
+                reference=tracked.for_batch(bls), tgt_carry=tgt_carry.subset(bls),
                 offsets=None if offsets is None else offsets[bls],
                 offset_k=None if offset_k is None else offset_k[bls],
                 nu_ref=None if group.channels is None else group.channels.ref_freq,
@@ -200,7 +200,7 @@ class GroupPipeline:
         """Wait for the chunk's groups: (RowOutputs, [(placed group, result)])."""
         results = self.tasks.results(started.groups)
         placed = started.placed
-        out = rows_of_groups(chunk.tgt_grid, chunk.tgt_rows.size, self.group.n_corr,
+        out = rows_of_batches(chunk.tgt_grid, chunk.tgt_rows.size, self.group.n_corr,
                              self.codes, placed, results)
         return out, list(zip(placed, results))
 
@@ -233,7 +233,7 @@ class GroupPipeline:
         tracker = self.new_tracker()
         tgt_carry = Carry.empty(match.n_bl, n_corr)
         result = PassResult(samples=SampleCounts(), tracker=tracker,
-                            sums=OffsetSums.for_group(self.group))
+                            sums=OffsetSums.for_batch(self.group))
         with ChunkIO(lambda k: self.read(k, keep_reads), self.group.n_chunks) as io:
             for k in range(self.group.n_chunks):
                 chunk = io.chunk(k)
@@ -296,7 +296,7 @@ class GroupPipeline:
 
 
 def _add_parts(result: PassResult, tracker: WrapTracker, tgt_carry: Carry, parts) -> None:
-    """Add the baseline groups' sample counts and offset sums; hand the tracker what its
+    """Add the baseline batches' sample counts and offset sums; hand the tracker what its
     shares carried, and move CWU's target carry on."""
     for where, res in parts:
         bls = where.bls

@@ -3,7 +3,7 @@
 A :class:`RunPlan` holds what the whole run shares (options, columns, chunk
 size, the open dask-ms datasets); a :class:`GroupPlan` holds one (field,
 spectral window) pair of groups: the matched stations, correlations and times
-(:class:`hitops.calibrate.chunks.ChunkMatch`), the grid and tracking scans the
+(:class:`hitops.calibrate.chunks.GroupMatch`), the grid and tracking scans the
 trackers run on (:class:`hitops.tracking.grid.TrackGrid`), the chunk bounds, R
 and its split r + eps, and the resolved tracking setup.  Every chunk's cells
 are checked here, so a plan that builds is one the pipeline can write.  Each
@@ -28,7 +28,7 @@ from ..io.stations import Stations, stations_of
 from ..tracking.grid import ScanAxis, TrackGrid
 from ..tracking.options import TrackingSetup
 from .band_index import INDEX_COLUMNS, ROW_COLUMNS, BandSource, index_bands
-from .chunks import ChunkMatch, ChunkRows, MatchCheck
+from .chunks import GroupMatch, ChunkRows, MatchCheck
 from .channels import ChannelPlan, channel_plan, check_channel_counts
 from .groups import GroupPair, describe_groups, pair_groups
 from .inputs import CalibrateOptions, Columns
@@ -43,7 +43,7 @@ class GroupPlan:
 
     pair: GroupPair
     label: str                      # '' when the sets hold one group
-    match: ChunkMatch
+    match: GroupMatch
     grid: TrackGrid                 # the match's baselines and times, the tracking scans
     bounds: List[int]               # chunk k covers union times [bounds[k], bounds[k+1])
     # the checks' (target, reference) rows of a one-chunk run, reused by the read
@@ -55,7 +55,7 @@ class GroupPlan:
     # the smooth/antenna trackers' resolved parameters; the count tracker has none (None)
     tracking: Optional[TrackingSetup]
     n_target_rows: int
-    n_matched: int                  # target rows with a reference row (ChunkMatch.check)
+    n_matched: int                  # target rows with a reference row (GroupMatch.check)
     n_ref_unused: int               # reference rows without a target row
     antenna_names: List[str]        # station codes of the target set, by antenna index
     # several channels: one ratio per target channel (hitops/calibrate/channels.py)
@@ -260,7 +260,7 @@ def plan_group(run: RunPlan, pair: GroupPair, ref_source: BandSource, tgt_source
         check_channel_counts(band.ms, role, column, band.ds, group.n_chan, group.spw)
 
     stage = time.perf_counter()
-    match = ChunkMatch(ref_band, tgt_band, ref_stations, tgt_stations, list(pair.ref.corr),
+    match = GroupMatch(ref_band, tgt_band, ref_stations, tgt_stations, list(pair.ref.corr),
                        list(pair.tgt.corr), antenna_map, opts.input.time_tolerance,
                        datasets={"ref": ref_source.ds, "tgt": tgt_source.ds})
     log.info("stations paired by code (%s: ANTENNA::%s, %s: ANTENNA::%s): %s", run.ref_ms,
@@ -306,7 +306,7 @@ def _split_long_gaps(scans: ScanAxis, times: np.ndarray, coherence_time: float) 
     return scans
 
 
-def _log_match(run: RunPlan, match: ChunkMatch, grid: TrackGrid, checked: MatchCheck,
+def _log_match(run: RunPlan, match: GroupMatch, grid: TrackGrid, checked: MatchCheck,
                n_target_rows: int) -> None:
     for c, name in enumerate(match.corr_names):
         if match.corr_map[0, c] < 0:

@@ -1,7 +1,7 @@
 """Stage 6 of ``hitops calibrate``: the summary in the log, the JSON report, and what follows.
 
 :func:`group_report` turns one group pair's :class:`hitops.calibrate.pipeline.GroupResult`
-into its report entry (and log lines); :func:`write_report` adds the verdict,
+into its report entry (and log lines); :func:`finish_after_commit` adds the verdict,
 the calibration table and the conversions of the run and writes the JSON once
 (:class:`~hitops.calibrate.run_report.RunReport`).
 """
@@ -18,7 +18,7 @@ from ..errors import HitopsError
 from .output import FLAG_BACKUP, OutputTransaction
 from .pipeline import GroupResult
 from .plan import GroupPlan, RunPlan
-from .rules import PreparedInputs, finish_report
+from .files import PreparedInputs, record_conversions_and_export
 from .run_report import AfterCommit, RunReport, report_path, write_run_report
 from .transfer import SampleCounts
 
@@ -130,7 +130,7 @@ def combined_report(run: RunPlan, reports: List[Dict]) -> Dict:
                           for k in first["timings_s"]}}
 
 
-def write_report(run: RunPlan, report: Dict, result: Optional[GroupResult],
+def finish_after_commit(run: RunPlan, report: Dict, result: Optional[GroupResult],
                  started: float, prepared: PreparedInputs,
                  group_results: Sequence[GroupResult] = ()) -> Dict:
     """The verdict, the calibration table and conversions of a run; the JSON report written
@@ -150,7 +150,7 @@ def write_report(run: RunPlan, report: Dict, result: Optional[GroupResult],
         caltable = functools.partial(_write_fringe_table, run, group_results)
     elif opts.output.caltable:
         caltable = functools.partial(_write_caltable, run, run.groups[0], result)
-    body = write_run_report(out, caltable, lambda after: finish_report(
+    body = write_run_report(out, caltable, lambda after: record_conversions_and_export(
         after, opts, run.ref_ms, run.target_ms, run.outputs, run.methods, prepared))
     elapsed = time.perf_counter() - started
     log.info("wrote %s to %s; report %s; %.2f s (%s)", ", ".join(run.outputs.values()),

@@ -1,7 +1,7 @@
-"""A chunk's transfer results, from the baseline groups' (baseline, time) cells to target rows.
+"""A chunk's transfer results, from the baseline batches' (baseline, time) cells to target rows.
 
 Each group's :class:`~hitops.calibrate.transfer.TransferResult` holds its output on
-the group's cells; :func:`rows_of_groups` puts every group's output in the chunk's
+the group's cells; :func:`rows_of_batches` puts every group's output in the chunk's
 target row order (:class:`RowOutputs`), which is what the write stages.
 """
 
@@ -28,7 +28,7 @@ class RowOutputs:
 
 @dataclass
 class PlacedGroup:
-    """Where a baseline group's output goes: its baselines and, for a compact copy sent to
+    """Where a baseline batch's output goes: its baselines and, for a compact copy sent to
     a remote worker, the chunk rows it holds and its own row grid (None: threads, the
     group's cells hold chunk rows)."""
 
@@ -37,7 +37,7 @@ class PlacedGroup:
     local_grid: Optional[np.ndarray]
 
 
-def rows_of_groups(tgt_grid: np.ndarray, n_rows: int, n_corr: int, codes: List[int],
+def rows_of_batches(tgt_grid: np.ndarray, n_rows: int, n_corr: int, codes: List[int],
                    placed: List[PlacedGroup], results: List[TransferResult]) -> RowOutputs:
     """Each method's phasors (and delays), the calibrated mask, in the chunk's row order.
 

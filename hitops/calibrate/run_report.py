@@ -87,7 +87,7 @@ def write_run_report(report: RunReport, caltable: Optional[Callable[[], Dict]],
                      finish: Callable[[AfterCommit], None]) -> Dict:
     """What follows the commit, then the JSON written once: ``caltable()`` (--caltable,
     when given) and ``finish`` (the conversions and --export-uvfits,
-    hitops/calibrate/rules.py) fill ``report.after``.  Returns the JSON object, with
+    hitops/calibrate/files.py) fill ``report.after``.  Returns the JSON object, with
     ``report_path`` (not written into the file)."""
     if caltable is not None:
         report.after.caltable = caltable()

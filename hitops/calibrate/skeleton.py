@@ -1,6 +1,6 @@
 """The one run skeleton of ``hitops calibrate``, whichever reference it transfers.
 
-    prepare (api.py, rules.prepare_inputs) -> plan (the source's) -> open the transaction
+    prepare (api.py, files.prepare_inputs) -> plan (the source's) -> open the transaction
     -> stage (the source's chunk loop through ChunkIO, into the transaction)
     -> commit (once, interrupts held) -> report (one RunReport, written once)
 

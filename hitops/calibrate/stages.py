@@ -40,7 +40,7 @@ STAGES: Tuple[StageInfo, ...] = (
     StageInfo(Stage.PREPARE, "output files checked, UVFITS/FITS-IDI converted, access and "
               "locks, the columns each band reads",
               "PreparedInputs, Columns",
-              ("hitops/calibrate/rules.py", "hitops/io/access.py",
+              ("hitops/calibrate/files.py", "hitops/io/access.py",
                "hitops/calibrate/inputs.py")),
     StageInfo(Stage.PLAN, "both sets' metadata read once, groups paired, the memory budget, "
               "per group the matched stations, times and chunks, R = r + eps, the tracking "

@@ -1,13 +1,13 @@
-"""One time chunk of frequency phase transfer, split over baseline groups.
+"""One time chunk of frequency phase transfer, split over baseline batches.
 
 The pipeline (:mod:`hitops.calibrate.pipeline`) reads a chunk of rows, calls
-:func:`plan_groups` and runs :func:`transfer_group` on each baseline group as
-one task (:class:`hitops.calibrate.group_tasks.GroupTasks`: a thread of this
+:func:`plan_groups` and runs :func:`transfer_batch` on each baseline batch as
+one task (:class:`hitops.calibrate.batch_tasks.BatchTasks`: a thread of this
 process, or a task on a dask cluster): a :class:`TransferInputs` in (the group's rows, the chunk's scans,
 the tracker's share, the n0 shifts), a :class:`TransferResult` out (each
 method's phasors, the calibrated mask, what the task carried, the sample
 counts and the n0 step's sums).  The reference wraps come from the tracker's
-share (:class:`hitops.tracking.base.GroupWraps`): counted here by the count
+share (:class:`hitops.tracking.base.BatchWraps`): counted here by the count
 tracker (continuing across chunks through a :class:`hitops.tracking.count.Carry`,
 so the result does not depend on the chunk size; it restarts at every new
 scan), sliced from the chunk's counts by the smooth and antenna trackers.
@@ -22,13 +22,13 @@ import numpy as np
 
 from ..kernels import fpt, wideband
 from ..kernels.segments import SegmentSums, segment_run_sums
-from ..tracking.base import GroupWraps
+from ..tracking.base import BatchWraps
 from ..tracking.count import Carry, count_scans
 
 
 @dataclass
-class GroupRows:
-    """The rows one baseline group's task reads, and its row grids.
+class BatchRows:
+    """The rows one baseline batch's task reads, and its row grids.
 
     tgt_rows, ref_rows (n_bl, n_time): index into the row arrays, or -1; tgt_vis,
     tgt_ok (n_tgt, n_corr) (tgt_vis None: a per-channel read that needed only the rows'
@@ -50,7 +50,7 @@ class GroupRows:
 
 @dataclass
 class TransferInputs:
-    """Everything one baseline group's transfer task needs (all group-local).
+    """Everything one baseline batch's transfer task needs (all group-local).
 
     corr_map (2, n_corr): the reference correlation of each target one (unswapped,
     swapped rows); scan_of_time (n_time,) and n_scan: the chunk's tracking scans;
@@ -64,14 +64,14 @@ class TransferInputs:
     integers behind ``offsets`` (the delay needs the turns, not only their phase).
     """
 
-    rows: GroupRows
+    rows: BatchRows
     corr_map: np.ndarray
     scan_of_time: np.ndarray
     n_scan: int
     methods: List[int]
     ratio: float
     eps: float
-    reference: GroupWraps
+    reference: BatchWraps
     tgt_carry: Carry
     offsets: Optional[np.ndarray] = None
     segment_keys: Optional[np.ndarray] = None
@@ -102,7 +102,7 @@ class SampleCounts:
 
 @dataclass
 class TransferResult:
-    """One baseline group's output.
+    """One baseline batch's output.
 
     phasors: method code -> (n_bl, n_time, n_corr) complex64 factor per cell;
     calibrated (n_bl, n_time, n_corr) bool; ref_carry: what the tracker's share
@@ -126,8 +126,8 @@ class TransferResult:
     delays: Optional[Dict[int, np.ndarray]] = None
 
 
-def transfer_group(inputs: TransferInputs) -> TransferResult:
-    """FPT of one baseline group of one chunk (one task; inputs are group-local)."""
+def transfer_batch(inputs: TransferInputs) -> TransferResult:
+    """FPT of one baseline batch of one chunk (one task; inputs are group-local)."""
     rows = inputs.rows
     tgt_rows, ref_rows = rows.tgt_rows, rows.ref_rows
     n_bl, n_time = tgt_rows.shape
@@ -210,11 +210,11 @@ def plan_groups(n_bl: int, n_groups: int) -> List[np.ndarray]:
     return [g for g in np.array_split(np.arange(n_bl), n_groups) if g.size]
 
 
-def group_rows(bls: np.ndarray, tgt_grid: np.ndarray, ref_grid: np.ndarray,
+def batch_rows(bls: np.ndarray, tgt_grid: np.ndarray, ref_grid: np.ndarray,
                tgt_vis, tgt_ok, ref_vis, ref_ok, ref_swapped,
                off_vis: Optional[np.ndarray], off_ok: Optional[np.ndarray],
-               local: bool = True) -> Tuple[GroupRows, Optional[np.ndarray]]:
-    """The rows one baseline group needs, its row grids, and the chunk rows it copied.
+               local: bool = True) -> Tuple[BatchRows, Optional[np.ndarray]]:
+    """The rows one baseline batch needs, its row grids, and the chunk rows it copied.
 
     ``local``: copy the group's rows into compact arrays (what a remote worker
     should receive; the second value says which chunk rows they are); otherwise
@@ -222,7 +222,7 @@ def group_rows(bls: np.ndarray, tgt_grid: np.ndarray, ref_grid: np.ndarray,
     (the second value is None).
     """
     if not local:
-        return GroupRows(tgt_grid[bls], ref_grid[bls], tgt_vis, tgt_ok, ref_vis, ref_ok,
+        return BatchRows(tgt_grid[bls], ref_grid[bls], tgt_vis, tgt_ok, ref_vis, ref_ok,
                          ref_swapped, off_vis, off_ok), None
 
     def localise(grid, arrays):
@@ -235,4 +235,4 @@ def group_rows(bls: np.ndarray, tgt_grid: np.ndarray, ref_grid: np.ndarray,
 
     tgt_local, tgt_picked, (tv, tok, ov, ook) = localise(tgt_grid, [tgt_vis, tgt_ok, off_vis, off_ok])
     ref_local, _, (rv, rok, rsw) = localise(ref_grid, [ref_vis, ref_ok, ref_swapped])
-    return GroupRows(tgt_local, ref_local, tv, tok, rv, rok, rsw, ov, ook), tgt_picked
+    return BatchRows(tgt_local, ref_local, tv, tok, rv, rok, rsw, ov, ook), tgt_picked

@@ -16,7 +16,7 @@ from typing import Dict, List, Optional, Tuple
 from ..io import read as msio
 from .output import OutputTransaction, release_cluster_tables
 from .plan import RunPlan
-from .rules import PreparedInputs
+from .files import PreparedInputs
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -77,7 +77,7 @@ class VisibilitySource:
 
     def report(self, tx: OutputTransaction, staged: Tuple[List, Optional[Dict]]) -> Dict:
         from .phaseref import settle_n0_warnings
-        from .report import combined_report, group_report, write_report
+        from .report import combined_report, group_report, finish_after_commit
 
         run, (results, referencing) = self.run, staged
         reports = [group_report(run, group, result, tx, self.started)
@@ -86,5 +86,5 @@ class VisibilitySource:
         if referencing is not None:
             report["phase_referencing"] = referencing
             settle_n0_warnings(report, self.calibrator)
-        return write_report(run, report, results[0] if len(reports) == 1 else None,
+        return finish_after_commit(run, report, results[0] if len(reports) == 1 else None,
                             self.started, self.prepared, results)

@@ -9,7 +9,7 @@ differ between bands, e.g. the paper's JCMT at 86 GHz paired with SMA at
 whose antenna order is reversed with respect to the target baseline is
 conjugated, which also exchanges its cross-hand correlations (RL <-> LR).
 
-:class:`hitops.calibrate.chunks.ChunkMatch` puts both bands on one
+:class:`hitops.calibrate.chunks.GroupMatch` puts both bands on one
 (baseline, time) grid, chunk by chunk, from the pieces here: baselines are the
 target's, times the union of both bands' times.
 """

@@ -3,7 +3,7 @@
 The first pass of a calibrate run with the n0 step sums, per (baseline,
 correlation, segment key), exp(i (Phi_ref - Phi_out)) of its calibrated samples
 (Phi_ref: the offset reference or model phase; Phi_out: the transferred output
-phase).  :func:`segment_run_sums` does it inside a baseline group's transfer task
+phase).  :func:`segment_run_sums` does it inside a baseline batch's transfer task
 on the gridded phases, :func:`segment_row_sums` in the driver on row-ordered
 visibilities (a first pass that keeps its output).  :func:`shifted_rows` then
 moves a kept output by exp(i 2 pi eps k) per segment instead of a second
@@ -30,7 +30,7 @@ class SegmentSums(NamedTuple):
 
 
 class GridSamples(NamedTuple):
-    """A baseline group's samples on its grid (the transfer task's form)."""
+    """A baseline batch's samples on its grid (the transfer task's form)."""
 
     tgt_phase: np.ndarray     # (n_bl, n_corr, n_time) float64 target phase
     phasor: np.ndarray        # (n_bl, n_time, n_corr) output phasor

@@ -1,7 +1,7 @@
 """Reference-band phase-wrap tracking: the three trackers of ``hitops calibrate`` and their theory.
 
 One interface (:mod:`.base`: ``WrapTracker`` and the types it passes, ``ReferenceGrid``
-in, ``ChunkTracking`` out, split into one ``GroupWraps`` per baseline group of the
+in, ``ChunkTracking`` out, split into one ``BatchWraps`` per baseline batch of the
 transfer) with one module per tracker: :mod:`.count` (the paper's step > pi rule), :mod:`.smooth` (smoothed
 unit phasor, gap bridging, jump detection) and :mod:`.antenna` (wraps tracked
 per antenna), each with its numba kernels beside it (:mod:`.smooth_kernel`,

@@ -5,9 +5,9 @@ of the union time axis the pipeline asks the tracker which times it needs
 (:meth:`WrapTracker.extended`: ``context`` samples either side for the
 smooth and antenna trackers, none for count), reads them, and calls
 :meth:`WrapTracker.track_chunk`, which returns a :class:`ChunkTracking` for
-[t0, t1).  Each baseline group's transfer task gets its part of it
-(:meth:`ChunkTracking.for_group`, a :class:`GroupWraps`) and resolves its
-reference wraps there (:meth:`GroupWraps.resolve`); the tracker takes back what
+[t0, t1).  Each baseline batch's transfer task gets its part of it
+(:meth:`ChunkTracking.for_batch`, a :class:`BatchWraps`) and resolves its
+reference wraps there (:meth:`BatchWraps.resolve`); the tracker takes back what
 the tasks carried (:meth:`WrapTracker.absorb`) and closes the chunk
 (:meth:`WrapTracker.finish_chunk`).
 
@@ -50,7 +50,7 @@ class ReferenceGrid:
 
 @dataclass
 class ResolvedWraps:
-    """A baseline group's reference side after its tracker (arrays (n_bl, n_corr, n_time)).
+    """A baseline batch's reference side after its tracker (arrays (n_bl, n_corr, n_time)).
 
     ref_phase, ref_valid: the phase to transfer and where it is usable; ref_wraps:
     int64 wrap counts; wrap_events (n_bl, n_corr) int64: wraps counted in this task
@@ -66,8 +66,8 @@ class ResolvedWraps:
     carry: Optional[object] = None
 
 
-class GroupWraps(ABC):
-    """A baseline group's share of a chunk's tracking, sent with its transfer task."""
+class BatchWraps(ABC):
+    """A baseline batch's share of a chunk's tracking, sent with its transfer task."""
 
     @abstractmethod
     def resolve(self, ref_phase: np.ndarray, ref_valid: np.ndarray,
@@ -76,7 +76,7 @@ class GroupWraps(ABC):
 
 
 class ChunkTracking(ABC):
-    """A chunk's tracking, before it is split over the baseline groups.
+    """A chunk's tracking, before it is split over the baseline batches.
 
     ``segment_keys``: int64 (n_bl, n_corr, t1 - t0) segment key per sample (scan
     index * SEGMENT_KEY + segment, -1 where invalid; the per-segment n0 step), or
@@ -86,7 +86,7 @@ class ChunkTracking(ABC):
     segment_keys: Optional[np.ndarray] = None
 
     @abstractmethod
-    def for_group(self, bls: np.ndarray) -> GroupWraps:
+    def for_batch(self, bls: np.ndarray) -> BatchWraps:
         """The share of the baselines ``bls`` (indices into the chunk's baselines)."""
 
     def with_segment_offsets(self, segment_k) -> "ChunkTracking":
@@ -95,8 +95,8 @@ class ChunkTracking(ABC):
 
 
 @dataclass
-class TrackedWraps(GroupWraps):
-    """A baseline group's slice of a gridded tracker's counts (smooth, antenna)."""
+class TrackedWraps(BatchWraps):
+    """A baseline batch's slice of a gridded tracker's counts (smooth, antenna)."""
 
     ref_wraps: np.ndarray
     ref_exclude: Optional[np.ndarray] = None
@@ -146,7 +146,7 @@ class Tracked(ChunkTracking):
     segment_keys: Optional[np.ndarray] = None
     ref_model: Optional[np.ndarray] = None
 
-    def for_group(self, bls) -> TrackedWraps:
+    def for_batch(self, bls) -> TrackedWraps:
         return TrackedWraps(self.ref_wraps[bls],
                             None if self.ref_exclude is None else self.ref_exclude[bls],
                             None if self.ref_model is None else self.ref_model[bls])

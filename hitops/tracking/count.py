@@ -12,7 +12,7 @@ continuing across chunks through a :class:`Carry` (the last valid sample of
 each series and its count), so the counts do not depend on the chunk size;
 :class:`CountTracker` is the same behind the :class:`~hitops.tracking.base.WrapTracker`
 interface.  It needs no context: one sample is carried instead.  In a calibrate
-run it needs no grid either: each baseline group's transfer task counts its own
+run it needs no grid either: each baseline batch's transfer task counts its own
 phases from its part of the carry (:class:`CountedWraps`), and the tracker takes
 the carry and the wrap events back (:meth:`CountTracker.absorb`).
 """
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from .base import ChunkTracking, GroupWraps, ResolvedWraps, Tracked, WrapTracker
+from .base import ChunkTracking, BatchWraps, ResolvedWraps, Tracked, WrapTracker
 from .grid import TrackGrid
 from .state import Stats
 
@@ -147,7 +147,7 @@ class Carry:
                    np.zeros((n_bl, n_corr), np.int64), -1)
 
     def subset(self, bls) -> "Carry":
-        """The carry of the baselines ``bls`` (a baseline group's task gets only its own)."""
+        """The carry of the baselines ``bls`` (a baseline batch's task gets only its own)."""
         return Carry(self.last_phase[bls], self.has_last[bls], self.count[bls], self.last_scan)
 
 
@@ -182,8 +182,8 @@ def chunk_wrap_events(wraps: np.ndarray, scan_of_time: np.ndarray, carry: Carry)
 
 
 @dataclass
-class CountedWraps(GroupWraps):
-    """A baseline group's wraps, counted inside its transfer task from the carried sample."""
+class CountedWraps(BatchWraps):
+    """A baseline batch's wraps, counted inside its transfer task from the carried sample."""
 
     carry: Carry
 
@@ -199,7 +199,7 @@ class CountedChunk(ChunkTracking):
 
     carry: Carry
 
-    def for_group(self, bls) -> CountedWraps:
+    def for_batch(self, bls) -> CountedWraps:
         return CountedWraps(self.carry.subset(bls))
 
 

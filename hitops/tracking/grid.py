@@ -37,7 +37,7 @@ class ScanSplit:
 class ScanAxis:
     """The tracking scans of a time axis: wraps are counted within a scan, never across.
 
-    Built by :meth:`hitops.calibrate.chunks.ChunkMatch.check` from SCAN_NUMBER,
+    Built by :meth:`hitops.calibrate.chunks.GroupMatch.check` from SCAN_NUMBER,
     then by :meth:`split_at_gaps` (a new axis; this one is left as it is).
     """
 

@@ -79,7 +79,7 @@ class OffsetSums:
     window: Optional[WindowRatios] = None
 
     @classmethod
-    def for_group(cls, group: GroupPlan) -> "OffsetSums":
+    def for_batch(cls, group: GroupPlan) -> "OffsetSums":
         """Empty sums for ``group``: across its target window's channels when it has several."""
         channels = group.channels
         return cls.empty(group.match.n_bl, group.n_corr, group.grid.scans.n_scan,
@@ -111,7 +111,7 @@ def offset_step_needed(group: GroupPlan) -> bool:
     count leaves a phase slope across the window, which the step can see."""
     if group.eps != 0.0:
         return True
-    window = OffsetSums.for_group(group).window
+    window = OffsetSums.for_batch(group).window
     if window is None:
         log.info("integer R: PWC has no n0 offset; the offset step is skipped")
         return False

@@ -1,4 +1,4 @@
-"""calibrate's rules for inputs that are not Measurement Sets and for its file outputs.
+"""The files around a ``hitops calibrate`` run: inputs that are no Measurement Sets, file outputs.
 
 Issue 13 let ``hitops calibrate`` take UVFITS and FITS-IDI files and write
 ``--export-uvfits`` and ``--caltable`` files.  The conversions themselves are
@@ -9,7 +9,7 @@ Issue 13 let ``hitops calibrate`` take UVFITS and FITS-IDI files and write
   ``--overwrite``; no output may be an input), then REF and TARGET are
   converted (or reused) into Measurement Sets.  It returns the conversions as
   a :class:`PreparedInputs`, which the run hands to its report stage;
-* :func:`finish_report`, the run's last step: the conversions in the report
+* :func:`record_conversions_and_export`, the run's last step: the conversions in the report
   (its :class:`~hitops.calibrate.run_report.AfterCommit`), then ``--export-uvfits``
   with calibrate's history lines.
 """
@@ -102,7 +102,7 @@ def history_lines(methods: List[str], tracker: str, ref_ms: str) -> List[str]:
             f"reference band: {Path(ref_ms).name}"]
 
 
-def finish_report(after: AfterCommit, opts, ref_ms: str, target_ms: str,
+def record_conversions_and_export(after: AfterCommit, opts, ref_ms: str, target_ms: str,
                   outputs: Dict[str, str], methods: List[str], inputs: PreparedInputs) -> None:
     """calibrate's last step: the conversions (``after.conversions``), then --export-uvfits
     (``after.export_uvfits``)."""

@@ -1,8 +1,8 @@
 """Where a chunk's baseline-group transfers run: this process's threads, or a dask cluster.
 
-One interface for both (:class:`GroupTasks`): :meth:`~GroupTasks.start` hands the
+One interface for both (:class:`BatchTasks`): :meth:`~BatchTasks.start` hands the
 groups' :class:`~hitops.calibrate.transfer.TransferInputs` over and returns at once,
-:meth:`~GroupTasks.results` waits for their
+:meth:`~BatchTasks.results` waits for their
 :class:`~hitops.calibrate.transfer.TransferResult` in the same order.
 
 * Threads (no ``--scheduler``): a pool of one thread per core that lives for the
@@ -23,10 +23,10 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import List, Optional
 
-from .transfer import TransferInputs, TransferResult, transfer_group
+from .transfer import TransferInputs, TransferResult, transfer_batch
 
 
-class GroupTasks:
+class BatchTasks:
     """Runs one chunk's baseline-group transfers at a time (``client``: a dask.distributed
     Client, or None for ``n_threads`` threads of this process)."""
 
@@ -40,10 +40,10 @@ class GroupTasks:
     def start(self, inputs: List[TransferInputs]) -> "StartedGroups":
         """The groups' tasks, started (threads) or ready to be computed (cluster)."""
         if self._pool is not None:
-            return StartedGroups([self._pool.submit(transfer_group, i) for i in inputs], None)
+            return StartedGroups([self._pool.submit(transfer_batch, i) for i in inputs], None)
         import dask
 
-        return StartedGroups(None, [dask.delayed(transfer_group, pure=False)(i) for i in inputs])
+        return StartedGroups(None, [dask.delayed(transfer_batch, pure=False)(i) for i in inputs])
 
     def results(self, started: "StartedGroups") -> List[TransferResult]:
         """Each group's result, in the order the groups were started."""
