@@ -178,12 +178,6 @@ TABLE_OPENERS_ALLOWED = ("io", "casa", "testing")
 TABLE_CALLS = {"table", "taql", "tablecommand", "tableexists", "default_ms", "default_ms_subtable",
                "tablefromascii", "msconcat", "makearrcoldesc", "maketabdesc",
                "xds_from_ms", "xds_from_table", "xds_to_table"}
-#: modules allowed to open casacore tables outside hitops/io/: none (the table path and the
-#: calibrator step moved onto hitops/io/tables.py too); kept so that a module put back on it
-#: must still open tables
-_PENDING_SKELETON: set = set()
-
-
 def table_opens(path):
     """'line: what' of every casacore table open (import or call) in the module at ``path``."""
     imports, calls = [], []
@@ -226,10 +220,8 @@ def test_casacore_tables_are_opened_only_in_hitops_io():
         if relative.split("/")[0] in TABLE_OPENERS_ALLOWED:
             continue
         found = table_opens(path)
-        if found and relative not in _PENDING_SKELETON:
+        if found:
             opens[relative] = found
-        # the allowlist names only modules that still open tables: it shrinks, never hides
-        assert found or relative not in _PENDING_SKELETON, f"{relative}: take it off the list"
     assert opens == {}, "open casacore tables through hitops/io/tables.py or metadata.py"
 
 
