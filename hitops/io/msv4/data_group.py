@@ -135,15 +135,22 @@ class DataGroupWriter:
     def write(self, rows: PartitionRows, data: np.ndarray, flag: np.ndarray) -> None:
         """The rows' data (n_row, n_chan, n_corr) and flags into their cells; the chunk's other
         cells stay NaN and flagged."""
+        self.write_cells(rows.time_slice, rows.time_index, rows.baseline, data, flag)
+
+    def write_cells(self, time_slice, time_index: np.ndarray, baseline: np.ndarray,
+                    data: np.ndarray, flag: np.ndarray) -> None:
+        """:meth:`write` of rows given by their cells: the time steps ``time_slice`` [start,
+        stop) are written whole, the cells (time_index, baseline) from ``data`` and ``flag``,
+        every other cell of those steps NaN and flagged."""
         group = self._staged
         if group is None:
             raise RuntimeError("DataGroupWriter.write before stage()")
-        start, stop = rows.time_slice
+        start, stop = time_slice
         out = group[self.variables.correlated_data]
         block = np.full((stop - start,) + out.shape[1:], np.nan + 0j, out.dtype)
         flags = np.ones(block.shape, bool)
-        block[rows.time_index - start, rows.baseline] = data
-        flags[rows.time_index - start, rows.baseline] = flag
+        block[time_index - start, baseline] = data
+        flags[time_index - start, baseline] = flag
         out[start:stop] = block
         group[self.variables.flag][start:stop] = flags
 

@@ -1,0 +1,194 @@
+"""``hitops calibrate`` on MSv4 processing sets equals the run on the v2 sets they came from.
+
+Truth: the same run on the Measurement Sets v2 that xradio converted.  Each method's
+new data group (hitops/calibrate/output_msv4.py) must hold the v2 run's output column
+and its flags the v2 run's FLAG, cell for cell (to float32 rounding), for every
+method, the count tracker cut into several chunks and the antenna tracker with the
+n0 step (--offset-model point); the input's arrays stay byte for byte as they were.
+A taken group name is refused without --overwrite, a run stopped in the middle of
+a chunk leaves every file of the store as it was, and the modes the MSv4 path does
+not take are one line each.  Cost: about 25 s here (most of it the four-band runs).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("xradio")
+
+from hitops.calibrate import calibrate_flat  # noqa: E402
+from hitops.errors import InputError, OutputExistsError  # noqa: E402
+from hitops.io import tables  # noqa: E402
+from hitops.io.metadata import read_metadata  # noqa: E402
+from hitops.io.msv4.data_group import DataGroupWriter  # noqa: E402
+from hitops.io.msv4.layout import read_layout  # noqa: E402
+from hitops.io.msv4.rows import PartitionReader  # noqa: E402
+from hitops.io.msv4.store import open_store  # noqa: E402
+from hitops.testing import PairSpec, Troposphere  # noqa: E402
+from msv4_sets import convert, file_digests  # noqa: E402
+
+pytestmark = pytest.mark.filterwarnings("ignore:.*Zarr V3 specification",
+                                        "ignore:Consolidated metadata is currently not part")
+
+SPEC = PairSpec(n_ant=4, n_time=300, n_scans=2, seed=11,
+                troposphere=Troposphere(phase_offset_rad=2.1))
+METHODS = ("pwc", "cfpt", "cwu")
+
+
+@pytest.fixture(scope="module")
+def converted(pair_store, tmp_path_factory):
+    """(v2 reference, v2 target, v4 reference, v4 target) built and converted once."""
+    root = tmp_path_factory.mktemp("v4cal")
+    pair = pair_store.copy(SPEC, root)
+    # flags in both bands (3% of the samples), so that the outputs' flags carry the input's
+    # and the reference's gaps
+    rng = np.random.default_rng(2)
+    for ms in (pair.ref_ms, pair.target_ms):
+        flag = tables.read_columns(ms, ["FLAG"])["FLAG"]
+        with tables.main_table(ms, writable=True) as t:
+            t.putcol("FLAG", flag | (rng.random(flag.shape) < 0.03))
+    return (str(pair.ref_ms), str(pair.target_ms), convert(pair.ref_ms, root / "ref.ps.zarr"),
+            convert(pair.target_ms, root / "tgt.ps.zarr"))
+
+
+@pytest.fixture
+def copies(converted, tmp_path):
+    """A private copy of all four sets."""
+    out = []
+    for path in converted:
+        shutil.copytree(path, tmp_path / Path(path).name)
+        out.append(str(tmp_path / Path(path).name))
+    return out
+
+
+def _v4_group(ps: str, group: str):
+    """{(time, station, station): (data, flag)} of a data group, every partition."""
+    layout = read_layout(open_store(ps))
+    names = np.array(read_metadata(ps).antennas.names)
+    rows = [c for p in layout.partitions
+            for c in PartitionReader(layout, p.name, group).chunks(1 << 30)]
+    time = np.concatenate([r.time for r in rows])
+    a1 = names[np.concatenate([r.antenna1 for r in rows])]
+    a2 = names[np.concatenate([r.antenna2 for r in rows])]
+    order = np.lexsort((a2, a1, time))
+    return (time[order], a1[order], a2[order], np.concatenate([r.data for r in rows])[order],
+            np.concatenate([r.flag for r in rows])[order])
+
+
+def _v2_columns(ms: str, column: str):
+    cols = tables.read_columns(ms, ["TIME", "ANTENNA1", "ANTENNA2", column, "FLAG"])
+    names = np.array(read_metadata(ms).antennas.names)
+    a1, a2 = names[cols["ANTENNA1"]], names[cols["ANTENNA2"]]
+    order = np.lexsort((a2, a1, cols["TIME"]))
+    return cols["TIME"][order], a1[order], a2[order], cols[column][order], cols["FLAG"][order]
+
+
+def assert_group_equals_column(ps: str, group: str, ms: str, column: str) -> None:
+    t4, a14, a24, data4, flag4 = _v4_group(ps, group)
+    t2, a12, a22, data2, flag2 = _v2_columns(ms, column)
+    np.testing.assert_array_equal(t4, t2)
+    np.testing.assert_array_equal(a14, a12)
+    np.testing.assert_array_equal(a24, a22)
+    np.testing.assert_array_equal(flag4, flag2, err_msg=f"{group} flags")
+    assert flag2.any() and not flag2.all()      # a test of flags that can fail
+    np.testing.assert_allclose(data4, data2, rtol=2e-7, atol=1e-6, err_msg=group)
+
+
+def _input_digests(ps: str):
+    """Digests of every file of the store but the root's and partitions' zarr.json (the
+    new group's registration) and the new groups' arrays."""
+    digests = file_digests(Path(ps))
+    return {k: v for k, v in digests.items()
+            if Path(k).name != "zarr.json" or len(Path(k).parts) > 2
+            if not Path(k).parts[1:2] or not Path(k).parts[1].startswith(
+                tuple(f"{v}_{m.upper()}" for v in ("VISIBILITY", "FLAG") for m in METHODS))}
+
+
+@pytest.mark.parametrize("flags", [
+    dict(tracker="count", chunk_rows=400),
+    dict(tracker="antenna", offset_model="point", chunk_rows=700),
+], ids=["count-chunks", "antenna-n0"])
+def test_v4_run_writes_what_the_v2_run_writes(copies, flags):
+    ref2, tgt2, ref4, tgt4 = copies
+    before = _input_digests(tgt4)
+    ref_before = file_digests(Path(ref4))
+    r2 = calibrate_flat(ref2, tgt2, method=",".join(METHODS), no_verdict=True, **flags)
+    r4 = calibrate_flat(ref4, tgt4, method=",".join(METHODS), no_verdict=True, **flags)
+    assert r4["chunks"] == r2["chunks"] > 1
+    assert r4["rows"] == r2["rows"]
+    assert r4["wraps"] == r2["wraps"]
+    for method in METHODS:
+        assert_group_equals_column(tgt4, method, tgt2, f"{method.upper()}_DATA")
+    groups = json.loads((Path(tgt4) / "target_0" / "zarr.json").read_text())[
+        "attributes"]["data_groups"]
+    assert set(groups) == {"base", *METHODS}
+    assert groups["pwc"]["weight"] == groups["base"]["weight"] == "WEIGHT"
+    assert groups["pwc"]["flag"] == "FLAG_PWC" and groups["base"]["flag"] == "FLAG"
+    assert _input_digests(tgt4) == before          # VISIBILITY, FLAG, ... untouched
+    assert file_digests(Path(ref4)) == ref_before  # the reference only read
+
+
+def test_a_taken_group_is_refused_and_overwrite_replaces_it(copies):
+    _, _, ref4, tgt4 = copies
+    calibrate_flat(ref4, tgt4, method="pwc", no_verdict=True)
+    first = _v4_group(tgt4, "pwc")
+    before = file_digests(Path(tgt4))
+    with pytest.raises(OutputExistsError, match="PWC_DATA already exists"):
+        calibrate_flat(ref4, tgt4, method="pwc", no_verdict=True)
+    assert file_digests(Path(tgt4)) == before
+    calibrate_flat(ref4, tgt4, method="pwc", no_verdict=True, overwrite=True, chunk_rows=500)
+    again = _v4_group(tgt4, "pwc")
+    np.testing.assert_array_equal(again[4], first[4])
+    np.testing.assert_array_equal(again[3], first[3])
+    with pytest.raises(InputError, match="names data group 'base'"):
+        calibrate_flat(ref4, tgt4, method="pwc", output_column="BASE_DATA", overwrite=True,
+                       no_verdict=True)
+
+
+def test_a_run_stopped_in_a_chunk_leaves_the_store_as_it_was(copies, monkeypatch):
+    _, _, ref4, tgt4 = copies
+    before = file_digests(Path(tgt4))
+    real, calls = DataGroupWriter.write_cells, []
+
+    def fail_in_second_chunk(self, *args):
+        calls.append(1)
+        if len(calls) == 4:      # the second chunk's first write (two methods per chunk)
+            raise KeyboardInterrupt
+        return real(self, *args)
+
+    monkeypatch.setattr(DataGroupWriter, "write_cells", fail_in_second_chunk)
+    with pytest.raises(KeyboardInterrupt):
+        calibrate_flat(ref4, tgt4, method="pwc,cfpt", no_verdict=True, chunk_rows=400)
+    assert len(calls) == 4
+    assert file_digests(Path(tgt4)) == before
+
+
+@pytest.mark.parametrize("flag, value", [
+    ("calibrator_field", "3C279"), ("export_uvfits", "out.uvfits"), ("caltable", "g.tab"),
+    ("scheduler", "tcp://127.0.0.1:1"), ("reference_table", "ref.fringe"),
+    ("restore_flags", "before"), ("save_flags", "after")])
+def test_modes_not_on_processing_sets_are_one_line(converted, flag, value):
+    ref2, _, ref4, tgt4 = converted
+    before = file_digests(Path(tgt4))
+    with pytest.raises(InputError, match=f"with an MSv4 processing set \\({tgt4}\\)") as err:
+        calibrate_flat(ref4, tgt4, method="pwc", **{flag: value})
+    assert "\n" not in str(err.value)
+    assert file_digests(Path(tgt4)) == before
+
+
+def test_one_v2_band_and_one_v4_band(copies):
+    """The backend is chosen per set: a v2 reference with a v4 target (and the other way
+    round) gives the same outputs as the all-v2 run."""
+    ref2, tgt2, ref4, tgt4 = copies
+    calibrate_flat(ref2, tgt2, method="cfpt", no_verdict=True, chunk_rows=400)
+    calibrate_flat(ref2, tgt4, method="cfpt", no_verdict=True, chunk_rows=400)
+    assert_group_equals_column(tgt4, "cfpt", tgt2, "CFPT_DATA")
+    calibrate_flat(ref4, tgt2, method="cfpt", output_column="CFPT4_DATA", no_verdict=True,
+                   chunk_rows=400)
+    np.testing.assert_array_equal(tables.read_columns(tgt2, ["CFPT4_DATA"])["CFPT4_DATA"],
+                                  tables.read_columns(tgt2, ["CFPT_DATA"])["CFPT_DATA"])
