@@ -45,15 +45,41 @@ def converted(pair_store, tmp_path_factory):
     """(v2 reference, v2 target, v4 reference, v4 target) built and converted once."""
     root = tmp_path_factory.mktemp("v4cal")
     pair = pair_store.copy(SPEC, root)
-    # flags in both bands (3% of the samples), so that the outputs' flags carry the input's
-    # and the reference's gaps
-    rng = np.random.default_rng(2)
-    for ms in (pair.ref_ms, pair.target_ms):
-        flag = tables.read_columns(ms, ["FLAG"])["FLAG"]
-        with tables.main_table(ms, writable=True) as t:
-            t.putcol("FLAG", flag | (rng.random(flag.shape) < 0.03))
+    _flag_some(pair.ref_ms, pair.target_ms)
     return (str(pair.ref_ms), str(pair.target_ms), convert(pair.ref_ms, root / "ref.ps.zarr"),
             convert(pair.target_ms, root / "tgt.ps.zarr"))
+
+
+def _flag_some(*sets) -> None:
+    """Flags in both bands (3% of the samples), so that the outputs' flags carry the
+    input's and the reference's gaps."""
+    rng = np.random.default_rng(2)
+    for ms in sets:
+        flag = tables.read_columns(str(ms), ["FLAG"])["FLAG"]
+        with tables.main_table(str(ms), writable=True) as t:
+            t.putcol("FLAG", flag | (rng.random(flag.shape) < 0.03))
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory):
+    """Simulated pairs of several groups, each (v2 ref, v2 target, v4 ref, v4 target): the
+    wideband scene (two 230 GHz windows of 16 channels: two partitions, one ratio per
+    channel) and the phaseref scene (a target and a calibrator in alternating scans: one
+    partition holding two fields), 10 minutes each."""
+    from hitops.simulate import simulate
+    from hitops.simulate.scene import load_scene_mapping
+
+    out = {}
+    for name in ("wideband", "phaseref"):
+        scene = load_scene_mapping(name)[0]
+        scene["observation"]["duration"] = 600
+        root = tmp_path_factory.mktemp(name)
+        sets = simulate(scene, root)
+        ref, tgt = sets["86"], sets["230"]
+        _flag_some(ref, tgt)
+        out[name] = (str(ref), str(tgt), str(convert(ref, root / "ref.ps.zarr")),
+                     str(convert(tgt, root / "tgt.ps.zarr")))
+    return out
 
 
 @pytest.fixture
@@ -75,16 +101,17 @@ def _v4_group(ps: str, group: str):
     time = np.concatenate([r.time for r in rows])
     a1 = names[np.concatenate([r.antenna1 for r in rows])]
     a2 = names[np.concatenate([r.antenna2 for r in rows])]
-    order = np.lexsort((a2, a1, time))
+    order = np.lexsort((a2, a1, np.concatenate([r.data_desc_id for r in rows]), time))
     return (time[order], a1[order], a2[order], np.concatenate([r.data for r in rows])[order],
             np.concatenate([r.flag for r in rows])[order])
 
 
 def _v2_columns(ms: str, column: str):
-    cols = tables.read_columns(ms, ["TIME", "ANTENNA1", "ANTENNA2", column, "FLAG"])
+    cols = tables.read_columns(ms, ["TIME", "ANTENNA1", "ANTENNA2", "DATA_DESC_ID", column,
+                                    "FLAG"])
     names = np.array(read_metadata(ms).antennas.names)
     a1, a2 = names[cols["ANTENNA1"]], names[cols["ANTENNA2"]]
-    order = np.lexsort((a2, a1, cols["TIME"]))
+    order = np.lexsort((a2, a1, cols["DATA_DESC_ID"], cols["TIME"]))
     return cols["TIME"][order], a1[order], a2[order], cols[column][order], cols["FLAG"][order]
 
 
@@ -131,6 +158,29 @@ def test_v4_run_writes_what_the_v2_run_writes(copies, flags):
     assert groups["pwc"]["flag"] == "FLAG_PWC" and groups["base"]["flag"] == "FLAG"
     assert _input_digests(tgt4) == before          # VISIBILITY, FLAG, ... untouched
     assert file_digests(Path(ref4)) == ref_before  # the reference only read
+
+
+@pytest.mark.parametrize("scene, flags", [
+    ("wideband", dict(offset_model="point", chunk_rows=600)),
+    ("phaseref", dict(tracker="antenna", chunk_rows=500)),
+])
+def test_several_windows_and_fields_write_what_the_v2_run_writes(scenes, tmp_path, scene,
+                                                                  flags):
+    """Group by group: two windows in two partitions (per-channel ratios, the n0 step), or
+    two fields in one partition (each field's time steps written without touching the
+    other's)."""
+    for path in scenes[scene]:
+        shutil.copytree(path, tmp_path / Path(path).name)
+    ref2, tgt2, ref4, tgt4 = (str(tmp_path / Path(p).name) for p in scenes[scene])
+    before = _input_digests(tgt4)
+    r2 = calibrate_flat(ref2, tgt2, method=",".join(METHODS), no_verdict=True, **flags)
+    r4 = calibrate_flat(ref4, tgt4, method=",".join(METHODS), no_verdict=True, **flags)
+    assert len(r4["groups"]) == len(r2["groups"]) == 2
+    assert [g["chunks"] for g in r4["groups"]] == [g["chunks"] for g in r2["groups"]]
+    assert min(g["chunks"] for g in r4["groups"]) > 1
+    for method in METHODS:
+        assert_group_equals_column(tgt4, method, tgt2, f"{method.upper()}_DATA")
+    assert _input_digests(tgt4) == before
 
 
 def test_a_taken_group_is_refused_and_overwrite_replaces_it(copies):
