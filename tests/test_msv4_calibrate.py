@@ -22,7 +22,7 @@ import pytest
 pytest.importorskip("xradio")
 
 from hitops.calibrate import calibrate_flat  # noqa: E402
-from hitops.errors import InputError, OutputExistsError  # noqa: E402
+from hitops.errors import ColumnError, InputError, OutputExistsError  # noqa: E402
 from hitops.io import tables  # noqa: E402
 from hitops.io.metadata import read_metadata  # noqa: E402
 from hitops.io.msv4.data_group import DataGroupWriter  # noqa: E402
@@ -149,6 +149,7 @@ def test_v4_run_writes_what_the_v2_run_writes(copies, flags):
     assert r4["chunks"] == r2["chunks"] > 1
     assert r4["rows"] == r2["rows"]
     assert r4["wraps"] == r2["wraps"]
+    assert r4["data_groups"]["cwu"] == {"data_group": "cwu", "partitions": ["target_0"]}
     for method in METHODS:
         assert_group_equals_column(tgt4, method, tgt2, f"{method.upper()}_DATA")
     groups = json.loads((Path(tgt4) / "target_0" / "zarr.json").read_text())[
@@ -242,3 +243,35 @@ def test_one_v2_band_and_one_v4_band(copies):
                    chunk_rows=400)
     np.testing.assert_array_equal(tables.read_columns(tgt2, ["CFPT4_DATA"])["CFPT4_DATA"],
                                   tables.read_columns(tgt2, ["CFPT_DATA"])["CFPT_DATA"])
+
+
+def test_a_column_whose_data_group_is_missing_is_one_line(converted):
+    """--target-column names a data group (CORRECTED_DATA -> 'corrected'): a store without it
+    is refused before anything is written, naming the group and what the store answers to."""
+    _, _, ref4, tgt4 = converted
+    before = file_digests(Path(tgt4))
+    with pytest.raises(ColumnError, match="has no data group 'corrected' \\(the column "
+                                          "CORRECTED_DATA\\); check --target-column"):
+        calibrate_flat(ref4, tgt4, method="pwc", target_column="CORRECTED_DATA")
+    assert file_digests(Path(tgt4)) == before
+
+
+def test_eht_m87_pair_writes_what_the_v2_run_writes(eht_imported, tmp_path):
+    """Real data: the EHT 2017 M87 low and high bands after CASA importuvfits, converted by
+    xradio; baselines come and go (a grid with cells missing, 7 of 8 stations in the low
+    band), each (time, baseline) cell written where the v2 run writes its row."""
+    sets = []
+    for ms in eht_imported:
+        copy = tmp_path / Path(ms).name
+        shutil.copytree(ms, copy)
+        sets.append(str(copy))
+    ref4 = str(convert(sets[0], tmp_path / "lo.ps.zarr"))
+    tgt4 = str(convert(sets[1], tmp_path / "hi.ps.zarr"))
+    before = _input_digests(tgt4)
+    flags = dict(method="cfpt,pwc", chunk_rows=2000, no_verdict=True)
+    r2 = calibrate_flat(sets[0], sets[1], **flags)
+    r4 = calibrate_flat(ref4, tgt4, **flags)
+    assert r4["rows"] == r2["rows"] and r4["chunks"] == r2["chunks"] > 1
+    for method in ("cfpt", "pwc"):
+        assert_group_equals_column(tgt4, method, sets[1], f"{method.upper()}_DATA")
+    assert _input_digests(tgt4) == before

@@ -248,6 +248,9 @@ def _run(run: RunPlan, client, start: RunStart) -> Dict:
         reports = [group_report(run, group, result, tx, start.started)
                    for group, result in zip(run.groups, results)]
         report = reports[0] if len(reports) == 1 else combined_report(run, reports)
+        if isinstance(tx, DataGroupTransaction):   # where a processing set's results are
+            report["data_groups"] = {m: {"data_group": g, "partitions": sorted(
+                {s.partition for s in tx.sources})} for m, g in tx.data_groups.items()}
         if referencing is not None:
             report["phase_referencing"] = referencing
             settle_n0_warnings(report, calibrator)

@@ -70,8 +70,9 @@ class PartitionSource(StorageRows):
         times = self.steps[step]
         rank = positions - self.step_start[step]        # the k-th row of its time step
         reader = self.reader(self.group)
-        if positions.size == 0:
-            return times, rank
+        per_step = np.diff(self.step_start)[step]
+        if positions.size == 0 or np.all(per_step == reader.n_baseline):
+            return times, rank     # every cell of these steps a row: the rank is the baseline
         t_a, t_b = int(times.min()), int(times.max()) + 1
         present = reader.present(t_a, t_b)
         # baseline of the k-th present cell of each time step
