@@ -187,6 +187,8 @@ def _markdown(n_row, conv, layout, floor, mine, chunked, chunked_floor, casacore
 
 
 METHODS = "pwc,cfpt,cwu"
+_IMPORTS = ("import zarr, hitops.calibrate.api, hitops.calibrate.plan, "
+            "hitops.calibrate.pipeline, hitops.cli")
 
 
 def _run_floor(ref_ps: Path, tgt_ps: Path, n_methods: int, repeats: int) -> dict:
@@ -245,6 +247,10 @@ def bench_calibrate(work: Path, repeats: int) -> str:
     _convert(pair.ref_ms, ref_ps, "arcae", step)
     _convert(pair.target_ms, tgt_ps, "arcae", step)
     floor = _run_floor(ref_ps, tgt_ps, len(METHODS.split(",")), repeats)
+    # what every run's process spends before its first stage: python, numpy, numba, dask,
+    # zarr and hitops's calibrate modules imported
+    imports = statistics.median(run_process([sys.executable, "-c", _IMPORTS])["wall_s"]
+                                for _ in range(repeats))
     v4 = _calibrate_runs(ref_ps, tgt_ps, repeats)
     v2 = _calibrate_runs(pair.ref_ms, pair.target_ms, repeats)
     n_row = N_TIME * N_ANT * (N_ANT - 1) // 2
@@ -267,6 +273,8 @@ def bench_calibrate(work: Path, repeats: int) -> str:
         f"| zarr floor: both bands' EFFECTIVE_INTEGRATION_TIME, VISIBILITY, FLAG read whole "
         f"({floor['read']:.2f} s) + one VISIBILITY and FLAG per method written whole "
         f"({floor['write']:.2f} s) | {floor_s:.2f} | |",
+        f"| the imports alone (python, numpy, numba, dask, zarr, hitops's calibrate modules) | "
+        f"{imports:.2f} | |",
         f"| `hitops calibrate` on the processing sets | {v4['wall']:.2f} | {v4['rss']:.0f} |",
         f"| `hitops calibrate` on the v2 sets, for scale | {v2['wall']:.2f} | {v2['rss']:.0f} |",
         "",

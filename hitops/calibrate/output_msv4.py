@@ -24,7 +24,7 @@ import numpy as np
 from ..errors import InputError, RollbackError
 from ..io import access
 from ..io.msv4.columns import BASE_GROUP, group_of_column
-from ..io.msv4.data_group import DataGroupWriter
+from ..io.msv4.data_group import DataGroupWriter, consolidate_partition
 from ..io.msv4.group_rows import PartitionSource
 from ..kernels.wideband import rotate_channels
 
@@ -79,9 +79,15 @@ class DataGroupTransaction:
 
     def create_columns(self, scattered: bool = False) -> List[str]:
         """Stage every new group's arrays (``scattered`` is the MSv2 tiling's concern)."""
+        # --overwrite: the old groups unregistered first, said once per partition (two
+        # consolidations, each about 0.02 s at 10^6 rows), before any array is staged
+        dropped = {p for (p, _), w in self.writers.items()
+                   if w.unregister_existing(consolidate=False)}
+        for partition in sorted(dropped):
+            consolidate_partition(self.target_ms, partition)
         for writer in self.writers.values():
-            writer.stage()
             self.staged.append(writer)
+            writer.stage()
         return [f"{p}/{w.variables.correlated_data}" for (p, _), w in self.writers.items()]
 
     def write_chunk(self, rows: np.ndarray, data: np.ndarray, phasors: Dict[str, np.ndarray],
@@ -102,11 +108,13 @@ class DataGroupTransaction:
             source, sel = self.sources[k], np.flatnonzero(which == k)
             times, baselines = source.cells(rows[sel] - source.row_base)
             for run in _runs_of_steps(times):
-                cells = sel[run]
-                span = (int(times[run].min()), int(times[run].max()) + 1)
+                whole = run.size == rows.size      # one group, one run: no copies
+                cells = slice(None) if whole else sel[run]
+                t_run, b_run = (times, baselines) if whole else (times[run], baselines[run])
+                span = (int(t_run.min()), int(t_run.max()) + 1)
                 for method, values in out.items():
                     self.writers[(source.partition, method)].write_cells(
-                        span, times[run], baselines[run], values[cells], new_flag[cells])
+                        span, t_run, b_run, values[cells], new_flag[cells])
         self.rows_written[rows] = True
 
     def flags_now(self, table, rows: np.ndarray) -> np.ndarray:
@@ -121,7 +129,9 @@ class DataGroupTransaction:
         """Register every new group (each partition's data_groups, then its and the root's
         consolidated metadata, last)."""
         for writer in self.staged:
-            writer.commit()
+            writer.commit(consolidate=False)
+        for partition in sorted({p for p, _ in self.writers}):
+            consolidate_partition(self.target_ms, partition)
         self.staged = []
 
     def rollback(self) -> None:
