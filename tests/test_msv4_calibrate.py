@@ -7,7 +7,8 @@ method, the count tracker cut into several chunks and the antenna tracker with t
 n0 step (--offset-model point); the input's arrays stay byte for byte as they were.
 A taken group name is refused without --overwrite, a run stopped in the middle of
 a chunk leaves every file of the store as it was, and the modes the MSv4 path does
-not take are one line each.  Cost: about 25 s here (most of it the four-band runs).
+not take are one line each.  Cost: about 20 s here (the EHT import is shared with
+tests/test_realdata.py).
 """
 
 from __future__ import annotations
