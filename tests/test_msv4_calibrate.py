@@ -276,3 +276,35 @@ def test_eht_m87_pair_writes_what_the_v2_run_writes(eht_imported, tmp_path):
     for method in ("cfpt", "pwc"):
         assert_group_equals_column(tgt4, method, sets[1], f"{method.upper()}_DATA")
     assert _input_digests(tgt4) == before
+
+
+def test_a_read_only_target_store_is_one_line(copies, tmp_path):
+    """Behind a read-only bind mount (as tests/test_msv4_rows.py makes one): refused before
+    the run starts (hitops/io/access.py's probe in each partition), exit 2 from the CLI."""
+    import os
+    import subprocess
+    import sys
+
+    _, _, ref4, tgt4 = copies
+    view = tmp_path / "ro"
+    view.mkdir()
+
+    def mount(*args) -> bool:
+        return subprocess.run(["mount", *args], capture_output=True).returncode == 0
+
+    if os.geteuid() != 0 or not mount("--bind", str(Path(tgt4).parent), str(view)):
+        pytest.skip("needs root to bind-mount read-only")
+    try:
+        if not mount("-o", "remount,bind,ro", str(view)):
+            pytest.skip("read-only remount not permitted here")
+        store = view / Path(tgt4).name
+        before = file_digests(store)
+        proc = subprocess.run([str(Path(sys.executable).with_name("hitops")), "calibrate", ref4,
+                               str(store), "--method", "pwc"], capture_output=True, text=True,
+                              timeout=300)
+        out = proc.stdout + proc.stderr
+        assert proc.returncode == 2 and "Traceback" not in out, out
+        assert "cannot be written (target_0: Read-only file system)" in out, out
+        assert file_digests(store) == before
+    finally:
+        subprocess.run(["umount", str(view)], capture_output=True)
