@@ -308,3 +308,25 @@ def test_a_read_only_target_store_is_one_line(copies, tmp_path):
         assert file_digests(store) == before
     finally:
         subprocess.run(["umount", str(view)], capture_output=True)
+
+
+def test_the_offset_step_reads_another_data_group(new_pair, tmp_path):
+    """--offset-reference-column CORRECTED_DATA: on the processing set the 'corrected' group
+    that xradio made of that column (a column of another data group than the band's), read
+    beside the base group's data chunk by chunk; the n0 step's result equals the v2 run's."""
+    from hitops.testing import add_column
+
+    truth = new_pair(SPEC, tmp_path / "v2")
+    add_column(truth.target_ms, "CORRECTED_DATA", np.exp(1j * truth.source_phase))
+    _flag_some(truth.ref_ms, truth.target_ms)
+    ref4 = str(convert(truth.ref_ms, tmp_path / "ref.ps.zarr"))
+    tgt4 = str(convert(truth.target_ms, tmp_path / "tgt.ps.zarr"))
+    assert "corrected" in {g.name for g in open_store(tgt4).partitions[0].data_groups}
+    flags = dict(method="pwc,cwu", offset_reference_column="CORRECTED_DATA", chunk_rows=500,
+                 no_verdict=True)
+    r2 = calibrate_flat(str(truth.ref_ms), str(truth.target_ms), **flags)
+    r4 = calibrate_flat(ref4, tgt4, **flags)
+    assert r4["offset_step"]["series"] == r2["offset_step"]["series"]
+    assert any(e["k"] != 0 for e in r4["offset_step"]["series"])
+    for method in ("pwc", "cwu"):
+        assert_group_equals_column(tgt4, method, str(truth.target_ms), f"{method.upper()}_DATA")
