@@ -110,8 +110,9 @@ class PartitionTable:
         s0 = int(np.searchsorted(src.step_start, positions.min(), side="right")) - 1
         s1 = int(np.searchsorted(src.step_start, positions.max(), side="right"))
         span = (int(src.steps[s0]), int(src.steps[s1 - 1]) + 1)
-        pick = positions - src.step_start[s0]
         n_expected = int(src.step_start[s1] - src.step_start[s0])
+        # ascending distinct positions as many as the steps' rows: all of them, no gather
+        pick = slice(None) if positions.size == n_expected else positions - src.step_start[s0]
         roles = [c for c in ("FLAG", "UVW") if c in columns]
         if {"WEIGHT", "SIGMA"} & set(columns):
             roles.append("WEIGHT")
@@ -165,7 +166,7 @@ def _row_columns(src: PartitionSource, rows: PartitionRows, columns, pick,
                  positions) -> Dict:
     """The per-row columns asked for, at ``pick`` of ``rows`` (the group's ``positions``)."""
     reader = src.reader(src.group)
-    n = pick.size
+    n = positions.size
     values = {"TIME": lambda: rows.time[pick], "ANTENNA1": lambda: rows.antenna1[pick],
               "ANTENNA2": lambda: rows.antenna2[pick],
               "SCAN_NUMBER": lambda: rows.scan_number[pick],
