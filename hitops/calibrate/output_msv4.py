@@ -107,7 +107,9 @@ class DataGroupTransaction:
         for k in np.unique(which):
             source, sel = self.sources[k], np.flatnonzero(which == k)
             times, baselines = source.cells(rows[sel] - source.row_base)
-            for run in _runs_of_steps(times):
+            # a partition of one field: its steps follow each other, one run
+            runs = _runs_of_steps(times) if source.several_fields else [np.arange(times.size)]
+            for run in runs:
                 whole = run.size == rows.size      # one group, one run: no copies
                 cells = slice(None) if whole else sel[run]
                 t_run, b_run = (times, baselines) if whole else (times[run], baselines[run])

@@ -159,10 +159,18 @@ class DataGroupWriter:
             raise RuntimeError("DataGroupWriter.write before stage()")
         start, stop = time_slice
         out = group[self.variables.correlated_data]
-        block = np.full((stop - start,) + out.shape[1:], np.nan + 0j, out.dtype)
-        flags = np.ones(block.shape, bool)
-        block[time_index - start, baseline] = data
-        flags[time_index - start, baseline] = flag
+        shape = (stop - start,) + out.shape[1:]
+        cell = np.asarray(time_index, np.int64) * shape[1] + np.asarray(baseline, np.int64)
+        if cell.size == shape[0] * shape[1] and (cell.size == 0 or (
+                cell[0] == start * shape[1] and np.all(np.diff(cell) == 1))):
+            # every cell of the steps, in grid order: the rows are the block (no fill)
+            block = np.asarray(data, out.dtype).reshape(shape)
+            flags = np.asarray(flag, bool).reshape(shape)
+        else:
+            block = np.full(shape, np.nan + 0j, out.dtype)
+            flags = np.ones(shape, bool)
+            block[time_index - start, baseline] = data
+            flags[time_index - start, baseline] = flag
         out[start:stop] = block
         group[self.variables.flag][start:stop] = flags
 
