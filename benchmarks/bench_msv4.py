@@ -42,7 +42,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
 from ._report import ROOT, machine_line, replace_section, run_process
 
