@@ -18,9 +18,17 @@ correlators write), page cache warm:
   register), and python-casacore's getcol of TIME, ANTENNA1, ANTENNA2, DATA, FLAG
   of the v2 set for scale.  Median of ``--repeats`` runs each.
 
-Writes its section of docs/msv4.md.  Run: ``python -m benchmarks.bench_msv4
-[--workdir DIR] [--repeats N]`` (about two minutes here; no more than 10^6 rows:
-the machine is shared).
+With ``--only calibrate`` (or in a whole run, after the above): ``hitops calibrate``
+on a pair of processing sets (both bands 10^6 rows, converted in time chunks of
+10^5 rows) with ``--method pwc,cfpt,cwu --chunk-rows 100000 --no-verdict``, each
+run a process of its own (wall, peak RSS, the report's stage timings), against
+the zarr floor of the same variables (both bands' EFFECTIVE_INTEGRATION_TIME,
+VISIBILITY and FLAG read whole, one VISIBILITY and FLAG array per method written
+whole) and the same run on the v2 sets.
+
+Writes its sections of docs/msv4.md.  Run: ``python -m benchmarks.bench_msv4
+[--workdir DIR] [--repeats N] [--only calibrate]`` (about two minutes here; no more
+than 10^6 rows: the machine is shared).
 """
 
 from __future__ import annotations
@@ -34,7 +42,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
 from ._report import ROOT, machine_line, replace_section, run_process
 
@@ -178,16 +185,127 @@ def _markdown(n_row, conv, layout, floor, mine, chunked, chunked_floor, casacore
     return "\n".join(lines)
 
 
+METHODS = "pwc,cfpt,cwu"
+_IMPORTS = ("import zarr, hitops.calibrate.api, hitops.calibrate.plan, "
+            "hitops.calibrate.pipeline, hitops.cli")
+
+
+def _run_floor(ref_ps: Path, tgt_ps: Path, n_methods: int, repeats: int) -> dict:
+    """The zarr floor of a calibration's variables: both bands' read, the outputs' write."""
+    import zarr
+
+    from hitops.io.msv4.store import quiet_zarr
+
+    with quiet_zarr():
+        groups = [zarr.open_group(str(ps), path=sorted(p.name for p in ps.iterdir()
+                                                       if p.is_dir())[0], mode="r+",
+                                  use_consolidated=False) for ps in (ref_ps, tgt_ps)]
+        read_s = _timed(lambda: [g[v][...] for g in groups for v in
+                                 ("EFFECTIVE_INTEGRATION_TIME", "VISIBILITY", "FLAG")], repeats)
+        target = groups[1]
+        vis, flag = target["VISIBILITY"][...], target["FLAG"][...]
+        runs = iter(range(1000))
+
+        def write():
+            k = next(runs)
+            for m in range(n_methods):
+                for name, like, values in ((f"FLOOR_VIS{k}_{m}", "VISIBILITY", vis),
+                                           (f"FLOOR_FLAG{k}_{m}", "FLAG", flag)):
+                    source = target[like]
+                    target.create_array(name, shape=source.shape, dtype=source.dtype,
+                                        chunks=source.chunks,
+                                        compressors=source.compressors)[...] = values
+        write_s = _timed(write, repeats)
+    return {"read": read_s, "write": write_s}
+
+
+def _calibrate_runs(ref: Path, tgt: Path, repeats: int) -> dict:
+    """``hitops calibrate`` as its own process, ``repeats`` times (--overwrite after the
+    first): the median wall time, the largest peak RSS, the last report's timings."""
+    hitops = Path(sys.executable).with_name("hitops")
+    report = tgt.parent / f"{tgt.name}.bench.json"
+    runs = []
+    for k in range(repeats):
+        runs.append(run_process([hitops, "calibrate", ref, tgt, "--method", METHODS,
+                                 "--chunk-rows", str(CHUNK_ROWS), "--no-verdict",
+                                 "--report", report] + (["--overwrite"] if k else [])))
+    timings = json.loads(report.read_text()).get("timings_s", {})
+    return {"wall": statistics.median(r["wall_s"] for r in runs),
+            "rss": max(r["peak_rss_mb"] for r in runs), "timings": timings}
+
+
+def bench_calibrate(work: Path, repeats: int) -> str:
+    """The calibrate section: a v4 run against its zarr floor and against the v2 run."""
+    from hitops.testing import PairSpec, make_pair
+    from hitops.testing.pairs import Storage
+
+    pair = make_pair(work / "cal-pair", PairSpec(n_ant=N_ANT, n_time=N_TIME,
+                                                storage=Storage(time_order=True)))
+    step = CHUNK_ROWS // (N_ANT * (N_ANT - 1) // 2)
+    ref_ps, tgt_ps = work / "cal-ref.ps.zarr", work / "cal-tgt.ps.zarr"
+    _convert(pair.ref_ms, ref_ps, "arcae", step)
+    _convert(pair.target_ms, tgt_ps, "arcae", step)
+    floor = _run_floor(ref_ps, tgt_ps, len(METHODS.split(",")), repeats)
+    # what every run's process spends before its first stage: python, numpy, numba, dask,
+    # zarr and hitops's calibrate modules imported
+    imports = statistics.median(run_process([sys.executable, "-c", _IMPORTS])["wall_s"]
+                                for _ in range(repeats))
+    v4 = _calibrate_runs(ref_ps, tgt_ps, repeats)
+    v2 = _calibrate_runs(pair.ref_ms, pair.target_ms, repeats)
+    n_row = N_TIME * N_ANT * (N_ANT - 1) // 2
+    floor_s = floor["read"] + floor["write"]
+    stages = ("checks", "open", "metadata", "match", "read", "track", "transfer", "write")
+
+    def stage_cells(t):
+        return " | ".join(f"{t[k]:.2f}" if k in t else "" for k in stages)
+
+    return "\n".join([
+        f"Measured {time.strftime('%Y-%m-%d')} on {machine_line()} (shared with other work); "
+        f"a hitops.testing pair of {n_row:,} rows per band ({N_ANT} stations, RR LL, one "
+        f"channel, time order), converted by xradio 1.3 in time chunks of {step} steps "
+        f"({CHUNK_ROWS:,} rows); `hitops calibrate --method {METHODS} --chunk-rows "
+        f"{CHUNK_ROWS} --no-verdict`, each run a process of its own (median of {repeats}; "
+        "runs after the first with --overwrite); page cache warm.",
+        "",
+        "| | wall s | peak RSS MB |",
+        "|---|---|---|",
+        f"| zarr floor: both bands' EFFECTIVE_INTEGRATION_TIME, VISIBILITY, FLAG read whole "
+        f"({floor['read']:.2f} s) + one VISIBILITY and FLAG per method written whole "
+        f"({floor['write']:.2f} s) | {floor_s:.2f} | |",
+        f"| the imports alone (python, numpy, numba, dask, zarr, hitops's calibrate modules) | "
+        f"{imports:.2f} | |",
+        f"| `hitops calibrate` on the processing sets | {v4['wall']:.2f} | {v4['rss']:.0f} |",
+        f"| `hitops calibrate` on the v2 sets, for scale | {v2['wall']:.2f} | {v2['rss']:.0f} |",
+        "",
+        "| the run's stage timings (its report), s | " + " | ".join(stages) + " |",
+        "|---|" + "---|" * len(stages),
+        "| processing sets | " + stage_cells(v4["timings"]) + " |",
+        "| v2 sets | " + stage_cells(v2["timings"]) + " |",
+    ])
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workdir", type=Path, default=None)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--only", choices=["calibrate"], default=None)
     args = parser.parse_args(argv)
+    work = Path(args.workdir or tempfile.mkdtemp(prefix="bench-msv4-"))
+    work.mkdir(parents=True, exist_ok=True)
+    if args.only != "calibrate":
+        _bench_io(work, args.repeats)
+    text = bench_calibrate(work, args.repeats)
+    replace_section("msv4-calibrate", text, DOC)
+    print(text)
+    if args.workdir is None:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def _bench_io(work: Path, repeats: int) -> None:
+    """The conversion, layout and I/O section (docs/msv4.md, bench:msv4)."""
     from hitops.testing import PairSpec, make_pair
     from hitops.testing.pairs import Storage
 
-    work = Path(args.workdir or tempfile.mkdtemp(prefix="bench-msv4-"))
-    work.mkdir(parents=True, exist_ok=True)
     pair = make_pair(work / "pair", PairSpec(n_ant=N_ANT, n_time=N_TIME,
                                             storage=Storage(time_order=True)))
     ms = pair.target_ms
@@ -200,18 +318,15 @@ def main(argv=None) -> None:
     ps = work / "arcae.ps.zarr"
     partition = sorted(p.name for p in ps.iterdir() if p.is_dir())[0]
     layout = _layout_rows(ps, ms, partition)
-    floor = _zarr_floor(ps, partition, args.repeats)
-    mine = _hitops_path(ps, partition, args.repeats)
-    chunked_floor = _zarr_floor(work / "chunked.ps.zarr", partition, args.repeats)
-    chunked = _hitops_path(work / "chunked.ps.zarr", partition,
-                           args.repeats)
-    casacore_s = _casacore_read(ms, args.repeats)
+    floor = _zarr_floor(ps, partition, repeats)
+    mine = _hitops_path(ps, partition, repeats)
+    chunked_floor = _zarr_floor(work / "chunked.ps.zarr", partition, repeats)
+    chunked = _hitops_path(work / "chunked.ps.zarr", partition, repeats)
+    casacore_s = _casacore_read(ms, repeats)
     text = _markdown(N_TIME * N_ANT * (N_ANT - 1) // 2, conv, layout, floor, mine, chunked,
                      chunked_floor, casacore_s, step)
     replace_section("msv4", text, DOC)
     print(text)
-    if args.workdir is None:
-        shutil.rmtree(work, ignore_errors=True)
 
 
 if __name__ == "__main__":

@@ -178,21 +178,24 @@ def test_partition_missing_from_the_root_metadata(pair_sets, tmp_path):
     _refused(ps, "late_7", "not in the store's consolidated metadata")
 
 
-def test_calibrate_on_processing_sets_says_so(pair_sets, tmp_path):
-    """What the issue's new user met ("is not a casacore table (no table.dat)") is now one
-    line naming the processing set and the way on; exit 2, the store unchanged."""
+def test_calibrate_on_a_half_written_store_says_so(pair_sets, tmp_path):
+    """``hitops calibrate`` takes processing sets (tests/test_msv4_calibrate.py); a store whose
+    conversion did not finish is one line naming it and the way on: exit 2, no traceback,
+    the store unchanged."""
     import subprocess
     import sys
     from pathlib import Path
 
-    ps = pair_sets[1]
+    ps = _copy(pair_sets[1], tmp_path)
+    _edit_json(ps / "zarr.json", lambda d: d["attributes"].pop("type"))
     before = file_digests(ps)
-    proc = subprocess.run([str(Path(sys.executable).with_name("hitops")), "calibrate", str(ps),
-                           str(ps)], capture_output=True, text=True, timeout=300)
+    proc = subprocess.run([str(Path(sys.executable).with_name("hitops")), "calibrate",
+                           str(pair_sets[0]), str(ps)], capture_output=True, text=True,
+                          timeout=300)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 2, out
-    assert "Traceback" not in out and "is an MSv4 processing set" in out, out
-    assert "docs/msv4.md" in out and str(ps) in out
+    assert "Traceback" not in out and "conversion did not finish" in out, out
+    assert str(ps) in out
     assert file_digests(ps) == before
 
 

@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING, Dict, List
 from ..errors import InputError
 from ..io import access, flag_versions
 from ..io import read as msio
+from ..io.msv4.store import is_processing_set
 from ..options import flat_entry, section_classes
 from .band_index import INDEX_COLUMNS
 from .from_table import calibrate_from_table
@@ -110,8 +111,9 @@ def calibrate(ref_ms, target_ms, input: InputOptions = InputOptions(),
     # ---- stage 2: prepare. The output files checked, UVFITS / FITS-IDI inputs converted
     # once into Measurement Sets in --workdir, before anything is written
     prepared = prepare_inputs(opts)
-    ref_ms = msio.check_ms(prepared.ref_ms, "reference-band Measurement Set")
-    target_ms = msio.check_ms(prepared.target_ms, "target-band Measurement Set")
+    # a Measurement Set v2 or an MSv4 processing set (hitops/io/msv4/), by what the path holds
+    ref_ms = msio.check_ms(prepared.ref_ms, "reference-band Measurement Set", True)
+    target_ms = msio.check_ms(prepared.target_ms, "target-band Measurement Set", True)
     if os.path.realpath(ref_ms) == os.path.realpath(target_ms):
         raise InputError(f"REF_MS and TARGET_MS are the same set ({ref_ms}); give the "
                          "reference-band and the target-band Measurement Sets")
@@ -126,7 +128,8 @@ def calibrate(ref_ms, target_ms, input: InputOptions = InputOptions(),
     with access.RunLock(target_ms, lock_timeout, "target-band Measurement Set"):
         access.wait_for_table_lock(target_ms, True, lock_timeout, "target-band Measurement Set")
         access.wait_for_table_lock(ref_ms, False, lock_timeout, "reference-band Measurement Set")
-        drop_stale_columns(target_ms)
+        if not is_processing_set(target_ms):   # a store's writer removes its own leftovers
+            drop_stale_columns(target_ms)
         try:
             _restore_flags(start.opts)
             # the mode decides the path: the table mode reads no reference visibilities

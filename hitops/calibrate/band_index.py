@@ -220,8 +220,9 @@ def _storage_order_table(source: BandSource, stack: contextlib.ExitStack):
     """The band's table held open when its dataset positions are the table's row numbers
     (one group, stored in time order or read in storage order); else None (dask-ms's
     dataset is read: a group of several, or sorted by TIME)."""
-    if not (source.time_ordered or not source.ds_in_time_order):
-        return None
+    if not (source.time_ordered or not source.ds_in_time_order) or \
+            not getattr(source.ds, "positions_are_rows", True):
+        return None   # (a processing set's group: its ROWID is not its position)
     table = stack.enter_context(msio.MainTable(source.ms))
     return table if table.n_rows == source.n_row else None
 

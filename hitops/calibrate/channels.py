@@ -28,7 +28,6 @@ import numpy as np
 from ..io import read as msio
 from ..kernels import wideband
 from .groups import GroupPair
-from ..io import tables
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -118,8 +117,7 @@ def _data_channels(ms: str, column: str, ds) -> int:
     """Channels of ``column`` in a group's dataset (a dask-ms dataset, or the python-casacore
     reader of a one-group set, whose first row is the group's)."""
     if isinstance(ds, msio.StorageRows):
-        with tables.main_table(ms) as t:
-            return int(t.getcell(column, 0).shape[0])
+        return int(ds.cell_shape(column)[0])
     return int(ds[column].shape[1])
 
 

@@ -131,6 +131,53 @@ REFUSED: Dict[Mode, Tuple[Refused, ...]] = {
 }
 
 
+def _on_processing_set(option: str, why: str) -> Refused:
+    """An option the MSv4 path does not take yet (its step reads or writes MSv2 only)."""
+    return Refused(option, lambda o, m: bool(_option_value(o, option)),
+                   lambda o, m: f"{option} {_option_value(o, option)} with an MSv4 processing "
+                                f"set ({_processing_set_of(o)}): {why}")
+
+
+def _option_value(opts, option: str):
+    section, name = _PROCESSING_SET_OPTIONS[option]
+    return getattr(getattr(opts, section), name)
+
+
+def _processing_set_of(opts) -> str:
+    from ..io.msv4.store import is_processing_set   # reads zarr.json alone
+    return next((str(p) for p in (opts.target_ms, opts.ref_ms) if is_processing_set(p)), "")
+
+
+#: where each option refused on processing sets lives in the option sections
+_PROCESSING_SET_OPTIONS = {
+    "--reference-table": ("input", "reference_table"),
+    "--calibrator-field": ("input", "calibrator_field"),
+    "--restore-flags": ("input", "restore_flags"),
+    "--save-flags": ("output", "save_flags"),
+    "--export-uvfits": ("output", "export_uvfits"),
+    "--caltable": ("output", "caltable"),
+    "--scheduler": ("run", "scheduler"),
+}
+#: what no mode takes when either band is a processing set (docs/msv4.md)
+REFUSED_ON_PROCESSING_SETS: Tuple[Refused, ...] = (
+    _on_processing_set("--reference-table", "the table mode writes MSv2 columns so far: run "
+                       "it on the v2 sets"),
+    _on_processing_set("--calibrator-field", "the calibrator step rewrites MSv2 columns so "
+                       "far: run it on the v2 sets"),
+    _on_processing_set("--restore-flags", "CASA flag versions belong to Measurement Sets v2; "
+                       "a processing set's run starts from its data group's flags and leaves "
+                       "them as they were"),
+    _on_processing_set("--save-flags", "the run's flags are its data group's own (no CASA "
+                       "flag version); drop --save-flags"),
+    _on_processing_set("--export-uvfits", "the UVFITS export reads Measurement Sets v2 so "
+                       "far: export from the v2 sets"),
+    _on_processing_set("--caltable", "CASA tables are written from Measurement Sets v2 so "
+                       "far: run with --caltable on the v2 sets"),
+    _on_processing_set("--scheduler", "a processing set is read and written on this "
+                       "process so far: drop --scheduler"),
+)
+
+
 def check_numbers(opts) -> None:
     """The numeric options (the schema has checked types and choices), in every mode."""
     ratio = opts.input.ratio
@@ -172,7 +219,8 @@ def check_options(opts, methods: List[str]) -> Mode:
     check_numbers(opts)
     _check_pairs(opts, methods)
     mode = mode_of(opts)
-    for refused in REFUSED[mode]:
+    on_processing_set = REFUSED_ON_PROCESSING_SETS if _processing_set_of(opts) else ()
+    for refused in on_processing_set + REFUSED[mode]:
         if refused.given(opts, methods):
             raise InputError(refused.why(opts, methods))
     return mode

@@ -32,7 +32,6 @@ from .chunks import GroupMatch, ChunkRows, MatchCheck
 from .channels import ChannelPlan, channel_plan, check_channel_counts
 from .groups import GroupPair, describe_groups, pair_groups
 from .inputs import CalibrateOptions, Columns
-from ..io import tables
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -124,11 +123,10 @@ def rows_from_budget(budget: int, ref_ms: str, target_ms: str, columns: Columns,
     from .memory import min_chunk_rows, rows_for_budget
     n_rows, n_corr, n_chan = 0, 1, 1
     for ms, column in ((ref_ms, columns.ref_data), (target_ms, columns.target_data)):
-        with tables.main_table(ms) as t:
-            n_rows += t.nrows()
-            if t.nrows():
-                shape = t.getcell(column, 0).shape
-                n_chan, n_corr = max(n_chan, int(shape[0])), max(n_corr, int(shape[-1]))
+        rows, shape = msio.column_extent(ms, column)
+        n_rows += rows
+        if rows:
+            n_chan, n_corr = max(n_chan, int(shape[0])), max(n_corr, int(shape[-1]))
     rows = rows_for_budget(budget, n_rows, n_corr, n_chan, n_methods, time_ordered, strict,
                            local)
     if rows == min_chunk_rows(n_chan) and not strict:

@@ -271,6 +271,13 @@ def predict(ref_ms: str, target_ms: str, ratio: float, ref_column: str = "DATA",
     again when None."""
     from .verdict_sample import (choose_blocks, distinct_times, read_sampled, read_times,
                                  sampling_interval)
+    from ..io.msv4.store import is_processing_set
+
+    for ms in (ref_ms, target_ms):
+        if is_processing_set(ms):   # the sampled reads are python-casacore's
+            raise MeasurementSetError(f"'{ms}' is an MSv4 processing set and the verdict reads "
+                                      "Measurement Sets v2 so far; run the verdict on the v2 "
+                                      "sets, or pass --no-verdict")
 
     tgt_time, ref_time = read_times(target_ms), read_times(ref_ms)
     tgt_times, ref_times = distinct_times(tgt_time), distinct_times(ref_time)

@@ -14,7 +14,9 @@ from dataclasses import dataclass
 from typing import Dict, List, Optional, Tuple
 
 from ..io import read as msio
+from ..io.msv4.store import is_processing_set
 from .output import OutputTransaction, release_cluster_tables
+from .output_msv4 import DataGroupTransaction
 from .plan import RunPlan
 from .files import PreparedInputs
 
@@ -42,12 +44,19 @@ class VisibilitySource:
 
     def open_transaction(self) -> OutputTransaction:
         run, client = self.run, self.client
-        # everything this run changes in the target set (hitops/calibrate/output.py)
-        tx = OutputTransaction(run.target_ms, run.outputs, run.columns.target_data, None,
-                               run.chunk_rows,
-                               direct_writes=client is None and all(
-                                   isinstance(g.match.datasets["tgt"], msio.StorageRows)
-                                   for g in run.groups))
+        # everything this run changes in the target set: a Measurement Set v2's new columns
+        # (hitops/calibrate/output.py), a processing set's new data groups
+        # (hitops/calibrate/output_msv4.py)
+        if is_processing_set(run.target_ms):
+            tx = DataGroupTransaction(run.target_ms, run.outputs, run.columns.target_data,
+                                      [g.match.datasets["tgt"] for g in run.groups],
+                                      run.chunk_rows, bool(run.opts.output.overwrite))
+        else:
+            tx = OutputTransaction(run.target_ms, run.outputs, run.columns.target_data, None,
+                                   run.chunk_rows,
+                                   direct_writes=client is None and all(
+                                       isinstance(g.match.datasets["tgt"], msio.StorageRows)
+                                       for g in run.groups))
         tx.check_space()
         if client is not None:
             release_cluster_tables(client)   # stale handles of an earlier run on this cluster
@@ -83,8 +92,11 @@ class VisibilitySource:
         reports = [group_report(run, group, result, tx, self.started)
                    for group, result in zip(run.groups, results)]
         report = reports[0] if len(reports) == 1 else combined_report(run, reports)
+        if isinstance(tx, DataGroupTransaction):   # where a processing set's results are
+            report["data_groups"] = {m: {"data_group": g, "partitions": sorted(
+                {s.partition for s in tx.sources})} for m, g in tx.data_groups.items()}
         if referencing is not None:
             report["phase_referencing"] = referencing
             settle_n0_warnings(report, self.calibrator)
         return finish_after_commit(run, report, results[0] if len(reports) == 1 else None,
-                            self.started, self.prepared, results)
+                                   self.started, self.prepared, results)

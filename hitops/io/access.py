@@ -15,6 +15,11 @@ instead of a casacore traceback in the middle of a run (or a silent wait):
   Linux's /proc tells it, and is bounded;
 * :func:`locate_damage`: after an unexpected casacore error, which table and column
   cannot be read, so the message can name them.
+
+An MSv4 processing set (a zarr store, hitops/io/msv4/) has no subtables, no casacore
+locks and no casacore damage to locate: those checks return at once for one (its
+structure is checked whole by :func:`hitops.io.msv4.store.open_store`); write access is
+a probe file in each partition, the run lock and the free space are the same.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ from typing import Iterable, List, Optional
 
 from ..errors import MeasurementSetError
 from . import tables
+from .msv4.store import is_processing_set
 
 log = logging.getLogger("hitops")
 
@@ -39,6 +45,8 @@ REQUIRED_SUBTABLES = ("ANTENNA", "DATA_DESCRIPTION", "FIELD", "POLARIZATION", "S
 
 def require_subtables(ms: str, role: str, names: Iterable[str] = REQUIRED_SUBTABLES) -> None:
     """Raise naming the first subtable that is missing (a copy that lost a directory)."""
+    if is_processing_set(ms):   # no subtables: open_store has checked its partitions
+        return
     for name in names:
         if not (Path(ms) / name / "table.dat").is_file():
             raise MeasurementSetError(
@@ -48,6 +56,8 @@ def require_subtables(ms: str, role: str, names: Iterable[str] = REQUIRED_SUBTAB
 
 def require_writable(ms: str, role: str) -> None:
     """Raise unless ``ms`` can be opened for writing (read-only mount, permissions)."""
+    if is_processing_set(ms):
+        return _require_writable_store(ms, role)
     problem = None
     for path in [Path(ms), *sorted(Path(ms).glob("table.*"))]:
         if not os.access(path, os.W_OK):
@@ -67,6 +77,21 @@ def require_writable(ms: str, role: str) -> None:
         raise MeasurementSetError(
             f"{role} '{ms}' cannot be written ({problem}); hitops adds its output columns "
             "there: copy the set to a writable place (cp -r) and run on the copy")
+
+
+def _require_writable_store(ps: str, role: str) -> None:
+    """A processing set's partitions take new arrays: a probe file in each (a probe, not
+    os.access, so a read-only file system is seen, for root too)."""
+    import tempfile
+
+    for part in sorted(p for p in Path(ps).iterdir() if (p / "zarr.json").is_file()):
+        try:
+            tempfile.TemporaryFile(dir=part).close()
+        except OSError as err:
+            raise MeasurementSetError(
+                f"{role} '{ps}' cannot be written ({part.name}: {err.strerror}); hitops adds "
+                "its output data groups there: copy the store to a writable place (cp -r) "
+                "and run on the copy") from None
 
 
 def require_free_space(ms: str, n_bytes: int, what: str) -> None:
@@ -156,6 +181,8 @@ def wait_for_table_lock(ms: str, write: bool, timeout_s: float, role: str) -> No
     and a writer then waits forever without a word; here the wait is said and
     ends after ``timeout_s`` with one line naming the holder.
     """
+    if is_processing_set(ms):   # zarr has no table locks (the run lock still holds)
+        return
     deadline = time.monotonic() + float(timeout_s)
     announced = False
     with tables.main_table(ms, writable=write, user_locks=True) as t:
@@ -205,8 +232,11 @@ def locate_damage(ms: str, columns: Optional[Iterable[str]],
     """'column C, rows a-b: message' for the first column of ``ms`` that cannot be read.
 
     Reads each column in blocks with python-casacore; used only after an
-    unexpected error, to name what is damaged.  None when everything reads.
+    unexpected error, to name what is damaged.  None when everything reads (and for a
+    processing set, which python-casacore does not read).
     """
+    if is_processing_set(ms):
+        return None
     try:
         t = tables.main_table(ms)
     except RuntimeError as err:

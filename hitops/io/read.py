@@ -24,15 +24,21 @@ import numpy as np
 
 from ..errors import ColumnError, MeasurementSetError
 from . import tables
-from .msv4.store import is_processing_set
+from .msv4.store import is_processing_set, is_zarr_store, open_store
 from .table_rows import MAX_RUNS, MainTable, StorageRows, rows_reader  # noqa: F401 (re-exported)
 
 
-def check_ms(ms: str | Path, role: str = "Measurement Set") -> str:
-    """Path of an existing Measurement Set as a string; raise if it is not one."""
+def check_ms(ms: str | Path, role: str = "Measurement Set",
+             processing_set_ok: bool = False) -> str:
+    """Path of an existing Measurement Set as a string; raise if it is not one.
+
+    ``processing_set_ok``: the step reads MSv4 processing sets too (calibrate): a zarr
+    store is checked whole (hitops/io/msv4/store.py) and taken."""
     path = Path(ms)
     if not path.exists():
         raise MeasurementSetError(f"{role} '{ms}' does not exist; check the path")
+    if processing_set_ok and is_zarr_store(path):
+        return open_store(path, role).path
     if not (path / "table.dat").exists():
         if is_processing_set(path):
             raise MeasurementSetError(
@@ -44,13 +50,31 @@ def check_ms(ms: str | Path, role: str = "Measurement Set") -> str:
 
 
 def column_names(ms: str) -> List[str]:
-    """Names of the main-table columns."""
+    """Names of the main-table columns (of a processing set: the MSv2 names it answers to,
+    hitops/io/msv4/columns.py)."""
+    if is_processing_set(ms):
+        from .msv4.columns import column_names as v4_columns
+        return v4_columns(open_store(ms))
     return tables.column_names(ms)
+
+
+def column_extent(ms: str, column: str) -> Tuple[int, tuple]:
+    """(rows, the cell shape of ``column``: (n_chan, n_corr)) of a set, from its first row."""
+    if is_processing_set(ms):
+        from .msv4.group_rows import open_partition_groups
+        groups = list(open_partition_groups(ms, [column]).values())
+        return sum(g.n_rows for g in groups), groups[0].cell_shape(column) if groups else ()
+    with tables.main_table(ms) as t:
+        n = int(t.nrows())
+        return n, tuple(t.getcell(column, 0).shape) if n else ()
 
 
 def require_columns(ms: str, columns: Iterable[str], role: str = "Measurement Set",
                     hint: str = "") -> None:
     """Raise :class:`ColumnError` naming the first column ``ms`` lacks."""
+    if is_processing_set(ms):
+        from .msv4.columns import require_columns as v4_require
+        return v4_require(open_store(ms), list(columns), role, hint)
     present = set(column_names(ms))
     for column in columns:
         if column not in present:
@@ -89,7 +113,10 @@ def open_main(ms: str, columns: Sequence[str], chunk_rows: int = 1 << 21):
 
 
 def row_count(ms: str) -> int:
-    """Rows of the main table."""
+    """Rows of the main table (of a processing set: its cells that hold an integration)."""
+    if is_processing_set(ms):
+        from .msv4.group_rows import row_count as v4_rows
+        return v4_rows(ms)
     return tables.row_count(ms)
 
 
@@ -111,8 +138,13 @@ def open_for_reading(ms: str, columns: Sequence[str], chunks, time_ordered: bool
 
     Any other set opens through :func:`open_groups`.  ``mixed``: the set may mix
     fields or windows (:func:`selection_columns`; ``SetMetadata.has_groups`` of a run
-    that read its metadata), read from the subtables when None.
+    that read its metadata), read from the subtables when None.  An MSv4 processing set
+    gives one :class:`hitops.io.msv4.group_rows.PartitionSource` per group, whatever
+    the rest says (a partition is stored in time order and read chunk by chunk).
     """
+    if is_processing_set(ms):
+        from .msv4.group_rows import open_partition_groups
+        return open_partition_groups(ms, columns)
     if mixed is None:
         mixed = bool(selection_columns(ms))
     if (direct and time_ordered or local) and not mixed:
@@ -141,8 +173,11 @@ def is_time_ordered(ms: str, block_rows: int = 1 << 20) -> bool:
     """Whether the main table's TIME never decreases in storage order (read in blocks).
 
     Correlators and CASA write Measurement Sets in time order; such a table needs
-    no sort to be read time chunk by time chunk.
+    no sort to be read time chunk by time chunk.  A processing set's partitions are
+    (time, baseline) grids: in time order.
     """
+    if is_processing_set(ms):
+        return True
     last = -np.inf
     with tables.main_table(ms) as t:
         n_row = t.nrows()
@@ -236,8 +271,8 @@ def compute_columns(requests, scheduler=None) -> List[Dict[str, np.ndarray]]:
 
     graphs, direct = [], {}
     for i, (ds, columns, rows) in enumerate(requests):
-        if isinstance(ds, StorageRows):   # python-casacore, one table at a time
-            with MainTable(ds.ms) as table:
+        if isinstance(ds, StorageRows):   # python-casacore (or zarr), one table at a time
+            with ds.open() as table:
                 direct[i] = ds.read(table, list(columns), rows)
         elif isinstance(rows, slice):
             graphs.append({c: ds[c].data[rows] for c in columns})

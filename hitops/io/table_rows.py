@@ -13,7 +13,7 @@ the same time.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, Sequence
+from typing import ClassVar, Dict, Sequence
 
 import numpy as np
 
@@ -97,6 +97,8 @@ class StorageRows:
 
     ms: str
     n_rows: int
+    #: ROWID is the position (a table's row number); False for a processing set's group
+    positions_are_rows: ClassVar[bool] = True
 
     @property
     def sizes(self) -> Dict[str, int]:
@@ -106,3 +108,13 @@ class StorageRows:
         """Positions ``rows`` (a slice, ascending positions or None) of ``columns`` from the
         open ``table``; ``ROWID`` gives the row numbers."""
         return table.read_rows(list(columns), rows)
+
+    def open(self) -> MainTable:
+        """What :meth:`read` reads through, held open (a processing set's groups give their own:
+        hitops/io/msv4/group_rows.py)."""
+        return MainTable(self.ms)
+
+    def cell_shape(self, column: str) -> tuple:
+        """The shape of one row's cell of ``column`` (DATA: (n_chan, n_corr))."""
+        with tables.main_table(self.ms) as t:
+            return tuple(t.getcell(column, 0).shape)

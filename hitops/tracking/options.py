@@ -139,6 +139,10 @@ def sigma_source(ref_ms: str) -> str:
     At most :data:`SIGMA_SAMPLE_ROWS` rows, spread evenly over the table, are
     looked at, so the check stays within the run's memory budget.
     """
+    from ..io.msv4.store import is_processing_set
+    if is_processing_set(ref_ms):   # a processing set's WEIGHT (hitops/io/msv4/columns.py)
+        from ..io.msv4.group_rows import weight_source
+        return weight_source(ref_ms, SIGMA_SAMPLE_ROWS)
     with tables.main_table(ref_ms) as t:
         names = set(t.colnames())
         n_rows = t.nrows()

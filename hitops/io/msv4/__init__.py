@@ -8,6 +8,12 @@
 * ``rows.py``: a partition's rows chunk by chunk, as MSv2 columns (:class:`PartitionReader`);
 * ``data_group.py``: a new data group staged, written and registered last
   (:class:`DataGroupWriter`).
+* ``columns.py``: MSv2 column names in terms of data groups (DATA -> ``base``,
+  CORRECTED_DATA -> ``corrected``; FLAG, WEIGHT of the band's group), for calibrate;
+* ``group_rows.py``: a (field, window) group read as calibrate reads a Measurement Set's
+  (:class:`~hitops.io.msv4.group_rows.PartitionSource`, behind
+  :func:`hitops.io.read.open_for_reading`); calibrate's writer of new data groups is
+  hitops/calibrate/output_msv4.py.
 
 zarr and xradio come with the ``msv4`` extra (``pip install 'hitops[msv4]'``); they are
 imported only when a processing set is opened.  docs/msv4.md says what is measured.

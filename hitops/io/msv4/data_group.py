@@ -75,6 +75,7 @@ class DataGroupWriter:
         self.description = description or f"written by hitops from data group '{like}'"
         self._check(name)
         self._staged = None     # the partition's zarr group once staged
+        self._unregistered = False
 
     def _check(self, name: str) -> None:
         where = f"'{self.store.path}' partition '{self.entry.name}'"
@@ -111,10 +112,21 @@ class DataGroupWriter:
         except KeyError:
             return None
 
+    def unregister_existing(self, consolidate: bool = True) -> bool:
+        """Take an existing group of the name out of ``data_groups`` (``overwrite``); whether
+        there was one.  ``consolidate`` False: the caller then consolidates the metadata once
+        for several groups of the partition (:func:`consolidate_partition`), before any of
+        them stages its arrays (which must not be in the consolidated metadata)."""
+        if self._unregistered or self.variables.name not in [g.name for g in
+                                                             self.entry.data_groups]:
+            return False
+        self._register(drop=True, consolidate=consolidate)
+        self._unregistered = True
+        return True
+
     def stage(self) -> None:
         """Create the group's arrays (an existing group of the name unregistered first)."""
-        if self.variables.name in [g.name for g in self.entry.data_groups]:
-            self._register(drop=True)
+        self.unregister_existing()
         group = self._group()
         for variable in (self.variables.correlated_data, self.variables.flag):
             shutil.rmtree(Path(self.store.path) / self.entry.name / variable, ignore_errors=True)
@@ -135,21 +147,37 @@ class DataGroupWriter:
     def write(self, rows: PartitionRows, data: np.ndarray, flag: np.ndarray) -> None:
         """The rows' data (n_row, n_chan, n_corr) and flags into their cells; the chunk's other
         cells stay NaN and flagged."""
+        self.write_cells(rows.time_slice, rows.time_index, rows.baseline, data, flag)
+
+    def write_cells(self, time_slice, time_index: np.ndarray, baseline: np.ndarray,
+                    data: np.ndarray, flag: np.ndarray) -> None:
+        """:meth:`write` of rows given by their cells: the time steps ``time_slice`` [start,
+        stop) are written whole, the cells (time_index, baseline) from ``data`` and ``flag``,
+        every other cell of those steps NaN and flagged."""
         group = self._staged
         if group is None:
             raise RuntimeError("DataGroupWriter.write before stage()")
-        start, stop = rows.time_slice
+        start, stop = time_slice
         out = group[self.variables.correlated_data]
-        block = np.full((stop - start,) + out.shape[1:], np.nan + 0j, out.dtype)
-        flags = np.ones(block.shape, bool)
-        block[rows.time_index - start, rows.baseline] = data
-        flags[rows.time_index - start, rows.baseline] = flag
+        shape = (stop - start,) + out.shape[1:]
+        cell = np.asarray(time_index, np.int64) * shape[1] + np.asarray(baseline, np.int64)
+        if cell.size == shape[0] * shape[1] and (cell.size == 0 or (
+                cell[0] == start * shape[1] and np.all(np.diff(cell) == 1))):
+            # every cell of the steps, in grid order: the rows are the block (no fill)
+            block = np.asarray(data, out.dtype).reshape(shape)
+            flags = np.asarray(flag, bool).reshape(shape)
+        else:
+            block = np.full(shape, np.nan + 0j, out.dtype)
+            flags = np.ones(shape, bool)
+            block[time_index - start, baseline] = data
+            flags[time_index - start, baseline] = flag
         out[start:stop] = block
         group[self.variables.flag][start:stop] = flags
 
-    def commit(self) -> None:
-        """Register the group in ``data_groups``, then the consolidated metadata (last)."""
-        self._register(drop=False)
+    def commit(self, consolidate: bool = True) -> None:
+        """Register the group in ``data_groups``, then the consolidated metadata (last;
+        ``consolidate`` False: the caller does that once for several groups, :func:`consolidate`)."""
+        self._register(drop=False, consolidate=consolidate)
         self._staged = None
 
     def abort(self) -> None:
@@ -158,7 +186,7 @@ class DataGroupWriter:
             shutil.rmtree(Path(self.store.path) / self.entry.name / variable, ignore_errors=True)
         self._staged = None
 
-    def _register(self, drop: bool) -> None:
+    def _register(self, drop: bool, consolidate: bool = True) -> None:
         group = self._group()
         groups = {k: dict(v) for k, v in dict(group.attrs["data_groups"]).items()}
         groups.pop(self.variables.name, None)
@@ -171,11 +199,8 @@ class DataGroupWriter:
                 "description": self.description,
                 "date": datetime.datetime.now(datetime.timezone.utc).isoformat()}
         group.attrs["data_groups"] = groups
-        import zarr   # zarr_group above has imported it (or said how to install it)
-
-        with quiet_zarr():
-            zarr.consolidate_metadata(self.store.path, path=self.entry.name)
-            zarr.consolidate_metadata(self.store.path)
+        if consolidate:
+            consolidate_partition(self.store.path, self.entry.name)
 
     def __enter__(self) -> "DataGroupWriter":
         self.stage()
@@ -186,3 +211,13 @@ class DataGroupWriter:
             self.commit()
         else:
             self.abort()
+
+
+def consolidate_partition(store_path: str, partition: str) -> None:
+    """The partition's consolidated metadata, then the root's, written again (what readers
+    see; xradio's order: the root last)."""
+    import zarr   # zarr_group has imported it (or said how to install it)
+
+    with quiet_zarr():
+        zarr.consolidate_metadata(store_path, path=partition)
+        zarr.consolidate_metadata(store_path)
