@@ -13,7 +13,9 @@ A run is in one of three modes, decided by the options alone:
 accept and why; :func:`check_options` is the only function that refuses options, before
 any set is opened, so a refused run changes nothing.  Checks that need a set (columns,
 fields, tables) stay with the stage that reads it.  docs/calibrate.md, "Modes", shows the
-same table.
+same table.  When either band is an MSv4 processing set (what the path holds, not an
+option), :data:`REFUSED_ON_PROCESSING_SETS` is checked first: what that backend does not
+run yet (docs/msv4.md).
 """
 
 from __future__ import annotations
