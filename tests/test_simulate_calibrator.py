@@ -29,6 +29,7 @@ def _scene(components=True):
     scene["corruptions"].update(noise=False, troposphere=False)
     scene["stations"] = ["AP", "PV", "GL"]
     scene["calibrator"]["flux"] = {"86": 1.0, "230": 1.0}
+    scene["calibrator"].pop("components", None)     # the packaged scene's own
     if components:
         scene["calibrator"]["components"] = [
             {"flux": SECOND, "offset_ra": OFFSET_UAS[0], "offset_dec": OFFSET_UAS[1],
@@ -91,3 +92,19 @@ def test_bad_components_are_named(value, where):
     scene["calibrator"]["components"] = value
     with pytest.raises(SceneError, match=where):
         parse_scene(scene)
+
+
+def test_slews_as_the_schedule_says(resolved):
+    """120-s target scans and 60-s calibrator scans alternate, 30 s of nothing (the slew,
+    observation.scan_gap) between the end of one scan and the start of the next."""
+    with pt.table(str(resolved["230"]), ack=False) as t:
+        time, scan = t.getcol("TIME"), t.getcol("SCAN_NUMBER")
+        field, interval = t.getcol("FIELD_ID"), t.getcol("INTERVAL")[0]
+    numbers = np.unique(scan)
+    assert numbers.size >= 3
+    starts = np.array([time[scan == s].min() - interval / 2 for s in numbers])
+    ends = np.array([time[scan == s].max() + interval / 2 for s in numbers])
+    np.testing.assert_allclose(starts[1:] - ends[:-1], 30.0, atol=1e-3)
+    fields = [int(np.unique(field[scan == s])[0]) for s in numbers]
+    assert fields[:3] == [0, 1, 0]
+    np.testing.assert_allclose((ends - starts)[:2], [120.0, 60.0], atol=1e-3)
