@@ -66,7 +66,9 @@ def main() -> None:
     out = Path(args.outdir)
     pair = simulate("phaseref", out / "sim", overwrite=True, scan_gap=args.scan_gap,
                     seed=args.seed)
-    variants = {"pwc": {}, "pwc+calibrator": {"calibrator_field": "3C273"},
+    # the scene's calibrator is resolved: its reference-band model goes too
+    variants = {"pwc": {}, "pwc+calibrator": {"calibrator_field": "3C273",
+                                              "ref_model_column": "MODEL_DATA"},
                 "pwc+n0 point": {"offset_model": "point"}}
     results = {}
     for label, extra in variants.items():

@@ -256,7 +256,8 @@ def test_simulated_own_troposphere_and_slews(simulated, tmp_path, monkeypatch):
             from hitops.calibrate.phaseref import step
 
             monkeypatch.setattr(step, "integer_rule", lambda frame: "carried")
-        calibrate_flat(ref, tgt, method="pwc", no_verdict=True, calibrator_field="3C273")
+        calibrate_flat(ref, tgt, method="pwc", no_verdict=True, calibrator_field="3C273",
+                       ref_model_column="MODEL_DATA")
         with pt.table(tgt, ack=False) as t:
             sel = t.getcol("FIELD_ID") == 0
             a1, a2, data = t.getcol("ANTENNA1")[sel], t.getcol("ANTENNA2")[sel], t.getcol("PWC_DATA")[sel]

@@ -52,8 +52,11 @@ class Field:
     dec_rad: float
 
 
-def _main_table_desc(n_corr: int):
-    return tables.table_description([
+def _main_table_desc(n_corr: int, model: bool = False):
+    """``model``: a MODEL_DATA column too (CASA's model column, as ft/setjy write it)."""
+    extra = ([tables.array_column("MODEL_DATA", 0j, [1, n_corr], "complex", "The model data")]
+             if model else [])
+    return tables.table_description(extra + [
         tables.array_column("DATA", 0j, [1, n_corr], "complex", "The data column"),
         tables.array_column("FLAG", False, [1, n_corr], "boolean",
                             "The data flags, array of bools with same shape as data"),
@@ -72,7 +75,7 @@ _CONSTANT_SCALARS = ("ARRAY_ID", "DATA_DESC_ID", "FEED1", "FEED2", "FIELD_ID", "
                      "OBSERVATION_ID", "PROCESSOR_ID", "STATE_ID")
 
 
-def _main_dminfo(n_corr: int) -> dict:
+def _main_dminfo(n_corr: int, model: bool = False) -> dict:
     """Storage managers of the main table.
 
     One StandardStMan for everything (casacore's default) makes ``addrows``
@@ -83,8 +86,9 @@ def _main_dminfo(n_corr: int) -> dict:
     ~0.4 s (benchmarks/bench_simulate.py).  CASA and WSClean read any manager.
     """
     info = {}
-    for name, cell in (("DATA", [n_corr, 1]), ("FLAG", [n_corr, 1]), ("SIGMA", [n_corr]),
-                       ("WEIGHT", [n_corr]), ("UVW", [3])):
+    arrays = (("DATA", [n_corr, 1]), ("FLAG", [n_corr, 1]), ("SIGMA", [n_corr]),
+              ("WEIGHT", [n_corr]), ("UVW", [3])) + ((("MODEL_DATA", [n_corr, 1]),) if model else ())
+    for name, cell in arrays:
         rows_per_tile = max(1024, (1 << 20) // (int(np.prod(cell)) * 8))
         info[f"tiled_{name}"] = {"TYPE": "TiledColumnStMan", "NAME": f"Tiled{name}",
                                  "SPEC": {"DEFAULTTILESHAPE": cell + [rows_per_tile]},
@@ -208,8 +212,9 @@ def create_ms(path: str | Path, layout: ArrayLayout, band: Band, field: Field,
     ANTENNA1, ANTENNA2, UVW (n_row, 3) and DATA (n_row, n_corr) or
     (n_row, 1, n_corr) are required; FLAG, SIGMA, WEIGHT, SCAN_NUMBER,
     INTERVAL, EXPOSURE default to unflagged, unit sigma/weight, scan 1 and the
-    median time step.  Any further columns must already exist in the MS
-    description (e.g. FLAG_ROW, STATE_ID).
+    median time step; MODEL_DATA (shaped as DATA), when given, adds CASA's model
+    column.  Any further columns must already exist in the MS description (e.g.
+    FLAG_ROW, STATE_ID).
 
     ``telescope`` must be a name CASA's Observatories table knows: CASA 6.7
     listobs stops with "Telescope EHT is not recognized by CASA" otherwise,
@@ -250,6 +255,10 @@ def create_ms(path: str | Path, layout: ArrayLayout, band: Band, field: Field,
         "INTERVAL": np.asarray(main.get("INTERVAL", np.full(n_row, default_dt)), np.float64),
     }
     columns["EXPOSURE"] = np.asarray(main.get("EXPOSURE", columns["INTERVAL"]), np.float64)
+    model = "MODEL_DATA" in main
+    if model:
+        columns["MODEL_DATA"] = np.asarray(main["MODEL_DATA"]).reshape(
+            n_row, 1, n_corr).astype(np.complex64, copy=False)
     for name in _CONSTANT_SCALARS:
         columns[name] = np.zeros(n_row, bool if name == "FLAG_ROW" else np.int32)
     for name, value in main.items():
@@ -257,7 +266,8 @@ def create_ms(path: str | Path, layout: ArrayLayout, band: Band, field: Field,
             columns[name] = np.asarray(value)
 
     with replaced_directory(path) as partial:
-        ms = tables.new_measurement_set(str(partial), _main_table_desc(n_corr), _main_dminfo(n_corr))
+        ms = tables.new_measurement_set(str(partial), _main_table_desc(n_corr, model),
+                                        _main_dminfo(n_corr, model))
         ms.addrows(n_row)
         for name, value in columns.items():
             ms.putcol(name, value)

@@ -24,7 +24,7 @@ import numpy as np
 
 from .. import radiometer
 from .kernels import corrupt_channels
-from .sources import model_visibilities
+from .sources import field_visibilities, model_visibilities
 
 
 def station_opacity(scene, obs, index: int, band_name: str):
@@ -106,11 +106,45 @@ def _noise_generator(scene, band_index: int, window: int):
     return np.random.default_rng(np.random.SeedSequence(key))
 
 
+def writes_model(scene) -> bool:
+    """MODEL_DATA is written only for a resolved calibrator (``calibrator.components``):
+    scenes without one keep their sets as they were."""
+    return scene.calibrator is not None and bool(scene.calibrator.components)
+
+
+def window_model(scene, band_index: int, window: int, obs, rows: slice) -> np.ndarray:
+    """Noise-free visibilities (n_row, n_chan) complex128 of one window: the target's
+    model on its rows, the calibrator's (point + components, at its own phase centre)
+    on the calibrator's."""
+    band = scene.bands[band_index]
+    chan_freq = band.chan_freq()[window]
+    model = model_visibilities(scene, band.name, obs.uvw[rows], chan_freq)
+    if obs.field_id is not None:
+        on_cal = obs.field_id[obs.time_index[rows]] == 1
+        cal = scene.calibrator
+        model[on_cal] = field_visibilities(cal.flux, cal.components, band.name,
+                                           obs.uvw[rows][on_cal], chan_freq)
+    return model
+
+
+def model_column(scene, model: np.ndarray, obs, rows: slice) -> np.ndarray:
+    """MODEL_DATA (n_row, n_chan, n_corr) complex64 as CASA's ft/setjy write a Stokes I
+    model: the calibrator's visibility on its rows in the parallel hands, 0 in the cross
+    hands; the target's rows 1 (CASA's default model: the target's structure is what
+    the observer wants to find, so the simulator does not hand it to calibration)."""
+    parallel = np.array([c[0] == c[1] for c in scene.correlations])
+    on_cal = obs.field_id[obs.time_index[rows]] == 1
+    values = np.where(on_cal[:, None], model, 1.0)
+    return (values[:, :, None] * parallel[None, None, :]).astype(np.complex64)
+
+
 def window_block(scene, band_index: int, window: int, obs, rows: slice, sigma: np.ndarray,
-                 inst: Optional[Tuple[np.ndarray, np.ndarray]], rng) -> np.ndarray:
+                 inst: Optional[Tuple[np.ndarray, np.ndarray]], rng,
+                 model: np.ndarray) -> np.ndarray:
     """DATA (n_row, n_chan, n_corr) complex64 of one window for the rows ``rows``
     (``inst``: :func:`instrumental_series`; ``rng``: the window's noise generator, None
-    for noise-free data, drawn in row order so blocks give the stream of one draw)."""
+    for noise-free data, drawn in row order so blocks give the stream of one draw;
+    ``model``: :func:`window_model`)."""
     band = scene.bands[band_index]
     chan_freq = band.chan_freq()[window]
     n_corr = len(scene.correlations)
@@ -122,10 +156,6 @@ def window_block(scene, band_index: int, window: int, obs, rows: slice, sigma: n
         draws = np.zeros((0, chan_freq.size, n_corr, 2), np.float32)
     if inst is None:
         inst = (np.zeros((0, 0)), np.zeros((0, 0)))
-    model = model_visibilities(scene, band.name, obs.uvw[rows], chan_freq)
-    if obs.field_id is not None:
-        # the calibrator's rows see a point source at their own phase centre
-        model[obs.field_id[obs.time_index[rows]] == 1] = scene.calibrator.flux[band.name]
     return corrupt_channels(model,
                             obs.ant1[rows], obs.ant2[rows], obs.time_index[rows],
                             obs.phase_ref, chan_freq / scene.coherence_freq_hz, inst[0], inst[1],
@@ -160,17 +190,23 @@ def band_blocks(scene, band_index: int, obs,
         }
         if obs.field_id is not None:
             per_row["FIELD_ID"] = obs.field_id[obs.time_index[rows]]
-        blocks = [window_block(scene, band_index, w, obs, rows, sigma, inst, rngs[w])
+        models = [window_model(scene, band_index, w, obs, rows) for w in range(band.n_window)]
+        blocks = [window_block(scene, band_index, w, obs, rows, sigma, inst, rngs[w], models[w])
                   for w in range(band.n_window)]
-        yield _interleave(per_row, blocks, obs.time_index[rows], band.is_wideband)
+        model_blocks = ([model_column(scene, m, obs, rows) for m in models]
+                        if writes_model(scene) else None)
+        yield _interleave(per_row, blocks, obs.time_index[rows], band.is_wideband, model_blocks)
 
 
 def _interleave(per_row: Dict[str, np.ndarray], blocks, time_index: np.ndarray,
-                wideband: bool) -> Dict[str, np.ndarray]:
-    """Rows in (time, window, baseline) order: each time's rows of window 0, then window 1..."""
+                wideband: bool, model_blocks=None) -> Dict[str, np.ndarray]:
+    """Rows in (time, window, baseline) order: each time's rows of window 0, then window 1...
+    (``model_blocks``: MODEL_DATA per window, or None: no MODEL_DATA)."""
     n_row, n_window = time_index.size, len(blocks)
     if n_window == 1:
         columns = dict(per_row, DATA=blocks[0])
+        if model_blocks is not None:
+            columns["MODEL_DATA"] = model_blocks[0]
         if wideband:
             columns["DATA_DESC_ID"] = np.zeros(n_row, np.int32)
         return columns
@@ -180,5 +216,7 @@ def _interleave(per_row: Dict[str, np.ndarray], blocks, time_index: np.ndarray,
     source_row = np.tile(np.arange(n_row), n_window)[order]
     columns = {name: value[source_row] for name, value in per_row.items()}
     columns["DATA"] = np.concatenate(blocks)[order]
+    if model_blocks is not None:
+        columns["MODEL_DATA"] = np.concatenate(model_blocks)[order]
     columns["DATA_DESC_ID"] = window_of[order]
     return columns

@@ -16,6 +16,7 @@ other than SPECTRAL_WINDOW and DATA_DESCRIPTION are filled by ms_create's own
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 from typing import Iterator, Mapping, Optional
 
@@ -63,8 +64,10 @@ def _add_field(path: Path, field: Field) -> None:
             t.putcell(name, 1, t.getcell(name, 0))
 
 
-def _table_desc(n_chan: int, n_corr: int):
-    return tables.table_description([
+def _table_desc(n_chan: int, n_corr: int, model: bool):
+    extra = ([tables.array_column("MODEL_DATA", 0j, [n_chan, n_corr], "complex",
+                                  "The model data")] if model else [])
+    return tables.table_description(extra + [
         tables.array_column("DATA", 0j, [n_chan, n_corr], "complex", "The data column"),
         tables.array_column("FLAG", False, [n_chan, n_corr], "boolean", "The data flags"),
         tables.array_column("SIGMA", 0.0, [n_corr], "float",
@@ -74,11 +77,13 @@ def _table_desc(n_chan: int, n_corr: int):
     ])
 
 
-def _dminfo(n_chan: int, n_corr: int) -> dict:
+def _dminfo(n_chan: int, n_corr: int, model: bool) -> dict:
     """Array columns tiled by whole rows; scalars as hitops.io.ms_create lays them out."""
     info = {}
-    for name, cell, size in (("DATA", [n_corr, n_chan], 8), ("FLAG", [n_corr, n_chan], 1),
-                             ("SIGMA", [n_corr], 4), ("WEIGHT", [n_corr], 4), ("UVW", [3], 8)):
+    arrays = ((("DATA", [n_corr, n_chan], 8), ("FLAG", [n_corr, n_chan], 1),
+               ("SIGMA", [n_corr], 4), ("WEIGHT", [n_corr], 4), ("UVW", [3], 8))
+              + ((("MODEL_DATA", [n_corr, n_chan], 8),) if model else ()))
+    for name, cell, size in arrays:
         rows = max(64, _TILE_BYTES // (int(np.prod(cell)) * size))
         info[f"tiled_{name}"] = {"TYPE": "TiledColumnStMan", "NAME": f"Tiled{name}",
                                  "SPEC": {"DEFAULTTILESHAPE": cell + [rows]}, "COLUMNS": [name]}
@@ -103,6 +108,9 @@ def _main_columns(columns: Mapping[str, np.ndarray], n_chan: int, n_corr: int) -
         "SCAN_NUMBER": np.asarray(columns["SCAN_NUMBER"], np.int32),
         "DATA_DESC_ID": np.asarray(columns["DATA_DESC_ID"], np.int32),
     }
+    if "MODEL_DATA" in columns:
+        out["MODEL_DATA"] = np.asarray(columns["MODEL_DATA"],
+                                       np.complex64).reshape(n_row, n_chan, n_corr)
     if "FIELD_ID" in columns:
         out["FIELD_ID"] = np.asarray(columns["FIELD_ID"], np.int32)
     for name in _CONSTANT_SCALARS:
@@ -114,9 +122,13 @@ def _main_columns(columns: Mapping[str, np.ndarray], n_chan: int, n_corr: int) -
 def _create_wideband(path: Path, layout: ArrayLayout, band: BandSpec, corr_types,
                      field: Field, blocks, n_row: int, time_range: tuple, telescope: str) -> Path:
     n_chan, n_corr = band.n_chan, len(corr_types)
+    # the first block says whether the scene writes a model column (a resolved calibrator)
+    first = next(iter(blocks))
+    blocks = itertools.chain([first], blocks)
+    model = "MODEL_DATA" in first
     with replaced_directory(path) as partial:
-        ms = tables.new_measurement_set(str(partial), _table_desc(n_chan, n_corr),
-                                        _dminfo(n_chan, n_corr))
+        ms = tables.new_measurement_set(str(partial), _table_desc(n_chan, n_corr, model),
+                                        _dminfo(n_chan, n_corr, model))
         ms.addrows(n_row)
         start = 0
         for block in blocks:

@@ -31,7 +31,7 @@ INSTRUMENTAL_KEYS = ("phase_deg", "delay_ns", "phase_drift_deg_per_hour",
 BAND_KEYS = ("name", "freq_ghz", "bandwidth_ghz", "n_chan", "chan_width_mhz", "windows_ghz")
 CALIBRATOR_KEYS = ("name", "ra", "dec", "flux", "scan_length")
 #: optional keys of the calibrator mapping
-CALIBRATOR_OPTIONAL = ("own_troposphere",)
+CALIBRATOR_OPTIONAL = ("own_troposphere", "components")
 
 
 @dataclass(frozen=True)
@@ -89,7 +89,8 @@ class Instrumental:
 @dataclass(frozen=True)
 class Calibrator:
     """A phase calibrator observed in scans alternating with the target's (docs/simulate.md,
-    "Calibrator field"): a point source at its own phase centre (FIELD_ID 1)."""
+    "Calibrator field"): a point source at its own phase centre (FIELD_ID 1), plus any
+    ``components`` (then resolved: its model is written to MODEL_DATA)."""
 
     name: str
     ra: float                # rad, J2000
@@ -99,6 +100,8 @@ class Calibrator:
     # each field's own part of the path, as a fraction of the shared part's rms (0: both
     # fields see one troposphere, as before)
     own_troposphere: float = 0.0
+    # components beside the point (the source's component syntax, offsets and sizes in uas)
+    components: Tuple["SourceComponent", ...] = ()
 
 
 @dataclass(frozen=True)
@@ -213,4 +216,17 @@ def parse_calibrator(reader, raw, target_name: str, angle, per_band, band_names)
                       per_band(reader, raw["flux"], "calibrator.flux", band_names, 0.0),
                       reader.number(raw, "scan_length", "calibrator", strictly_positive=True),
                       reader.number(raw, "own_troposphere", "calibrator", default=0.0,
-                                    minimum=0.0))
+                                    minimum=0.0),
+                      _calibrator_components(reader, raw.get("components"), per_band,
+                                             band_names))
+
+
+def _calibrator_components(reader, raw, per_band, band_names) -> Tuple[SourceComponent, ...]:
+    """``calibrator.components``: a list in the source's component syntax (or absent)."""
+    if raw is None:
+        return ()
+    if not isinstance(raw, (list, tuple)):
+        reader.fail("calibrator.components", "must be a list of components like "
+                    "{flux: {\"86\": 0.5, \"230\": 0.3}, offset_ra: 100, fwhm_major: 50}")
+    return tuple(parse_component(reader, c, f"calibrator.components[{i}]", band_names, per_band)
+                 for i, c in enumerate(raw))

@@ -28,14 +28,23 @@ UAS = np.radians(1.0 / 3600e6)
 
 def model_visibilities(scene, band_name: str, uvw: np.ndarray,
                        chan_freq: np.ndarray) -> np.ndarray:
-    """Noise-free visibilities (Jy), complex128 (n_row, n_chan), at ``chan_freq`` (Hz)."""
+    """Noise-free visibilities (Jy) of the target, complex128 (n_row, n_chan), at
+    ``chan_freq`` (Hz)."""
+    return field_visibilities(scene.flux, scene.components, band_name, uvw, chan_freq)
+
+
+def field_visibilities(flux, components, band_name: str, uvw: np.ndarray,
+                       chan_freq: np.ndarray) -> np.ndarray:
+    """Noise-free visibilities (Jy), complex128 (n_row, n_chan), of a point of ``flux``
+    (Jy per band) at the phase centre plus ``components`` (the target's or a
+    calibrator's, each seen at its own phase centre)."""
     n_row = uvw.shape[0]
-    model = np.full((n_row, chan_freq.size), scene.flux[band_name], dtype=np.complex128)
-    if not scene.components:
+    model = np.full((n_row, chan_freq.size), flux[band_name], dtype=np.complex128)
+    if not components:
         return model
     u = uvw[:, 0, None] * chan_freq[None, :] / C_LIGHT
     v = uvw[:, 1, None] * chan_freq[None, :] / C_LIGHT
-    for comp in scene.components:
+    for comp in components:
         shift = np.exp(2j * np.pi * (u * comp.offset_ra * UAS + v * comp.offset_dec * UAS))
         model += comp.flux[band_name] * _shape(comp, u, v) * shift
     return model
