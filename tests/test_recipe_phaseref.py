@@ -72,3 +72,8 @@ def test_the_step_ran_on_the_resolved_model_and_the_page_exists(phaseref_run):
     assert len(window["scans"]) == 6
     page = (phaseref_run / "index.html").read_text()
     assert "PWC" in page and "FF+SC" in page
+    # the page shows what the step did: its model, its rule and every antenna's terms
+    assert "Phase referencing: PWC_DATA" in page and "model: MODEL_DATA" in page
+    assert "by the delay rule" in page and "6 calibrator scans" in page
+    stations = {a for a in window["antennas"]}
+    assert all(f"<td>{s}</td>" in page for s in stations) and len(stations) == 5

@@ -15,6 +15,7 @@ from typing import Dict, Iterable, List, Optional, Sequence
 
 from .collect import RunFacts
 from .images import Picture
+from .phaseref import phaseref_windows
 from .provenance import Provenance
 from .steps import StepLog
 
@@ -241,7 +242,18 @@ def _stations_section(facts: RunFacts, base: Path) -> str:
                                                        if isinstance(v, int)))
         out.append(head + f"<p class='muted'>{_e('; '.join(facts_line))}</p>")
         out.append(_station_table(body))
+        out.append(_phaseref_block(body))
     out.append("</section>")
+    return "".join(out)
+
+
+def _phaseref_block(body: Dict) -> str:
+    """The calibrator step's facts and per-antenna terms (hitops/report/phaseref.py)."""
+    out = []
+    for window in phaseref_windows(body):
+        out.append(f"<h3>Phase referencing: {_e(window.column)}</h3><ul>")
+        out += [f"<li>{_e(line)}</li>" for line in window.lines]
+        out.append("</ul>" + _table(window.head, window.rows, "sortable"))
     return "".join(out)
 
 
