@@ -60,7 +60,7 @@ VOLATILE = {"time_s", "timings_s", "report_path", "ref_ms", "target_ms", "path"}
 
 
 #: --chunk-rows of the chunked cases: several chunks in each scene
-CHUNK_ROWS = {"demo": 3000, "paper": 150_000, TABLE_SCENE: 500, PHASEREF_SCENE: 700}
+CHUNK_ROWS = {"demo": 3000, "paper": 150_000, TABLE_SCENE: 500, PHASEREF_SCENE: 150}
 #: the table scene's scans: (field, start s, stop s), two fields alternating
 TABLE_SCANS = (("M87", 0.0, 60.0), ("3C273", 70.0, 130.0), ("M87", 140.0, 200.0),
                ("3C273", 210.0, 270.0))
