@@ -27,8 +27,9 @@ caltable's FPARAM, FLAG and row axes.
 
 ``--scenes phaseref`` runs the ``--calibrator-field`` step (its own fingerprint file): the
 casatools.simulator pair of tests/test_sfpr.py (15 min, 60-s slews, a resolved calibrator
-in MODEL_DATA) and the packaged ``phaseref`` scene cut to 20 min; the count and antenna
-trackers, one chunk or several.  ``--only`` matches ``scene/case``.
+in MODEL_DATA), the packaged ``phaseref`` scene cut to 20 min, and that with one 230-GHz
+channel (the count carried across the switches); the count and antenna trackers, one
+chunk or several.  ``--only`` matches ``scene/case``.
 """
 
 from __future__ import annotations
@@ -123,7 +124,9 @@ def table_cases():
 def phaseref_cases():
     """(name, calibrate keyword arguments) of the --calibrator-field matrix; ``pair`` names
     the pair: "sfpr" (tests/test_sfpr.py's casatools.simulator pair, 15 min, 60-s slews,
-    a resolved calibrator in MODEL_DATA) or "packaged" (the phaseref scene cut to 20 min)."""
+    a resolved calibrator in MODEL_DATA), "packaged" (the phaseref scene cut to 20 min) or
+    "onechan" (that with one 230-GHz channel, noise-free: the count carried across the
+    switches)."""
     chunk = {"chunk_rows": CHUNK_ROWS[PHASEREF_SCENE]}
     sfpr = {"pair": "sfpr", "calibrator_field": "CAL", "ref_model_column": "MODEL_DATA"}
     packaged = {"pair": "packaged", "calibrator_field": "3C273"}
@@ -138,6 +141,9 @@ def phaseref_cases():
         ("packaged-count-chunked", {**packaged, "method": "pwc", **chunk}),
         ("packaged-antenna-chunked", {**packaged, "method": "pwc", "tracker": "antenna",
                                       **chunk}),
+        ("onechan-count-whole", {**packaged, "pair": "onechan", "method": "pwc,cfpt"}),
+        ("onechan-count-chunked", {**packaged, "pair": "onechan", "method": "pwc,cfpt",
+                                   **chunk}),
     ]
     out = []
     for name, kw in rows:
@@ -159,8 +165,20 @@ def simulate_phaseref_scene(workdir: Path):
         subprocess.run([sys.executable, "-m", "hitops.cli", "simulate", PHASEREF_SCENE,
                         "--outdir", str(packaged), "--duration", str(PHASEREF_PACKAGED_S),
                         "--overwrite"], check=True)
+    onechan = outdir / "onechan"
+    if not (onechan / "sim-230.ms" / "table.dat").exists():
+        from hitops.simulate import simulate as simulate_scene
+        from hitops.simulate.scene import load_scene_mapping
+
+        scene = load_scene_mapping(PHASEREF_SCENE)[0]
+        scene["observation"]["duration"] = PHASEREF_PACKAGED_S
+        scene["corruptions"]["noise"] = False
+        scene["bands"][1]["n_chan"] = 1
+        shutil.rmtree(onechan, ignore_errors=True)
+        simulate_scene(scene, onechan)
     return {"sfpr": (sfpr / "ref.ms", sfpr / "target.ms"),
-            "packaged": (packaged / "sim-86.ms", packaged / "sim-230.ms")}
+            "packaged": (packaged / "sim-86.ms", packaged / "sim-230.ms"),
+            "onechan": (onechan / "sim-86.ms", onechan / "sim-230.ms")}
 
 
 def simulate_table_scene(workdir: Path):
