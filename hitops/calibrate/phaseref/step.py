@@ -24,6 +24,11 @@ count starts afresh at every scan, and a slew of a minute is too long to carry i
    residual; then each target scan's own integer j is the delay of what is left, in
    wraps, and 2 pi R_k j is removed too (:mod:`.apply`).
 
+Each window is done in three passes over the target set in the run's chunks
+(:mod:`.passes`: the calibrator's sums; the calibrator's integers removed and the
+target corrected; the target's integers removed), inside the memory budget: only
+per-scan sums are kept between chunks.
+
 The correction is written into the staged output column itself (the same
 :class:`~hitops.calibrate.output.OutputTransaction`, committed or rolled back with the
 transfer), so PWC_DATA holds the phase-referenced target: one column, as diagnose,
