@@ -183,9 +183,9 @@ class TargetLeft:
 
     block: int
     shape: Tuple[int, int, int]
-    total: ScanSums = None
-    partial: ScanSums = None
-    in_block: int = 0
+    total: ScanSums = field(init=False)      # the blocks closed so far
+    partial: ScanSums = field(init=False)    # the open block's own sums
+    in_block: int = 0                        # target rows in the open block
     runs: ScanRuns = field(default_factory=ScanRuns)
     n_rows: int = 0
 
