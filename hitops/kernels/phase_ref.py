@@ -401,3 +401,19 @@ def scan_integers(times, phase, delay, valid, wrap_delay, ratio):
             margin[idx, s] = margin_s
             margin[idx[0], s] = np.nan
     return m, margin
+
+
+@numba.njit(cache=True, nogil=True)
+def times_factors(data, factors):
+    """``data * factors`` (both (n_row, n_chan, n_corr)) as complex64, one scalar product
+    per sample: numpy's complex64 multiply rounds the last bit differently in its vector
+    body and at its scalar edges, which samples fall where moving with the arrays' places
+    in memory (measured: 32 932 samples of a 4200-row product differed between two
+    layouts), so a run's output moved with its chunking."""
+    n_row, n_chan, n_corr = data.shape
+    out = np.empty((n_row, n_chan, n_corr), np.complex64)
+    for r in range(n_row):
+        for k in range(n_chan):
+            for c in range(n_corr):
+                out[r, k, c] = data[r, k, c] * factors[r, k, c]
+    return out

@@ -17,7 +17,7 @@ import numpy as np
 
 from ...io import read as msio
 from ...kernels.antenna_terms import AntennaTerms, apply_antenna_terms
-from ...kernels.phase_ref import phase_and_delay, scan_integers
+from ...kernels.phase_ref import phase_and_delay, scan_integers, times_factors
 from ...kernels.wideband import rotate_channels
 from .solve import WindowFrame, WindowSolution
 
@@ -80,8 +80,8 @@ def apply_chunk(table, tx, column: str, rows, solution: WindowSolution,
     corrected = apply_antenna_terms(read(column), np.arange(rows.rows.size), rows.ant1,
                                     rows.ant2, corr_hands, terms, frame.chan_offset,
                                     keep_uncalibrated=True)
-    rotated = corrected.data * baseline_factors(solution, rows.ant1, rows.ant2, corr_hands,
-                                                n_ant)
+    rotated = times_factors(corrected.data, np.broadcast_to(baseline_factors(
+        solution, rows.ant1, rows.ant2, corr_hands, n_ant), corrected.data.shape))
     flags = tx.flags_now(table, rows.rows)
     ok = corrected.calibrated
     n_flagged, new_flag = 0, None
