@@ -23,7 +23,13 @@ scenes; its own fingerprint file): a pair laid out by casatools.simulator
 fringefit (4 s) and gaincal (G Jones, solint 'int'); cases: pwc, pwc,cfpt, the n0
 step (``--offset-model point``, ``--offset-reference-column``), ``--caltable``,
 one chunk or several.  Besides the columns and FLAG it digests the written
-caltable's FPARAM, FLAG and row axes.  ``--only`` matches ``scene/case``.
+caltable's FPARAM, FLAG and row axes.
+
+``--scenes phaseref`` runs the ``--calibrator-field`` step (its own fingerprint file): the
+casatools.simulator pair of tests/test_sfpr.py (15 min, 60-s slews, a resolved calibrator
+in MODEL_DATA), the packaged ``phaseref`` scene cut to 20 min, and that with one 230-GHz
+channel (the count carried across the switches); the count and antenna trackers, one
+chunk or several.  ``--only`` matches ``scene/case``.
 """
 
 from __future__ import annotations
@@ -43,6 +49,10 @@ from pathlib import Path
 SCENES = ("demo", "paper")
 #: the --reference-table scene: run with --scenes table
 TABLE_SCENE = "table"
+#: the --calibrator-field scenes: run with --scenes phaseref
+PHASEREF_SCENE = "phaseref"
+#: the packaged phaseref scene's duration in the phaseref cases (s): cut to 20 min
+PHASEREF_PACKAGED_S = 1200
 TRACKERS = ("count", "smooth", "antenna")
 #: the offset reference column: a CFPT calibration of the same data, written once per scene
 OFFSET_REFERENCE = "OFFSET_REFERENCE"
@@ -51,7 +61,7 @@ VOLATILE = {"time_s", "timings_s", "report_path", "ref_ms", "target_ms", "path"}
 
 
 #: --chunk-rows of the chunked cases: several chunks in each scene
-CHUNK_ROWS = {"demo": 3000, "paper": 150_000, TABLE_SCENE: 500}
+CHUNK_ROWS = {"demo": 3000, "paper": 150_000, TABLE_SCENE: 500, PHASEREF_SCENE: 150}
 #: the table scene's scans: (field, start s, stop s), two fields alternating
 TABLE_SCANS = (("M87", 0.0, 60.0), ("3C273", 70.0, 130.0), ("M87", 140.0, 200.0),
                ("3C273", 210.0, 270.0))
@@ -109,6 +119,66 @@ def table_cases():
         ("flagged-model-whole", {"table": "flagged", "method": "pwc", "offset_model": "point"}),
     ]
     return [(name, {"overwrite": True, **kw}) for name, kw in rows]
+
+
+def phaseref_cases():
+    """(name, calibrate keyword arguments) of the --calibrator-field matrix; ``pair`` names
+    the pair: "sfpr" (tests/test_sfpr.py's casatools.simulator pair, 15 min, 60-s slews,
+    a resolved calibrator in MODEL_DATA), "packaged" (the phaseref scene cut to 20 min) or
+    "onechan" (that with one 230-GHz channel, noise-free: the count carried across the
+    switches)."""
+    chunk = {"chunk_rows": CHUNK_ROWS[PHASEREF_SCENE]}
+    sfpr = {"pair": "sfpr", "calibrator_field": "CAL", "ref_model_column": "MODEL_DATA"}
+    packaged = {"pair": "packaged", "calibrator_field": "3C273"}
+    rows = [
+        ("sfpr-count-whole", {**sfpr, "method": "pwc"}),
+        ("sfpr-count-chunked", {**sfpr, "method": "pwc", **chunk}),
+        ("sfpr-antenna-whole", {**sfpr, "method": "pwc", "tracker": "antenna"}),
+        ("sfpr-antenna-chunked", {**sfpr, "method": "pwc", "tracker": "antenna", **chunk}),
+        ("sfpr-point-chunked", {**sfpr, "method": "pwc", "calibrator_model_column": "point",
+                                "ref_model_column": None, **chunk}),
+        ("packaged-count-whole", {**packaged, "method": "pwc"}),
+        ("packaged-count-chunked", {**packaged, "method": "pwc", **chunk}),
+        ("packaged-antenna-chunked", {**packaged, "method": "pwc", "tracker": "antenna",
+                                      **chunk}),
+        ("onechan-count-whole", {**packaged, "pair": "onechan", "method": "pwc,cfpt"}),
+        ("onechan-count-chunked", {**packaged, "pair": "onechan", "method": "pwc,cfpt",
+                                   **chunk}),
+    ]
+    out = []
+    for name, kw in rows:
+        kw = {k: v for k, v in kw.items() if v is not None}
+        out.append((name, {"overwrite": True, "no_verdict": True, **kw}))
+    return out
+
+
+def simulate_phaseref_scene(workdir: Path):
+    """The phaseref scene's two pairs, made once: {"sfpr": (ref, tgt), "packaged": (ref, tgt)}."""
+    outdir = workdir / PHASEREF_SCENE
+    sfpr, packaged = outdir / "sfpr", outdir / "packaged"
+    if not (sfpr / "target.ms" / "table.dat").exists():
+        from hitops.testing.phaseref_scene import PhaserefSpec, make_phaseref_pair
+
+        shutil.rmtree(sfpr, ignore_errors=True)
+        make_phaseref_pair(sfpr, PhaserefSpec(slew_s=60.0, duration_s=900.0))
+    if not (packaged / "sim-230.ms" / "table.dat").exists():
+        subprocess.run([sys.executable, "-m", "hitops.cli", "simulate", PHASEREF_SCENE,
+                        "--outdir", str(packaged), "--duration", str(PHASEREF_PACKAGED_S),
+                        "--overwrite"], check=True)
+    onechan = outdir / "onechan"
+    if not (onechan / "sim-230.ms" / "table.dat").exists():
+        from hitops.simulate import simulate as simulate_scene
+        from hitops.simulate.scene import load_scene_mapping
+
+        scene = load_scene_mapping(PHASEREF_SCENE)[0]
+        scene["observation"]["duration"] = PHASEREF_PACKAGED_S
+        scene["corruptions"]["noise"] = False
+        scene["bands"][1]["n_chan"] = 1
+        shutil.rmtree(onechan, ignore_errors=True)
+        simulate_scene(scene, onechan)
+    return {"sfpr": (sfpr / "ref.ms", sfpr / "target.ms"),
+            "packaged": (packaged / "sim-86.ms", packaged / "sim-230.ms"),
+            "onechan": (onechan / "sim-86.ms", onechan / "sim-230.ms")}
 
 
 def simulate_table_scene(workdir: Path):
@@ -237,16 +307,23 @@ def fingerprint(workdir: Path, scenes, only=None) -> dict:
     with contextlib.ExitStack() as stack:
         scheduler = LocalScheduler(stack)
         for scene in scenes:
+            matrix = {TABLE_SCENE: table_cases, PHASEREF_SCENE: phaseref_cases}
             selected = [(name, kw) for name, kw in
-                        (table_cases() if scene == TABLE_SCENE else cases(scene))
+                        (matrix[scene]() if scene in matrix else cases(scene))
                         if not only or only in f"{scene}/{name}"]
             if not selected:
                 continue
+            pairs = None
             if scene == TABLE_SCENE:
                 ref, tgt, tables = simulate_table_scene(workdir)
+            elif scene == PHASEREF_SCENE:
+                pairs, tables = simulate_phaseref_scene(workdir), None
             else:
                 (ref, tgt), tables = simulate(scene, workdir), None
             for name, kwargs in selected:
+                if pairs is not None:
+                    kwargs = dict(kwargs)
+                    ref, tgt = pairs[kwargs.pop("pair")]
                 digests, report, elapsed = run_case(ref, tgt, kwargs, workdir, scheduler, tables)
                 result[f"{scene}/{name}"] = {"digests": digests, "report": report}
                 print(f"{scene}/{name}: {elapsed:.1f} s", flush=True)
@@ -290,7 +367,8 @@ def main(argv=None) -> int:
     parser.add_argument("fingerprints", type=Path, help="JSON file written by record, read by check")
     parser.add_argument("--workdir", type=Path, help="keep the simulated scenes here (reused)")
     parser.add_argument("--scenes", default=",".join(SCENES),
-                        help=f"comma-separated, of {', '.join(SCENES + (TABLE_SCENE,))}")
+                        help="comma-separated, of "
+                        f"{', '.join(SCENES + (TABLE_SCENE, PHASEREF_SCENE))}")
     parser.add_argument("--only", help="run only the cases whose scene/name contains this")
     args = parser.parse_args(argv)
     # the runs' own log lines would bury the result

@@ -283,3 +283,32 @@ def test_the_antenna_tracker_works_with_the_step(short_scene, tmp_path):
     assert report["phase_referencing"]["methods"]["PWC_DATA"][0]["integers"]["rule"] == "delay"
     assert target_coherence(tgt, "PWC_DATA").min() >= COHERENCE
     assert np.abs(_target_phase_deg(tgt)).max() < 1.0
+
+
+def test_the_step_runs_in_chunks_and_writes_what_one_chunk_does(short_scene, tmp_path,
+                                                                  monkeypatch):
+    """--chunk-rows 100: the transfer and every pass of the step go chunk by chunk (no pass
+    holds more than 100 rows of the staged column), and the column and flags written are
+    the one-chunk run's, byte for byte."""
+    from hitops.calibrate.phaseref import passes
+
+    whole, whole_tgt = _run(short_scene, tmp_path / "whole")
+    held: list = []
+    chunks = passes.WindowPass.chunks
+
+    def counted(self, table, written):
+        for chunk in chunks(self, table, written):
+            held.append(chunk.cal.rows.size + chunk.target.rows.size)
+            yield chunk
+
+    monkeypatch.setattr(passes.WindowPass, "chunks", counted)
+    chunked, chunked_tgt = _run(short_scene, tmp_path / "chunked", chunk_rows=100)
+    assert [g["chunks"] for g in whole["groups"]] == [1, 1]
+    assert min(g["chunks"] for g in chunked["groups"]) > 1
+    with pt.table(str(whole_tgt), ack=False) as a, pt.table(str(chunked_tgt), ack=False) as b:
+        # three passes (calibrator sums, apply, target integers), each over every chunk
+        assert len(held) == 3 * -(-b.nrows() // 100) and max(held) <= 100
+        for column in ("PWC_DATA", "FLAG"):
+            assert np.array_equal(a.getcol(column), b.getcol(column)), column
+    assert (chunked["phase_referencing"]["methods"]["PWC_DATA"][0]["integers"]
+            == whole["phase_referencing"]["methods"]["PWC_DATA"][0]["integers"])

@@ -2,9 +2,12 @@
 
 * :mod:`.step`: the step as calibrate runs it (checks, the calibrator's model, the order
   of the work per window and staged column);
-* :mod:`.solve`: the calibrator's side: scan sums, each scan's integer, antenna terms;
-* :mod:`.apply`: the target's side: the interpolated terms removed, each target scan's
-  integer found and removed (or its rows flagged);
+* :mod:`.passes`: the passes over the target set chunk by chunk (the run's rows per
+  chunk), and the per-scan sums kept between chunks;
+* :mod:`.solve`: the calibrator's side: each scan's integer, antenna terms;
+* :mod:`.apply`: the target's side: the interpolated terms removed (through
+  hitops/kernels/antenna_terms.py), each target scan's integer found and removed (or
+  its rows flagged);
 * :mod:`.bridge`: the reference wrap count carried across scan and field switches (one-
   channel windows, where there is no delay to find a scan's integer from);
 * :mod:`.report`: the per-antenna report and the log's summary line.

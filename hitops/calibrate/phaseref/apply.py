@@ -16,7 +16,8 @@ from typing import Tuple
 import numpy as np
 
 from ...io import read as msio
-from ...kernels.phase_ref import baseline_sums, phase_and_delay, scan_integers
+from ...kernels.antenna_terms import AntennaTerms, apply_antenna_terms
+from ...kernels.phase_ref import phase_and_delay, scan_integers, times_factors
 from ...kernels.wideband import rotate_channels
 from .solve import WindowFrame, WindowSolution
 
@@ -64,47 +65,31 @@ def baseline_factors(solution: WindowSolution, ant1, ant2, corr_hands, n_ant: in
     return out
 
 
-def apply_window(table, tx, column: str, rows, meta, solution: WindowSolution,
-                 corr_hands: np.ndarray, frame: WindowFrame, block: int,
-                 n_ant: int) -> Tuple[int, np.ndarray, np.ndarray]:
-    """The interpolated correction applied to the target rows of one window, block by
-    block, through the transaction's own write path; rows touching an antenna without a
-    solution are flagged.  Returns (rows flagged, and what is left per target scan:
-    sums (n_scan * n_bl, n_chan, n_hand) and counts, indexed scan * n_bl + baseline
-    with baseline = ant1 * n_ant + ant2)."""
-    n_flagged = 0
-    hand_corr = np.array([c for c, (h1, h2) in enumerate(corr_hands) if h1 >= 0 and h1 == h2],
-                         np.int64)
-    scans = np.unique(rows.target_scan)
-    n_bl = n_ant * n_ant
-    left = np.zeros((scans.size * n_bl, frame.chan_offset.size, hand_corr.size), np.complex128)
-    n_left = np.zeros(left.shape, np.int64)
-    known = (corr_hands[:, 0] >= 0) & (corr_hands[:, 1] >= 0)
-    h1 = np.where(known, corr_hands[:, 0], 0)[None, :]
-    h2 = np.where(known, corr_hands[:, 1], 0)[None, :]
-    for start in range(0, rows.target_rows.size, block):
-        part = rows.target_rows[start:start + block]
-        phase, delay, solved = solution.at(meta["TIME"][part])
-        a1, a2 = meta["ANTENNA1"][part][:, None], meta["ANTENNA2"][part][:, None]
-        i = np.arange(part.size)[:, None]
-        ok = known[None, :] & solved[a1, h1] & solved[a2, h2]
-        phasor = np.where(ok, np.exp(-1j * (phase[i, a1, h1] - phase[i, a2, h2])), 1.0 + 0j)
-        dtau = np.where(ok, delay[i, a1, h1] - delay[i, a2, h2], 0.0)
-        read = msio.rows_reader(table, part)
-        rotated = rotate_channels(read(column), phasor, dtau, frame.chan_offset)
-        rotated = rotated * baseline_factors(solution, a1[:, 0], a2[:, 0], corr_hands, n_ant)
-        new_flag = None
-        if not ok.all():
-            new_flag = tx.flags_now(table, part) | ~ok[:, None, :]
-            n_flagged += int((~ok).any(axis=1).sum())
-        tx.restage(part, {column: rotated}, new_flag)
-        scan_index = np.searchsorted(scans, rows.target_scan[start:start + block])
-        code = scan_index * n_bl + a1[:, 0].astype(np.int64) * n_ant + a2[:, 0]
-        flags = new_flag if new_flag is not None else tx.flags_now(table, part)
-        s, c = baseline_sums(rotated, flags, code, hand_corr, scans.size * n_bl)
-        left += s
-        n_left += c
-    return n_flagged, left, n_left
+def apply_chunk(table, tx, column: str, rows, solution: WindowSolution,
+                corr_hands: np.ndarray, frame: WindowFrame,
+                n_ant: int) -> Tuple[int, np.ndarray, np.ndarray]:
+    """The interpolated correction applied to one chunk's target rows (``rows``: a
+    :class:`.passes.RowsOf`) through the transaction's own write path: the antenna terms by
+    the one kernel that applies per-antenna terms to baselines (kernels/antenna_terms.py;
+    samples of an antenna without a solution kept as they are and flagged), then the
+    calibrator's per-baseline residual.  Returns (rows flagged, the rows' flags now, the
+    rows as corrected)."""
+    phase, delay, solved = solution.at(rows.time)
+    terms = AntennaTerms(phase, delay, np.broadcast_to(solved, phase.shape))
+    read = msio.rows_reader(table, rows.rows)
+    corrected = apply_antenna_terms(read(column), np.arange(rows.rows.size), rows.ant1,
+                                    rows.ant2, corr_hands, terms, frame.chan_offset,
+                                    keep_uncalibrated=True)
+    rotated = times_factors(corrected.data, np.broadcast_to(baseline_factors(
+        solution, rows.ant1, rows.ant2, corr_hands, n_ant), corrected.data.shape))
+    flags = tx.flags_now(table, rows.rows)
+    ok = corrected.calibrated
+    n_flagged, new_flag = 0, None
+    if not ok.all():
+        flags = new_flag = flags | ~ok[:, None, :]
+        n_flagged = int((~ok).any(axis=1).sum())
+    tx.restage(rows.rows, {column: rotated}, new_flag)
+    return n_flagged, flags, rotated
 
 
 def target_integers(scans: np.ndarray, times: np.ndarray, left: np.ndarray,

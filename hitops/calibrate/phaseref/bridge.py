@@ -48,23 +48,44 @@ class SwitchCounts:
 
 def _reference_series(run, groups, ref_rows: np.ndarray) -> Tuple[Dict, np.ndarray, np.ndarray]:
     """The reference set's rows of the groups' window: columns and (n_row, n_corr) phase
-    (the channels reduced to one phase as the transfer does) and its validity."""
+    (the channels reduced to one phase as the transfer does) and its validity, read in
+    blocks of the run's rows per chunk (only the reduced phase is kept of each)."""
     pair = groups[0].pair
+    block = max(int(run.chunk_rows), 1)
+    meta = {c: [] for c in ("TIME", "ANTENNA1", "ANTENNA2")}
+    phases, oks = [], []
     with tables.main_table(run.ref_ms) as table:
-        read = msio.rows_reader(table, ref_rows)
-        meta = {c: read(c) for c in ("TIME", "ANTENNA1", "ANTENNA2")}
-        data = read(run.columns.ref_data)
-        good = ~read("FLAG")
-        if run.columns.ref_model:
-            model = read(run.columns.ref_model)
-            data = data * np.conj(model) / np.where(np.abs(model) > 0, np.abs(model), 1.0)
+        for start in range(0, ref_rows.size, block):
+            read = msio.rows_reader(table, ref_rows[start:start + block])
+            for c in meta:
+                meta[c].append(read(c))
+            phase, ok = _reduced_phase(run, groups, read)
+            phases.append(phase)
+            oks.append(ok)
+    if not phases:
+        n_corr = len(pair.ref.corr)
+        return ({"TIME": np.zeros(0), "ANTENNA1": np.zeros(0, np.int64),
+                 "ANTENNA2": np.zeros(0, np.int64)}, np.zeros((0, n_corr)),
+                np.zeros((0, n_corr), bool))
+    return {c: np.concatenate(v) for c, v in meta.items()}, np.concatenate(phases), \
+        np.concatenate(oks)
+
+
+def _reduced_phase(run, groups, read) -> Tuple[np.ndarray, np.ndarray]:
+    """One block's (n_row, n_corr) reference phase and validity."""
+    pair = groups[0].pair
+    data = read(run.columns.ref_data)
+    good = ~read("FLAG")
+    if run.columns.ref_model:
+        model = read(run.columns.ref_model)
+        data = data * np.conj(model) / np.where(np.abs(model) > 0, np.abs(model), 1.0)
     if data.shape[1] == 1:
         phasor, ok = data[:, 0, :], good[:, 0, :]
     else:
         at = groups[0].channels.ref_freq if groups[0].channels is not None else pair.ref.freq
         phasor, ok = reduce_rows(data, good, np.asarray(pair.ref.chan_freq), at)
     ok = ok & (np.abs(phasor) > 0) & np.isfinite(phasor)
-    return meta, np.angle(phasor), ok
+    return np.angle(phasor), ok
 
 
 def _side_rate(time: np.ndarray, phase: np.ndarray) -> float:
@@ -107,9 +128,7 @@ def switch_counts(run, groups: List, tgt_meta: Dict[str, np.ndarray],
     of ``groups``) and correlation, from the reference set's rows of the same fields."""
     pair = groups[0].pair
     ref_fields = [g.pair.ref.key[0] for g in groups]
-    with tables.main_table(run.ref_ms) as table:
-        ref_ddid, ref_field = table.getcol("DATA_DESC_ID"), table.getcol("FIELD_ID")
-    ref_rows = np.flatnonzero((ref_ddid == pair.ref.key[1]) & np.isin(ref_field, ref_fields))
+    ref_rows = _window_rows(run, pair.ref.key[1], ref_fields)
     meta, phase, ok = _reference_series(run, groups, ref_rows)
     ref_codes = read_stations(run.ref_ms).codes
     tgt_codes = read_stations(run.target_ms).codes
@@ -144,6 +163,21 @@ def switch_counts(run, groups: List, tgt_meta: Dict[str, np.ndarray],
     return SwitchCounts(counts, int(steps_deg.size),
                         float(steps_deg.max()) if steps_deg.size else 0.0,
                         int((steps_deg > RISKY_STEP_DEG).sum()))
+
+
+def _window_rows(run, ddid: int, fields) -> np.ndarray:
+    """The reference set's rows of window ``ddid`` and ``fields``, from its DATA_DESC_ID and
+    FIELD_ID read chunk by chunk."""
+    block = max(int(run.chunk_rows), 1)
+    found = []
+    with tables.main_table(run.ref_ms) as table:
+        n_rows = table.nrows()
+        for start in range(0, n_rows, block):
+            n = min(block, n_rows - start)
+            here = (table.getcol("DATA_DESC_ID", start, n) == ddid) \
+                & np.isin(table.getcol("FIELD_ID", start, n), fields)
+            found.append(start + np.flatnonzero(here))
+    return np.concatenate(found) if found else np.zeros(0, np.int64)
 
 
 def tracking_scans(groups: List, time: np.ndarray, field: np.ndarray) -> np.ndarray:

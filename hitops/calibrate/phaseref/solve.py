@@ -17,13 +17,12 @@ constant over the track: the antenna solve takes the first and the per-baseline 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, List, Optional, Tuple
+from typing import List, Optional, Tuple
 
 import numpy as np
 
 from ...errors import InputError
-from ...io import read as msio
-from ...kernels.phase_ref import (antenna_phasors, baseline_sums, model_residuals,
+from ...kernels.phase_ref import (antenna_phasors, model_residuals,
                                   phase_and_delay, scan_integers)
 
 #: a calibrator scan's integer is taken when the second-nearest candidate lies at least
@@ -34,20 +33,6 @@ MIN_CALIBRATOR_MARGIN = 0.5
 #: iterations of the per-channel antenna phase solve (converged to < 1e-6 rad on the
 #: noise-free pairs of tests/test_phase_referencing.py well before this)
 SOLVE_ITERATIONS = 60
-
-
-@dataclass(frozen=True)
-class WindowRows:
-    """The rows of one target window this run wrote, split into calibrator and target;
-    each row's tracking scan (the wrap count's own scans: ``bridge.tracking_scans``)."""
-
-    cal_rows: np.ndarray
-    cal_scan: np.ndarray
-    cal_bl: np.ndarray           # baseline index of each calibrator row
-    ant1: np.ndarray             # (n_bl,) of the calibrator's baselines
-    ant2: np.ndarray
-    target_rows: np.ndarray
-    target_scan: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -134,19 +119,6 @@ class WindowSolution:
         return out_phase, out_delay, valid.any(axis=0)
 
 
-def window_rows(meta: Dict[str, np.ndarray], written: np.ndarray, ddid: int, cal,
-                n_ant: int, scan_of_row: np.ndarray) -> WindowRows:
-    """Calibrator and target rows of target window ``ddid`` that this run wrote."""
-    here = written & (meta["DATA_DESC_ID"] == ddid)
-    cal_rows = np.flatnonzero(here & (meta["FIELD_ID"] == cal.field_id))
-    target_rows = np.flatnonzero(here & np.isin(meta["FIELD_ID"], cal.target_field_ids))
-    code = meta["ANTENNA1"][cal_rows].astype(np.int64) * n_ant + meta["ANTENNA2"][cal_rows]
-    baselines, cal_bl = np.unique(code, return_inverse=True)
-    return WindowRows(cal_rows, scan_of_row[cal_rows], cal_bl.astype(np.int64),
-                      baselines // n_ant, baselines % n_ant, target_rows,
-                      scan_of_row[target_rows])
-
-
 def model_divided(vis: np.ndarray, model: Optional[np.ndarray]) -> np.ndarray:
     """The calibrator's visibilities divided by its model's phase (gaincal's and
     fringefit's use of MODEL_DATA; zeros were refused before: step.check_model)."""
@@ -154,24 +126,6 @@ def model_divided(vis: np.ndarray, model: Optional[np.ndarray]) -> np.ndarray:
         return vis
     size = np.abs(model)
     return vis * (np.conj(model) / np.where(size > 0, size, 1.0))
-
-
-def scan_sums(table, tx, column: str, rows: WindowRows, hand_corr: np.ndarray,
-              model_column: Optional[str]):
-    """Per tracking scan of the calibrator: (scan ids, mean times, sums (n_scan, n_bl,
-    n_chan, n_hand), counts) of the staged column over the scan, model divided."""
-    scans = np.unique(rows.cal_scan)
-    sums, counts, times = [], [], []
-    for scan in scans:
-        pick = rows.cal_rows[rows.cal_scan == scan]
-        read = msio.rows_reader(table, pick)
-        vis = model_divided(read(column), read(model_column) if model_column else None)
-        s, c = baseline_sums(vis, tx.flags_now(table, pick), rows.cal_bl[rows.cal_scan == scan],
-                             hand_corr, rows.ant1.size)
-        sums.append(s)
-        counts.append(c)
-        times.append(float(np.mean(read("TIME"))))
-    return scans, np.array(times), np.stack(sums), np.stack(counts)
 
 
 def calibrator_integers(times: np.ndarray, sums: np.ndarray, counts: np.ndarray,
@@ -214,20 +168,21 @@ def without_integers(sums: np.ndarray, integers: np.ndarray, ratios: np.ndarray)
     return sums * np.exp(-2j * np.pi * (turns - np.round(turns)))
 
 
-def solve_window(scans, times, sums, counts, rows: WindowRows, frame: WindowFrame,
-                 integers: CalibratorIntegers, refant: int, n_ant: int,
+def solve_window(scans, times, sums, counts, ant1: np.ndarray, ant2: np.ndarray,
+                 frame: WindowFrame, integers: CalibratorIntegers, refant: int, n_ant: int,
                  window: Tuple[int, int, Tuple[str, ...]]) -> WindowSolution:
     """Antenna phases and delays per calibrator scan from the sums with each scan's
-    integer removed; ``window``: (ddid, spw, hands)."""
+    integer removed; ``ant1``, ``ant2``: each calibrator baseline's antennas (the sums'
+    second axis); ``window``: (ddid, spw, hands)."""
     clean = without_integers(sums, integers.integers, frame.ratios)
     solutions, residual = [], 0j
     for j, scan in enumerate(scans):
-        g, solved = antenna_phasors(clean[j], counts[j], rows.ant1, rows.ant2, n_ant, refant,
+        g, solved = antenna_phasors(clean[j], counts[j], ant1, ant2, n_ant, refant,
                                     SOLVE_ITERATIONS)
         phase, delay, valid = phase_and_delay(g, solved, frame.chan_offset)
-        residual = residual + model_residuals(clean[j], counts[j], rows.ant1, rows.ant2, phase,
+        residual = residual + model_residuals(clean[j], counts[j], ant1, ant2, phase,
                                               delay, valid, frame.chan_offset)
         solutions.append(ScanSolution(int(scan), float(times[j]), phase, delay, valid))
     ddid, spw, hands = window
     return WindowSolution(ddid, spw, frame.centre, hands, refant, solutions, integers,
-                          rows.ant1.astype(np.int64) * n_ant + rows.ant2, residual)
+                          ant1.astype(np.int64) * n_ant + ant2, residual)

@@ -24,6 +24,11 @@ count starts afresh at every scan, and a slew of a minute is too long to carry i
    residual; then each target scan's own integer j is the delay of what is left, in
    wraps, and 2 pi R_k j is removed too (:mod:`.apply`).
 
+Each window is done in three passes over the target set in the run's chunks
+(:mod:`.passes`: the calibrator's sums; the calibrator's integers removed and the
+target corrected; the target's integers removed), inside the memory budget: only
+per-scan sums are kept between chunks.
+
 The correction is written into the staged output column itself (the same
 :class:`~hitops.calibrate.output.OutputTransaction`, committed or rolled back with the
 transfer), so PWC_DATA holds the phase-referenced target: one column, as diagnose,
@@ -47,7 +52,9 @@ from ...io import read as msio
 from ...io import tables
 from ...io.ms_create import CORR_NAMES
 from . import apply as target_side
+from . import passes
 from . import solve as calibrator_side
+from .passes import WindowPass
 from .solve import CalibratorIntegers, WindowFrame
 
 log = logging.getLogger("hitops.calibrate")
@@ -163,14 +170,18 @@ def check_model(run, cal: CalibratorField) -> None:
     """The calibrator's model checked before anything is written: no zeros where the
     calibrator is (nothing to divide by), and a resolved one (phases not all 0) only
     with the reference band's model too (FPT leaves Psi_k - R_k psi of the calibrator's
-    own phases otherwise).  Read in blocks of the calibrator's rows."""
+    own phases otherwise).  Read chunk by chunk (the run's rows per chunk)."""
     if cal.model_column is None:
         return
+    resolved, zero_scans = False, set()
     with tables.main_table(run.target_ms) as table:
-        rows = np.flatnonzero(table.getcol("FIELD_ID") == cal.field_id)
-        resolved, zero_scans = False, set()
-        for start in range(0, rows.size, max(run.chunk_rows, 1)):
-            read = msio.rows_reader(table, rows[start:start + run.chunk_rows])
+        n_rows, step = table.nrows(), max(run.chunk_rows, 1)
+        for start in range(0, n_rows, step):
+            n = min(step, n_rows - start)
+            rows = start + np.flatnonzero(table.getcol("FIELD_ID", start, n) == cal.field_id)
+            if not rows.size:
+                continue
+            read = msio.rows_reader(table, rows)
             model = read(cal.model_column)
             zero = (np.abs(model) == 0).any(axis=(1, 2))
             zero_scans.update(np.unique(read("SCAN_NUMBER")[zero]).tolist())
@@ -188,91 +199,153 @@ def check_model(run, cal: CalibratorField) -> None:
                          "--calibrator-model-column point")
 
 
-def _reference_window(run, tx, table, column, meta, cal, ddid, groups, bridge) -> Dict:
-    """One target window of one staged column: each calibrator scan's integers removed,
-    solved on the calibrator, applied to the other fields with each target scan's own
-    integer; its report entry."""
-    from .bridge import tracking_scans
+@dataclass(frozen=True)
+class CarriedCounts:
+    """A one-channel window's continued counts (:mod:`.bridge`) and the rows they are of:
+    the window's calibrator and target rows, ascending."""
+
+    rows: np.ndarray
+    switches: object             # bridge.SwitchCounts
+
+
+def _carried_counts(run, table, tx, window: WindowPass, groups) -> CarriedCounts:
+    """The continued counts of every calibrator and target row of a one-channel window,
+    from their index columns read chunk by chunk."""
+    from .bridge import switch_counts
+
+    parts = [(c.cal, c.target) for c in window.chunks(table, tx.rows_written)]
+    both = [p for pair in parts for p in pair]
+    rows = np.concatenate([p.rows for p in both]) if both else np.zeros(0, np.int64)
+    order = np.argsort(rows, kind="stable")
+    meta = {"TIME": np.concatenate([p.time for p in both])[order] if both else np.zeros(0),
+            **{name: (np.concatenate([getattr(p, attr) for p in both])[order] if both
+                      else np.zeros(0, np.int64))
+               for name, attr in (("ANTENNA1", "ant1"), ("ANTENNA2", "ant2"),
+                                  ("FIELD_ID", "field"))}}
+    return CarriedCounts(rows[order], switch_counts(run, groups, meta, np.arange(rows.size)))
+
+
+def _calibrator_integers(cal: CalibratorField, found: passes.CalibratorScans, frame,
+                         names: List[str], spw: int, carried: bool) -> CalibratorIntegers:
+    """Each calibrator scan's integers, checked (zeros where the count was carried)."""
+    n_ant = len(names)
+    if carried:
+        zero = np.zeros(found.counts.shape[:2] + found.counts.shape[3:], np.int64)
+        return CalibratorIntegers(zero, np.full(zero.shape, 0.5), "carried")
+    integers = calibrator_side.calibrator_integers(found.times, found.sums, found.counts, frame)
+    calibrator_side.check_decided(integers, found.scan_numbers, [
+        f"{names[p]}-{names[q]}" for p, q in zip(found.ant1(n_ant), found.ant2(n_ant))],
+        cal.name, spw)
+    return integers
+
+
+def _apply_pass(table, tx, column: str, window: WindowPass, found: passes.CalibratorScans,
+                integers: Optional[CalibratorIntegers], solution, corr_hands, frame,
+                n_ant: int) -> Tuple[int, passes.TargetLeft]:
+    """The second pass: each calibrator scan's integers removed from its rows (``integers``;
+    None: the count was carried), the interpolated correction applied to the target's;
+    (rows flagged, what is left on the target)."""
+    hand_corr = np.array([c for c, (h1, h2) in enumerate(corr_hands) if h1 >= 0 and h1 == h2],
+                         np.int64)
+    left = passes.TargetLeft(window.chunk_rows, (n_ant * n_ant, frame.chan_offset.size,
+                                                 hand_corr.size))
+    n_flagged = 0
+    for chunk in window.chunks(table, tx.rows_written):
+        if integers is not None and chunk.cal.rows.size:
+            bl = np.searchsorted(found.baselines, chunk.cal.code(n_ant))
+            target_side.remove_integers(table, tx, column, chunk.cal.rows, target_side.row_counts(
+                chunk.cal.scan, found.scans, bl, integers.integers, corr_hands), frame,
+                window.chunk_rows)
+        if chunk.target.rows.size:
+            flagged, flags, rotated = target_side.apply_chunk(table, tx, column, chunk.target,
+                                                              solution, corr_hands, frame, n_ant)
+            n_flagged += flagged
+            left.add(chunk.target, rotated, flags, hand_corr, n_ant)
+    return n_flagged, left
+
+
+def _target_pass(table, tx, column: str, window: WindowPass, found, corr_hands, frame,
+                 n_ant: int) -> int:
+    """The third pass: each target scan's integer removed, the undecided ones' rows flagged;
+    the number of rows flagged."""
+    n_undecided = 0
+    for chunk in window.chunks(table, tx.rows_written):
+        t = chunk.target
+        if not t.rows.size:
+            continue
+        code = t.code(n_ant)
+        target_side.remove_integers(table, tx, column, t.rows, target_side.row_counts(
+            t.scan, found.scans, code, found.integers, corr_hands), frame, window.chunk_rows)
+        undecided = target_side.row_counts(t.scan, found.scans, code, found.undecided,
+                                           corr_hands)
+        n_undecided += target_side.flag_rows(table, tx, t.rows, undecided, window.chunk_rows)
+    return n_undecided
+
+
+def _reference_window(run, tx, table, column, cal, window: WindowPass,
+                      carried: Optional[CarriedCounts]) -> Dict:
+    """One target window of one staged column, in passes over the run's chunks: each
+    calibrator scan's integers found, solved on the calibrator, applied to the other
+    fields with each target scan's own integer; its report entry."""
     from .report import window_report
 
-    group = groups[0]
-    names, n_ant = group.antenna_names, len(group.antenna_names)
+    group = window.groups[0]
+    names, n_ant, spw = group.antenna_names, len(group.antenna_names), group.pair.tgt.spw
     frame = WindowFrame.of_group(group)
-    here = np.flatnonzero(tx.rows_written & (meta["DATA_DESC_ID"] == ddid))
-    scan_of_row = np.zeros(meta["TIME"].size, np.int64)
-    scan_of_row[here] = tracking_scans(groups, meta["TIME"][here], meta["FIELD_ID"][here])
-    rows = calibrator_side.window_rows(meta, tx.rows_written, ddid, cal, n_ant, scan_of_row)
     hands, hand_corr, corr_hands = _hands(group.pair.tgt.corr)
     if not hands:
-        raise InputError(f"--calibrator-field {cal.name}: spectral window "
-                         f"{group.pair.tgt.spw} of {run.target_ms} has no parallel-hand "
-                         "correlation (RR, LL, XX, YY) to solve on")
-    block = run.chunk_rows
-    if bridge is not None:    # one channel: the count carried across the switches
-        both = np.union1d(rows.cal_rows, rows.target_rows)
-        target_side.remove_integers(table, tx, column, both, bridge.counts, frame, block)
-    scans, times, sums, counts = calibrator_side.scan_sums(
-        table, tx, column, rows, hand_corr, cal.model_column)
-    scan_numbers = [int(meta["SCAN_NUMBER"][rows.cal_rows[np.flatnonzero(rows.cal_scan == s)[0]]])
-                    for s in scans]
-    if bridge is None:
-        integers = calibrator_side.calibrator_integers(times, sums, counts, frame)
-        calibrator_side.check_decided(integers, scan_numbers, [
-            f"{names[p]}-{names[q]}" for p, q in zip(rows.ant1, rows.ant2)], cal.name,
-            group.pair.tgt.spw)
-        target_side.remove_integers(table, tx, column, rows.cal_rows, target_side.row_counts(
-            rows.cal_scan, scans, rows.cal_bl, integers.integers, corr_hands), frame, block)
-    else:
-        zero = np.zeros((scans.size, rows.ant1.size, len(hands)), np.int64)
-        integers = CalibratorIntegers(zero, np.full(zero.shape, 0.5), "carried")
-    refant = _refant(run, names, np.concatenate([rows.ant1, rows.ant2]))
-    solution = calibrator_side.solve_window(scans, times, sums, counts, rows, frame, integers,
-                                            refant, n_ant, (ddid, group.pair.tgt.spw, hands))
+        raise InputError(f"--calibrator-field {cal.name}: spectral window {spw} of "
+                         f"{run.target_ms} has no parallel-hand correlation (RR, LL, XX, YY) "
+                         "to solve on")
+    if carried is not None:    # one channel: the count carried across the switches
+        target_side.remove_integers(table, tx, column, carried.rows, carried.switches.counts,
+                                    frame, window.chunk_rows)
+    found = passes.calibrator_pass(table, tx, column, window, hand_corr, cal.model_column,
+                                   n_ant, frame.chan_offset.size)
+    integers = _calibrator_integers(cal, found, frame, names, spw, carried is not None)
+    ant1, ant2 = found.ant1(n_ant), found.ant2(n_ant)
+    refant = _refant(run, names, np.concatenate([ant1, ant2]))
+    solution = calibrator_side.solve_window(found.scans, found.times, found.sums, found.counts,
+                                            ant1, ant2, frame, integers, refant, n_ant,
+                                            (window.ddid, spw, hands))
     if not any(scan.valid.any() for scan in solution.scans):
         raise InputError(f"--calibrator-field {cal.name}: no calibrator scan of spectral window "
-                         f"{group.pair.tgt.spw} has unflagged data in both bands (REF_MS "
-                         f"{run.ref_ms}, TARGET_MS {run.target_ms}) to solve on; unflag it or "
-                         "name a calibrator observed in both bands")
-    n_flagged, left, n_left = target_side.apply_window(table, tx, column, rows, meta, solution,
-                                                       corr_hands, frame, block, n_ant)
-    entry = window_report(solution, names, rows.target_rows.size, n_flagged)
-    entry["scans"] = [dict(s, scan_number=n) for s, n in zip(entry["scans"], scan_numbers)]
+                         f"{spw} has unflagged data in both bands (REF_MS {run.ref_ms}, "
+                         f"TARGET_MS {run.target_ms}) to solve on; unflag it or name a "
+                         "calibrator observed in both bands")
+    n_flagged, left = _apply_pass(table, tx, column, window, found,
+                                  None if carried is not None else integers, solution,
+                                  corr_hands, frame, n_ant)
+    entry = window_report(solution, names, left.n_rows, n_flagged)
+    entry["scans"] = [dict(s, scan_number=n) for s, n in zip(entry["scans"], found.scan_numbers)]
     entry["calibrator_model"] = cal.model_label
     entry["integers"] = {"rule": integers.rule, "calibrator": _integer_summary(
-        integers.integers, integers.margin, counts.sum(axis=2) > 0)}
-    if bridge is not None:
-        entry["switches"] = {"scan_starts": bridge.n_scan_starts,
-                             "largest_step_deg": round(bridge.largest_step_deg, 3),
-                             "steps_over_90_deg": bridge.n_risky}
+        integers.integers, integers.margin, found.counts.sum(axis=2) > 0)}
+    if carried is not None:
+        switches = carried.switches
+        entry["switches"] = {"scan_starts": switches.n_scan_starts,
+                             "largest_step_deg": round(switches.largest_step_deg, 3),
+                             "steps_over_90_deg": switches.n_risky}
         return entry
-    t_scans = np.unique(rows.target_scan)
-    t_times = np.array([meta["TIME"][rows.target_rows[rows.target_scan == s]].mean()
-                        for s in t_scans])
-    found = target_side.target_integers(t_scans, t_times, left, n_left, frame, n_ant)
-    t_bl = meta["ANTENNA1"][rows.target_rows].astype(np.int64) * n_ant \
-        + meta["ANTENNA2"][rows.target_rows]
-    target_side.remove_integers(table, tx, column, rows.target_rows, target_side.row_counts(
-        rows.target_scan, found.scans, t_bl, found.integers, corr_hands), frame, block)
-    undecided = target_side.row_counts(rows.target_scan, found.scans, t_bl, found.undecided,
-                                       corr_hands)
-    n_undecided = target_side.flag_rows(table, tx, rows.target_rows, undecided, block)
+    t_scans, t_times, t_sums, t_counts = left.finish()
+    found_t = target_side.target_integers(t_scans, t_times, t_sums, t_counts, frame, n_ant)
+    n_undecided = _target_pass(table, tx, column, window, found_t, corr_hands, frame, n_ant)
     entry["integers"]["target"] = dict(
-        _integer_summary(found.integers, found.margin, found.valid),
-        undecided_scans=int(found.undecided.sum()), rows_flagged=n_undecided)
+        _integer_summary(found_t.integers, found_t.margin, found_t.valid),
+        undecided_scans=int(found_t.undecided.sum()), rows_flagged=n_undecided)
     if n_undecided:
         log.warning("--calibrator-field %s: %d target scan x baseline x hand series of window "
                     "%d had no clear integer (the delay left lay more than %.2f wraps from "
                     "every one); their %d rows are flagged", cal.name,
-                    int(found.undecided.sum()), group.pair.tgt.spw,
-                    0.5 - target_side.MIN_TARGET_MARGIN, n_undecided)
+                    int(found_t.undecided.sum()), spw, 0.5 - target_side.MIN_TARGET_MARGIN,
+                    n_undecided)
     return entry
 
 
 def phase_reference(run, tx, cal: Optional[CalibratorField]) -> Optional[Dict]:
     """Each scan's integers removed, solved on the calibrator's scans, applied to the other
-    fields' rows, in every staged output column of ``tx``; the report's entry (None
-    without a calibrator)."""
-    from .bridge import switch_counts
+    fields' rows, in every staged output column of ``tx``, in passes over the run's chunks;
+    the report's entry (None without a calibrator)."""
     from .report import log_summary
 
     if cal is None:
@@ -288,23 +361,20 @@ def phase_reference(run, tx, cal: Optional[CalibratorField]) -> Optional[Dict]:
                    "target_field_ids": list(cal.target_field_ids),
                    "calibrator_model": cal.model_label, "methods": {}}
     with tables.main_table(run.target_ms) as table:
-        meta = {c: table.getcol(c) for c in ("TIME", "ANTENNA1", "ANTENNA2", "FIELD_ID",
-                                             "DATA_DESC_ID", "SCAN_NUMBER")}
-        bridges = {}
-        for ddid, groups in windows.items():
+        plan: Dict[int, Tuple[WindowPass, Optional[CarriedCounts]]] = {}
+        for ddid, groups in sorted(windows.items()):
             if groups[0].pair.tgt.field != cal.name:
                 continue     # a window the calibrator was not observed in
-            bridges[ddid] = None
-            if integer_rule(WindowFrame.of_group(groups[0])) == "delay":
-                continue     # each scan's integer from its delay across the window
-            here = tx.rows_written & (meta["DATA_DESC_ID"] == ddid)
-            both = np.flatnonzero(here & np.isin(meta["FIELD_ID"],
-                                                 (cal.field_id,) + cal.target_field_ids))
-            bridges[ddid] = switch_counts(run, groups, meta, both)
+            window = WindowPass(int(ddid), cal.field_id, cal.target_field_ids, groups,
+                                max(int(run.chunk_rows), 1))
+            carried = None
+            if integer_rule(WindowFrame.of_group(groups[0])) != "delay":
+                carried = _carried_counts(run, table, tx, window, groups)
+            plan[ddid] = (window, carried)
         for method, column in tx.staging.items():
             entry["methods"][run.outputs[method]] = [
-                _reference_window(run, tx, table, column, meta, cal, ddid, windows[ddid],
-                                  bridge) for ddid, bridge in sorted(bridges.items())]
+                _reference_window(run, tx, table, column, cal, window, carried)
+                for window, carried in plan.values()]
     log_summary(entry)
     return entry
 
