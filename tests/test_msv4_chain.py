@@ -135,3 +135,68 @@ def test_an_unknown_format_is_one_line(tmp_path):
     with pytest.raises(SceneError, match="--format 'v3' is not one of ms, msv4"):
         simulate(_phaseref(120), tmp_path, format="v3")
     assert list(tmp_path.iterdir()) == []
+
+
+# ---- hitops diagnose on processing sets -------------------------------------------------
+
+#: summary.json entries that name the paths or time the run, not what it measured
+NOT_MEASURED = ("ms", "ref_ms", "outputs", "timing_s")
+
+
+def _measured(summary: dict) -> dict:
+    return {k: v for k, v in summary.items() if k not in NOT_MEASURED}
+
+
+@pytest.fixture(scope="module")
+def calibrated_pairs(tmp_path_factory):
+    """{scene: (v2 ref, v2 target, v4 ref, v4 target)}: the demo scene (one channel) and
+    the wideband scene (two windows of 16 channels), 10 minutes, 3% of both bands'
+    samples flagged before xradio converts them, then ``pwc`` run on both formats (its
+    flags: the input's | not calibrated, so the reference's flags reach the target's)."""
+    from msv4_sets import convert
+    from test_msv4_calibrate import _flag_some
+
+    out = {}
+    for name in ("demo", "wideband"):
+        scene = load_scene_mapping(name)[0]
+        scene["observation"]["duration"] = 600
+        root = tmp_path_factory.mktemp(f"diag-{name}")
+        sets = simulate(scene, root)
+        ref, tgt = sets[scene["bands"][0]["name"]], sets[scene["bands"][1]["name"]]
+        _flag_some(ref, tgt)
+        ref4, tgt4 = (convert(p, root / f"{p.stem}.ps.zarr") for p in (ref, tgt))
+        for pair in ((ref, tgt), (ref4, tgt4)):
+            calibrate_flat(str(pair[0]), str(pair[1]), method="pwc", no_verdict=True)
+        out[name] = tuple(str(p) for p in (ref, tgt, ref4, tgt4))
+    return out
+
+
+@pytest.mark.parametrize("scene", ["demo", "wideband"])
+def test_diagnose_on_a_store_equals_diagnose_on_its_v2_set(calibrated_pairs, tmp_path, scene):
+    """The same summary.json, number for number: coherence per baseline and interval, the
+    comparison PWC_DATA vs DATA, the reference band's wraps (--ref-ms), and the per-
+    channel section of the wideband scene."""
+    from hitops.diagnose.api import diagnose
+
+    ref2, tgt2, ref4, tgt4 = calibrated_pairs[scene]
+    runs = [diagnose(tgt, columns="DATA,PWC_DATA", ref_ms=ref, outdir=str(tmp_path / name))
+            for name, ref, tgt in (("v2", ref2, tgt2), ("v4", ref4, tgt4))]
+    v2 = json.loads((tmp_path / "v2" / "summary.json").read_text())
+    # the warnings name the set: the store's name read as its v2 set's
+    v4 = json.loads((tmp_path / "v4" / "summary.json").read_text().replace(tgt4, tgt2))
+    assert _measured(v4) == _measured(v2)
+    assert runs[1]["ms"] == tgt4
+    assert v2["comparisons"] and (v2["spectral"] is not None) == (scene == "wideband")
+
+
+def test_diagnose_refusals_on_a_store_are_one_line(calibrated_pairs, tmp_path):
+    from hitops.diagnose.api import diagnose
+    from hitops.errors import ColumnError, InputError
+
+    tgt4 = calibrated_pairs["demo"][3]
+    before = file_digests(Path(tgt4))
+    with pytest.raises(ColumnError, match="has no data group 'cwu' \\(the column CWU_DATA\\)"):
+        diagnose(tgt4, columns="DATA,CWU_DATA", outdir=None)
+    with pytest.raises(InputError, match="keeps no CASA flag versions"):
+        diagnose(tgt4, columns="DATA", outdir=None, restore_flags="hitops_original")
+    assert file_digests(Path(tgt4)) == before
