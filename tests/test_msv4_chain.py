@@ -200,3 +200,39 @@ def test_diagnose_refusals_on_a_store_are_one_line(calibrated_pairs, tmp_path):
     with pytest.raises(InputError, match="keeps no CASA flag versions"):
         diagnose(tgt4, columns="DATA", outdir=None, restore_flags="hitops_original")
     assert file_digests(Path(tgt4)) == before
+
+
+# ---- the run page (hitops report) of a run on processing sets ---------------------------
+
+def test_report_shows_data_groups_and_checksums_of_the_input_groups(calibrated_pairs,
+                                                                     tmp_path):
+    """The page names each method's data group and its partitions, and the provenance holds
+    a checksum of each store's input group (``base``), which a further run adding a group
+    leaves as it was and a change of one visibility changes."""
+    import subprocess
+    import sys
+
+    import zarr
+
+    from hitops.report.provenance import checksums
+
+    _, _, ref4, tgt4 = calibrated_pairs["demo"]
+    for path in (ref4, tgt4):
+        shutil.copytree(path, tmp_path / Path(path).name)
+    ref, tgt = tmp_path / Path(ref4).name, tmp_path / Path(tgt4).name
+    before = {c.path: c for c in checksums([ref, tgt])}
+    calibrate_flat(str(ref), str(tgt), method="cfpt", no_verdict=True)   # report beside tgt
+    after = {c.path: c for c in checksums([ref, tgt])}
+    assert after == before and len(after) == 2
+    assert before[str(ref)].sha256 != before[str(tgt)].sha256
+    done = subprocess.run([str(Path(sys.executable).parent / "hitops"), "report", str(tmp_path)],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    html = (tmp_path / "index.html").read_text()
+    assert "data groups written: cfpt (partitions sim-230_0)" in html
+    for c in after.values():
+        assert f"<code>{c.sha256}</code>" in html and c.path in html
+    assert "data group base (VISIBILITY + FLAG) of 1 partition(s)" in html
+    vis = zarr.open_array(str(tgt / "sim-230_0" / "VISIBILITY"), mode="r+")
+    vis[0, 0, 0, 0] = vis[0, 0, 0, 0] + 1
+    assert checksums([tgt])[0].sha256 != before[str(tgt)].sha256
