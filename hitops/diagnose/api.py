@@ -15,6 +15,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..io import flag_versions
+from ..io.msv4.store import is_zarr_store
 from . import tables
 from .metrics import compute_coherence, parse_intervals, run_lengths
 from .read import check_ms, read_grid
@@ -89,6 +90,10 @@ def diagnose(ms, columns="DATA,CORRECTED_DATA", metric="coherence-factor", inter
     grid = parse_intervals(intervals)
     trange = _time_range(plot_time_range)
     versions = flag_versions.split_names(restore_flags)
+    if versions and is_zarr_store(Path(str(ms))):
+        raise InputError(f"--restore-flags: {ms} is an MSv4 processing set, which keeps no CASA "
+                         "flag versions (each data group has its own flags, never rewritten); "
+                         "leave --restore-flags out")
     if versions:   # every version read and checked before FLAG is written
         flag_versions.restore_versions(str(ms), versions)
 

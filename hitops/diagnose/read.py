@@ -32,6 +32,7 @@ from ..io.stations import stations_of
 from ..io import read as msio
 from ..io.layout import baseline_time_layout
 from ..io import tables
+from ..io.msv4.store import is_zarr_store, open_store
 
 log = logging.getLogger("hitops.diagnose")
 
@@ -82,6 +83,9 @@ class GridData(BaselineNames):
 
 def check_ms(ms: str) -> None:
     path = Path(ms)
+    if is_zarr_store(path):   # an MSv4 processing set: foreign or half-written stores refused
+        open_store(ms)
+        return
     if not (path / "table.dat").exists():
         raise MeasurementSetError(f"{ms}: not a Measurement Set (no table.dat); check the path")
     require_subtables(ms, "Measurement Set")
@@ -169,6 +173,10 @@ def select_baselines(pairs_ant1: np.ndarray, pairs_ant2: np.ndarray, names: List
 def check_columns(ms: str, columns: Sequence[str]) -> None:
     """``ms`` is a readable Measurement Set holding every complex column of ``columns``."""
     check_ms(ms)
+    if is_zarr_store(Path(ms)):
+        from ..io.msv4.columns import require_columns
+        require_columns(open_store(ms), columns, "input", "check --columns")
+        return
     available = data_columns(ms)
     missing = [c for c in columns if c not in available]
     if missing:
@@ -189,6 +197,41 @@ def sampling_interval(ms: str, times: np.ndarray) -> float:
     return dt
 
 
+def read_values(ms: str, columns: Sequence[str], row_chunk: int) -> Dict[str, np.ndarray]:
+    """``columns`` of every row of ``ms``: a Measurement Set v2 through dask-ms, a
+    processing set through hitops/io/msv4/set_columns.py (data columns named as data
+    groups; FLAG the union of the compared groups' flags)."""
+    if is_zarr_store(Path(ms)):
+        from ..io.msv4.set_columns import read_set_columns
+        return read_set_columns(ms, columns)
+    xds = msio.open_main(ms, columns, chunk_rows=row_chunk)
+    # the threaded scheduler passed as a function (inside compute_columns): named or
+    # default schedulers make dask look for a distributed client, whose import alone
+    # costs ~0.2 s of a run budgeted at a few seconds
+    try:
+        return msio.compute_columns([(xds, columns, None)])[0]
+    except RuntimeError as err:
+        # casacore does not always say which file is damaged: find the column that fails
+        raise_if_damaged(err, [(ms, columns)])
+        raise
+
+
+def read_values_by_group(ms: str, columns: Sequence[str], row_chunk: int, mixed: bool):
+    """``{(FIELD_ID, DATA_DESC_ID): {column: values}}`` of every (field, window) group."""
+    if not is_zarr_store(Path(ms)):
+        groups = msio.open_groups(ms, columns, row_chunk, mixed=mixed)
+        keys = sorted(groups)
+        return dict(zip(keys, msio.compute_columns([(groups[k], columns, None)
+                                                    for k in keys])))
+    values = read_values(ms, list(columns) + ["FIELD_ID", "DATA_DESC_ID"], row_chunk)
+    keys = sorted(set(zip(values["FIELD_ID"].tolist(), values["DATA_DESC_ID"].tolist())))
+    out = {}
+    for field_id, ddid in keys:
+        rows = (values["FIELD_ID"] == field_id) & (values["DATA_DESC_ID"] == ddid)
+        out[(field_id, ddid)] = {c: values[c][rows] for c in columns}
+    return out
+
+
 def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = None,
               baselines: Optional[str] = None, want_uvw: bool = False,
               row_chunk: int = 400_000, meta: Optional[SetMetadata] = None) -> GridData:
@@ -205,16 +248,7 @@ def read_grid(ms: str, columns: Sequence[str], *, correlations: Optional[str] = 
         wanted_cols.append("UVW")
     wanted_cols += list(dict.fromkeys(columns))
     selection = ["DATA_DESC_ID", "FIELD_ID"] if meta.has_groups() else []
-    xds = msio.open_main(ms, wanted_cols + selection, chunk_rows=row_chunk)
-    # the threaded scheduler passed as a function (inside compute_columns): named or
-    # default schedulers make dask look for a distributed client, whose import alone
-    # costs ~0.2 s of a run budgeted at a few seconds
-    try:
-        values = msio.compute_columns([(xds, wanted_cols + selection, None)])[0]
-    except RuntimeError as err:
-        # casacore does not always say which file is damaged: find the column that fails
-        raise_if_damaged(err, [(ms, wanted_cols + selection)])
-        raise
+    values = read_values(ms, wanted_cols + selection, row_chunk)
     if values["TIME"].size == 0:
         raise MeasurementSetError(f"{ms}: the main table has no rows")
     ddid = 0

@@ -19,11 +19,11 @@ from typing import List, Optional, Sequence
 import numpy as np
 
 from ..errors import MeasurementSetError
-from ..io import read as msio
 from ..io.layout import unique_times
 from ..io.metadata import SetMetadata, read_metadata
 from ..io.stations import stations_of
 from .read import (BaselineNames, GridData, check_columns, check_ms, read_grid,
+                   read_values_by_group,
                    sampling_interval, select_baselines, select_correlations)
 
 
@@ -75,13 +75,13 @@ def read_spectral(ms: str, columns: Sequence[str], *, correlations: Optional[str
     wanted = ["TIME", "ANTENNA1", "ANTENNA2", "FLAG", "FLAG_ROW", "SCAN_NUMBER"] + cols
     if want_uvw:
         wanted.append("UVW")
-    groups = msio.open_groups(ms, wanted, row_chunk, mixed=meta.has_groups())
+    groups = read_values_by_group(ms, wanted, row_chunk, mixed=meta.has_groups())
     fields = sorted({f for f, _ in groups})
     if len(fields) > 1:
         raise MeasurementSetError(f"{ms} holds several fields (FIELD_ID {fields}); split them "
                                   "(e.g. CASA split by field) and diagnose each")
     keys = sorted(groups)
-    values = msio.compute_columns([(groups[k], wanted, None) for k in keys])
+    values = [groups[k] for k in keys]
     spw_ids = [meta.window_of(ddid) for _, ddid in keys]
     pol_ids = {meta.data_descriptions[ddid].polarization for _, ddid in keys}
     if len(pol_ids) > 1:

@@ -121,7 +121,7 @@ def _calibrate_reports(run_dir: Path) -> List[CalibrateReport]:
 
 def _sets(run_dir: Path, reports: List[CalibrateReport]) -> List[Path]:
     sets = {Path(r.body["target_ms"]) for r in reports} | {Path(r.body["ref_ms"]) for r in reports}
-    sets |= set(run_dir.glob("*.ms"))
+    sets |= set(run_dir.glob("*.ms")) | set(run_dir.glob("*.ps.zarr"))   # MSv4 stores too
     # a report may name a set relative to where the run started: one path per set
     found = {(s if s.is_dir() else run_dir / s.name).resolve() for s in sets}
     return sorted(s for s in found if s.is_dir())

@@ -236,6 +236,11 @@ def _stations_section(facts: RunFacts, base: Path) -> str:
         table = body.get("reference_table")
         if table:
             facts_line.append(f"reference table {table.get('path') if isinstance(table, dict) else table}")
+        groups = body.get("data_groups") or {}
+        if groups:   # a run on MSv4 processing sets: each method's result is a data group
+            facts_line.append("data groups written: " + ", ".join(
+                f"{g.get('data_group')} (partitions {' '.join(g.get('partitions', []))})"
+                for g in groups.values()))
         samples = body.get("samples") or {}
         if samples:
             facts_line.append("samples: " + ", ".join(f"{k} {v}" for k, v in samples.items()

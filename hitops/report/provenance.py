@@ -136,8 +136,39 @@ def _digest_set(ms: Path) -> Optional[SetChecksum]:
         return None
 
 
+def _digest_store(ps: Path) -> Optional[SetChecksum]:
+    """The input's group of an MSv4 processing set: every partition's ``base`` data group
+    (its VISIBILITY and FLAG, the rows as hitops reads them), which a calibrate run never
+    writes (its results are data groups of their own)."""
+    from ..errors import HitopsError
+    from ..io.msv4 import PartitionReader, open_store, read_layout
+
+    try:
+        layout = read_layout(open_store(str(ps)))
+        sha, n_row = hashlib.sha256(), 0
+        for part in layout.partitions:
+            for rows in PartitionReader(layout, part.name, "base").chunks(262_144):
+                sha.update(rows.data.tobytes())
+                sha.update(rows.flag.tobytes())
+                n_row += rows.time.size
+    except (HitopsError, OSError, KeyError):
+        return None
+    return SetChecksum(str(ps), n_row, sha.hexdigest(),
+                       f"data group base (VISIBILITY + FLAG) of {len(layout.partitions)} "
+                       "partition(s)")
+
+
 def checksums(sets: List[Path]) -> List[SetChecksum]:
-    return [c for c in (_digest_set(s) for s in sets if (s / "table.dat").is_file()) if c]
+    """Each Measurement Set's DATA + original flags, each processing set's input group."""
+    from ..io.msv4.store import is_processing_set
+
+    out = []
+    for s in sets:
+        if (s / "table.dat").is_file():
+            out.append(_digest_set(s))
+        elif is_processing_set(s):
+            out.append(_digest_store(s))
+    return [c for c in out if c]
 
 
 def command_line() -> str:

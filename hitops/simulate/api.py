@@ -28,6 +28,7 @@ from .. import radiometer
 from . import geometry, troposphere
 from .bands import band_blocks, band_phase, instrumental_series, station_opacity
 from .ms_windows import write_band_ms
+from .msv4_out import check_format, convert_bands, store_path
 from .scene import Scene, apply_overrides, parse_scene
 from .sources import C_LIGHT
 
@@ -275,8 +276,13 @@ def simulate(scene, outdir, prefix: str = "sim", seed: Optional[int] = None,
              save_truth: bool = False, overwrite: bool = False, duration=None,
              integration=None, coherence_scale=None, no_noise: bool = False,
              no_troposphere: bool = False, stations=None, start=None, scan_length=None,
-             scan_gap=None, correlations=None, threads: int = 1) -> Dict[str, Path]:
+             scan_gap=None, correlations=None, threads: int = 1,
+             format: str = "ms") -> Dict[str, Path]:
     """Simulate a scene; return {band name: MS path, ['truth': npz path]}.
+
+    ``format="msv4"`` also converts each band's Measurement Set into an MSv4
+    processing set beside it (hitops/simulate/msv4_out.py), returned as
+    ``'<band>.ps.zarr'``.
 
     ``scene`` is a :class:`Scene`, a YAML path, a packaged scene name
     ('paper', 'demo', 'triband', 'ngeht', 'phaseref') or a mapping; keyword overrides replace the scene's
@@ -290,8 +296,10 @@ def simulate(scene, outdir, prefix: str = "sim", seed: Optional[int] = None,
                             correlations=correlations)
     if not prefix or "/" in prefix:
         raise SceneError(f"prefix {prefix!r} must be a plain file-name prefix like 'sim'")
+    check_format(format)
     paths = output_paths(outdir, prefix, scene, save_truth)
-    existing = [str(p) for p in paths.values() if p.exists()]
+    stores = [store_path(paths[b.name]) for b in scene.bands] if format == "msv4" else []
+    existing = [str(p) for p in [*paths.values(), *stores] if p.exists()]
     if existing and not overwrite:
         raise OutputExistsError(f"{', '.join(existing)} exist(s); pass --overwrite "
                                 "(overwrite=True) to replace, or choose another --outdir/--prefix")
@@ -327,6 +335,9 @@ def simulate(scene, outdir, prefix: str = "sim", seed: Optional[int] = None,
         for tmp in staging.values():
             _remove(tmp)
         raise
+    if stores:
+        converted = convert_bands([paths[b.name] for b in scene.bands], len(scene.stations))
+        paths.update({f"{b.name}.ps.zarr": converted[paths[b.name]] for b in scene.bands})
     log.info("simulate: wrote %s in %.1f s", ", ".join(str(p) for p in paths.values()),
              _time.perf_counter() - t0)
     return paths
