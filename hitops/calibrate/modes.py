@@ -158,7 +158,6 @@ _PROCESSING_SET_OPTIONS = {
     "--save-flags": ("output", "save_flags"),
     "--export-uvfits": ("output", "export_uvfits"),
     "--caltable": ("output", "caltable"),
-    "--scheduler": ("run", "scheduler"),
 }
 #: what no mode takes when either band is a processing set (docs/msv4.md)
 REFUSED_ON_PROCESSING_SETS: Tuple[Refused, ...] = (
@@ -175,8 +174,6 @@ REFUSED_ON_PROCESSING_SETS: Tuple[Refused, ...] = (
                        "far: export from the v2 sets"),
     _on_processing_set("--caltable", "CASA tables are written from Measurement Sets v2 so "
                        "far: run with --caltable on the v2 sets"),
-    _on_processing_set("--scheduler", "a processing set is read and written on this "
-                       "process so far: drop --scheduler"),
 )
 
 
