@@ -124,19 +124,6 @@ def options_class(tool: str) -> type:
                               f"({', '.join(sections)}; hitops/schemas/{tool}.yml)."})
 
 
-def make_options(tool: str, values: dict):
-    """Options of ``tool`` from a mapping holding (at least) every schema input.
-
-    The schema's ``choices`` are checked here, so the Python API refuses what
-    the command line's parser refuses, with the same one line.
-    """
-    cls = options_class(tool)
-    if section_names(tool):
-        return cls.from_flat(values)
-    check_choices(tool, {f.name: values.get(f.name) for f in dataclasses.fields(cls)})
-    return cls(**{f.name: values[f.name] for f in dataclasses.fields(cls)})
-
-
 def flat_entry(tool: str, function):
     """``function`` (which takes the inputs of no section, then the sections) called with
     one keyword per input, as the command line and Stimela's cab give them.

@@ -34,7 +34,7 @@ import logging
 import os
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Dict, List
+from typing import Dict, List
 
 from ..errors import InputError
 from ..io import access, flag_versions
@@ -47,9 +47,6 @@ from .inputs import CalibrateOptions, check_inputs, output_columns, parse_method
 from .modes import Mode, check_options
 from .output import drop_stale_columns
 from .files import PreparedInputs, prepare_inputs
-
-if TYPE_CHECKING:   # the plan's modules load dask-ms: imported where a run starts
-    from .plan import RunPlan
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -180,6 +177,8 @@ def _calibrate_visibilities(start: RunStart) -> Dict:
     import dask
 
     from .plan import build_plan
+    from .skeleton import run_source
+    from .visibility_source import VisibilitySource
 
     outputs, columns = check_inputs(start.opts, start.methods, start.ref_ms, start.target_ms)
     timings = {"checks": time.perf_counter() - start.started}
@@ -195,17 +194,8 @@ def _calibrate_visibilities(start: RunStart) -> Dict:
             from ..cluster import dask_client
             client, closer = dask_client(start.opts.run.scheduler)
         try:
-            return _run(plan, client, start)
+            # stages 4-6: the run skeleton with REF_MS's visibilities as its source
+            return run_source(VisibilitySource.of(plan, client, start.started, start.prepared))
         finally:
             if closer is not None:
                 closer.close()
-
-
-def _run(run: RunPlan, client, start: RunStart) -> Dict:
-    """Stages 4-6: every group pair into one OutputTransaction, committed once; then the
-    report (the run skeleton, hitops/calibrate/skeleton.py, with REF_MS's visibilities as
-    its source)."""
-    from .skeleton import run_source
-    from .visibility_source import VisibilitySource
-
-    return run_source(VisibilitySource.of(run, client, start.started, start.prepared))

@@ -247,8 +247,7 @@ def calibrate_from_table(start) -> Dict:
     refused in hitops/calibrate/modes.py): checks, transfer, column, table, report (the run
     skeleton, hitops/calibrate/skeleton.py, with the table as its source).  ``start``: the
     run's :class:`hitops.calibrate.api.RunStart`."""
-    return run_source(TableSource.of(start.opts, start.methods, start.ref_ms, start.target_ms,
-                                     start.started, start.prepared))
+    return run_source(TableSource.of(start))
 
 
 @dataclass(frozen=True)
@@ -264,18 +263,19 @@ class TableSource:
     prepared: PreparedInputs
 
     @classmethod
-    def of(cls, opts: CalibrateOptions, methods: List[str], ref_ms: str, target_ms: str,
-           started: float, prepared: PreparedInputs) -> "TableSource":
-        run = plan_table_run(opts, methods, ref_ms, target_ms)
+    def of(cls, start) -> "TableSource":
+        """The table source of a run's :class:`hitops.calibrate.api.RunStart`."""
+        opts, methods, ref_ms = start.opts, start.methods, start.ref_ms
+        run = plan_table_run(opts, methods, ref_ms, start.target_ms)
         # every check of the table (type, set, stations, solution interval) before anything
         # is written
-        paired = pair_table(opts.input.reference_table, ref_ms, target_ms,
+        paired = pair_table(opts.input.reference_table, ref_ms, start.target_ms,
                             antenna_map=opts.input.antenna_map, target_meta=run.tgt_meta)
         transfers = {m: transfer_paired(paired, wrap_counting=WRAP_COUNTING[m]) for m in methods}
         offsets = None
         if run.columns.offset and "pwc" in transfers:   # --offset-model / --offset-reference-column
             transfers["pwc"], offsets = offset_step(run, transfers["pwc"])
-        return cls(run, ref_ms, transfers, offsets, started, prepared)
+        return cls(run, ref_ms, transfers, offsets, start.started, start.prepared)
 
     def open_transaction(self) -> OutputTransaction:
         run = self.run
