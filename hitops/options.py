@@ -66,6 +66,21 @@ def section_names(tool: str) -> Dict[str, Tuple[str, ...]]:
             (load_schema(tool).get("sections") or {}).items()}
 
 
+def _reducer(tool: str, section):
+    """``__reduce__`` of a generated options class: the class is made from the schema in each
+    process (it has no importable name), so an instance pickles as (tool, section, values)
+    and is made again there (a dask worker receives the run's plan this way)."""
+    def reduce(self):
+        return _remake, (tool, section, {f.name: getattr(self, f.name)
+                                         for f in dataclasses.fields(self)})
+    return reduce
+
+
+def _remake(tool: str, section, values: Dict[str, Any]):
+    cls = options_class(tool) if section is None else section_classes(tool)[section]
+    return cls(**values)
+
+
 @lru_cache(maxsize=None)
 def section_classes(tool: str) -> Dict[str, type]:
     """{section: frozen dataclass of its inputs}, each checking its choices when made."""
@@ -75,7 +90,7 @@ def section_classes(tool: str) -> Dict[str, type]:
             check_choices(_tool, dataclasses.asdict(self))
         classes[section] = dataclasses.make_dataclass(
             _class_name(section), _fields(tool, names), frozen=True,
-            namespace={"__post_init__": post_init,
+            namespace={"__post_init__": post_init, "__reduce__": _reducer(tool, section),
                        "__doc__": f"The {section} options of hitops {tool} "
                                   f"(hitops/schemas/{tool}.yml)."})
     return classes
@@ -119,7 +134,7 @@ def options_class(tool: str) -> type:
 
     return dataclasses.make_dataclass(
         _class_name(tool), fields, frozen=True,
-        namespace={"from_flat": from_flat, "flat": flat,
+        namespace={"from_flat": from_flat, "flat": flat, "__reduce__": _reducer(tool, None),
                    "__doc__": f"The options of hitops {tool} in sections "
                               f"({', '.join(sections)}; hitops/schemas/{tool}.yml)."})
 

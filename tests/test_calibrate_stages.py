@@ -83,7 +83,7 @@ def test_stage3_the_plan_is_the_pairs_layout(planned_run):
 
 def test_stage4_stages_the_paper_output_and_rollback_leaves_the_set(planned_copy):
     from hitops.calibrate.output import OutputTransaction
-    from hitops.calibrate.pipeline import run_group
+    from hitops.calibrate.passes import run_group
 
     planned = planned_copy(SPEC, method="pwc", chunk_rows=1200)
     run, truth = planned.plan, planned.truth

@@ -1,12 +1,15 @@
 """``hitops calibrate REF.ps TGT.ps --scheduler ADDRESS`` on MSv4 processing sets.
 
-What is built so far (docs/msv4.md, "Distributed"): with ``--scheduler`` a processing
-set's run sends each chunk's baseline batches to the dask cluster, as the MSv2 run does
-(calibrate/batch_tasks.py); the stores are still read and written on the client.  The
-groups must equal a one-process v4 run and the v2 run cell for cell, the stores' input
-arrays stay byte for byte as they were, the kernels really ran on the workers (the
-scheduler saw the tasks), and a run stopped mid-way leaves no group registered.
-Cost: about 15 s here (a LocalCluster of 2 worker processes).
+With ``--scheduler`` and both bands processing sets, the workers read, track,
+transfer and write each chunk themselves (hitops/calibrate/worker_chunks.py).  The
+groups must equal a one-process v4 run bit for bit and the v2 run cell for cell (the
+count tracker in several chunks; the antenna tracker and the wideband scene with the
+n0 step, whose first pass's sums come back from the workers), the stores' input
+arrays stay byte for byte as they were, the chunk tasks really ran on the workers and
+the client's transfer batches did not, and a run that fails on a worker (a damaged
+chunk of the store) or is interrupted on the client leaves no group registered and
+every file of the store as it was.  Cost: about 30 s here (a LocalCluster of 2
+worker processes).
 """
 
 from __future__ import annotations
@@ -24,8 +27,11 @@ distributed = pytest.importorskip("distributed")
 from hitops.calibrate import calibrate_flat  # noqa: E402
 from hitops.calibrate.output_msv4 import DataGroupTransaction  # noqa: E402
 from msv4_sets import file_digests  # noqa: E402
-from test_msv4_calibrate import (METHODS, _input_digests, _v4_group,  # noqa: E402,F401
-                                 assert_group_equals_column, converted, copies)
+from hitops.calibrate import worker_chunks  # noqa: E402
+from hitops.errors import ProcessingSetError  # noqa: E402
+from test_msv4_calibrate import (METHODS, SPEC, _flag_some, _input_digests,  # noqa: E402,F401
+                                 _v4_group, assert_group_equals_column, converted, copies,
+                                 scenes)
 
 pytestmark = pytest.mark.filterwarnings("ignore:.*Zarr V3 specification",
                                         "ignore:Consolidated metadata is currently not part")
@@ -54,8 +60,10 @@ def test_cluster_run_writes_what_one_process_and_v2_write(copies, cluster, tmp_p
     rc = calibrate_flat(ref4, tgt4, scheduler=cluster.scheduler_address, **flags)
     assert rc["chunks"] == r1["chunks"] == r2["chunks"] > 1
     assert rc["wraps"] == r1["wraps"] == r2["wraps"]
-    # the kernels ran on the workers
-    assert "transfer_batch" in set(cluster.scheduler.task_prefixes)
+    # the workers read, advanced and wrote the chunks; no batch went out from the client
+    prefixes = set(cluster.scheduler.task_prefixes)
+    assert {"hitops-read", "hitops-advance", "hitops-write"} <= prefixes
+    assert "transfer_batch" not in prefixes
     for method in METHODS:
         assert_group_equals_column(tgt4, method, tgt2, f"{method.upper()}_DATA")
         for a, b in zip(_v4_group(tgt4, method), _v4_group(str(one), method)):
@@ -65,21 +73,96 @@ def test_cluster_run_writes_what_one_process_and_v2_write(copies, cluster, tmp_p
     assert file_digests(Path(ref4)) == ref_before
 
 
-def test_cluster_run_stopped_mid_way_registers_no_group(copies, cluster, monkeypatch):
-    _, _, ref4, tgt4 = copies
+@pytest.mark.parametrize("scene, flags", [
+    ("count", dict(tracker="count", offset_model="point", chunk_rows=400)),
+    ("antenna", dict(tracker="antenna", offset_model="point", chunk_rows=700)),
+    ("wideband", dict(offset_model="point", chunk_rows=600)),
+])
+def test_cluster_n0_step_writes_what_one_process_writes(copies, scenes, cluster, tmp_path,
+                                                        scene, flags):
+    """The n0 step's first pass sums on the workers; the client solves; the writing pass
+    runs there again: a segmented tracker, and two windows of 16 channels (per-channel
+    ratios, two partitions)."""
+    if scene == "wideband":
+        for path in scenes[scene][2:]:
+            shutil.copytree(path, tmp_path / "wide" / Path(path).name)
+        ref4, tgt4 = (str(tmp_path / "wide" / Path(p).name) for p in scenes[scene][2:])
+    else:
+        _, _, ref4, tgt4 = copies
+    one = tmp_path / "one.ps.zarr"
+    shutil.copytree(tgt4, one)
+    flags = dict(method=",".join(METHODS), no_verdict=True, **flags)
+    r1 = calibrate_flat(ref4, str(one), **flags)
+    rc = calibrate_flat(ref4, tgt4, scheduler=cluster.scheduler_address, **flags)
+    steps = [[g["offset_step"] for g in r.get("groups", [r])] for r in (rc, r1)]
+    assert all(s["applied_to"] == ["pwc", "cwu"] for s in steps[0])
+    assert [g["samples"] for g in rc.get("groups", [rc])] == \
+        [g["samples"] for g in r1.get("groups", [r1])]
+    # the antenna tracker's one-process run keeps its first pass and shifts it by the
+    # step's integers; the cluster runs the writing pass again (the output stays on the
+    # workers): the same integers, the values equal to float32 rounding
+    exact = scene != "antenna"
+    if exact:
+        assert steps[0] == steps[1]
+    else:
+        assert [[(a["antenna"], a["k"]) for a in s["antennas"]] for s in steps[0]] == \
+            [[(a["antenna"], a["k"]) for a in s["antennas"]] for s in steps[1]]
+    for method in METHODS:
+        cluster_run, one_run = _v4_group(tgt4, method), _v4_group(str(one), method)
+        for a, b in zip(cluster_run[:3] + cluster_run[4:], one_run[:3] + one_run[4:]):
+            np.testing.assert_array_equal(a, b, err_msg=method)
+        if exact:   # bit for bit, NaN = NaN
+            np.testing.assert_array_equal(cluster_run[3], one_run[3], err_msg=method)
+        else:
+            np.testing.assert_allclose(cluster_run[3], one_run[3], rtol=2e-7, atol=1e-6,
+                                       err_msg=method)
+
+
+def _chunked_copy(converted, tmp_path, step: int):
+    """The pair's target converted again with zarr chunks of ``step`` time steps."""
+    from xradio.measurement_set import convert_msv2_to_processing_set
+
+    _, tgt2, ref4, _ = converted
+    tgt4 = tmp_path / "tgt.ps.zarr"
+    convert_msv2_to_processing_set(tgt2, str(tgt4), main_chunksize={"time": step})
+    return ref4, str(tgt4)
+
+
+def test_a_worker_that_cannot_read_a_chunk_rolls_the_run_back(converted, cluster, tmp_path):
+    """A damaged zarr chunk of the target's VISIBILITY (the fourth of five): the worker's
+    read fails with one line naming it, the chunks before it may have been written, and
+    the run leaves no group and every file as it was."""
+    ref4, tgt4 = _chunked_copy(converted, tmp_path, 66)
+    partition = next(p.name for p in Path(tgt4).iterdir() if p.is_dir())
+    damaged = Path(tgt4) / partition / "VISIBILITY" / "c" / "3" / "0" / "0" / "0"
+    damaged.write_bytes(b"not a blosc frame" * 8)
+    before = file_digests(Path(tgt4))
+    with pytest.raises(ProcessingSetError, match=r"VISIBILITY of time steps 198-263 cannot be "
+                                                 r"read .* the store is damaged"):
+        calibrate_flat(ref4, tgt4, method="pwc,cfpt", no_verdict=True, chunk_rows=400,
+                       scheduler=cluster.scheduler_address)
+    assert set(_groups(tgt4)) == {"base"}
+    assert file_digests(Path(tgt4)) == before
+
+
+def test_cluster_run_stopped_mid_way_registers_no_group(converted, cluster, tmp_path,
+                                                       monkeypatch):
+    """An interrupt on the client while the workers write: their tasks are cancelled and
+    waited for before the staged arrays are removed."""
+    ref4, tgt4 = _chunked_copy(converted, tmp_path, 66)
     before = file_digests(Path(tgt4))
     calls = []
-    write = DataGroupTransaction.write_chunk
+    finish = worker_chunks._finish
 
-    def fail_in_second_chunk(self, *args, **kwargs):
+    def stop_at_second_write(*args):
         calls.append(1)
         if len(calls) == 2:
             raise KeyboardInterrupt
-        return write(self, *args, **kwargs)
+        return finish(*args)
 
-    monkeypatch.setattr(DataGroupTransaction, "write_chunk", fail_in_second_chunk)
+    monkeypatch.setattr(worker_chunks, "_finish", stop_at_second_write)
     with pytest.raises(KeyboardInterrupt):
-        calibrate_flat(ref4, tgt4, method="pwc,cfpt", no_verdict=True, chunk_rows=400,
+        calibrate_flat(ref4, tgt4, method="pwc,cfpt", no_verdict=True, chunk_rows=100,
                        scheduler=cluster.scheduler_address)
     assert len(calls) == 2
     assert set(_groups(tgt4)) == {"base"}

@@ -15,6 +15,9 @@ groups' :class:`~hitops.calibrate.transfer.TransferInputs` over and returns at o
 * A cluster (``--scheduler``): the groups go to the dask.distributed client as
   delayed tasks computed together, as before; the tables are still read and written
   on this process (hitops/calibrate/pipeline.py says why).
+* Inline (``n_threads`` 0, no client): in the calling thread, one group after the
+  other: a chunk task on a dask worker (hitops/calibrate/worker_chunks.py), whose
+  cores are the worker's own threads.
 """
 
 from __future__ import annotations
@@ -28,17 +31,25 @@ from .transfer import TransferInputs, TransferResult, transfer_batch
 
 class BatchTasks:
     """Runs one chunk's baseline-group transfers at a time (``client``: a dask.distributed
-    Client, or None for ``n_threads`` threads of this process)."""
+    Client, or None for ``n_threads`` threads of this process, 0: the calling thread)."""
 
     def __init__(self, client, n_threads: int):
         self.client = client
+        self.inline = client is None and int(n_threads) == 0
         self._pool: Optional[ThreadPoolExecutor] = None
-        if client is None:
+        if client is None and not self.inline:
             self._pool = ThreadPoolExecutor(max(1, int(n_threads)),
                                             thread_name_prefix="hitops-transfer")
 
     def start(self, inputs: List[TransferInputs]) -> "StartedGroups":
-        """The groups' tasks, started (threads) or ready to be computed (cluster)."""
+        """The groups' tasks, started (threads), run (inline) or ready to be computed
+        (cluster)."""
+        if self.inline:
+            done = []
+            for one in inputs:
+                done.append(Future())
+                done[-1].set_result(transfer_batch(one))
+            return StartedGroups(done, None)
         if self._pool is not None:
             return StartedGroups([self._pool.submit(transfer_batch, i) for i in inputs], None)
         import dask

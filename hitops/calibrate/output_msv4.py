@@ -104,9 +104,12 @@ class DataGroupTransaction:
             out = {m: rotate_channels(data, p, delays[m], chan_offset) for m, p in phasors.items()}
         rows = np.asarray(rows, np.int64)
         which = np.searchsorted(self.row_bases, rows, side="right") - 1
-        for k in np.unique(which):
-            source, sel = self.sources[k], np.flatnonzero(which == k)
-            times, baselines = source.cells(rows[sel] - source.row_base)
+        # a chunk's rows are one group's (a run's chunk never spans two): no sort
+        one = which.size == 0 or which.min() == which.max()
+        for k in (which[:1] if one else np.unique(which)):
+            source = self.sources[k]
+            sel = np.arange(rows.size) if one else np.flatnonzero(which == k)
+            times, baselines = source.cells((rows if one else rows[sel]) - source.row_base)
             # a partition of one field: its steps follow each other, one run
             runs = _runs_of_steps(times) if source.several_fields else [np.arange(times.size)]
             for run in runs:
@@ -118,6 +121,11 @@ class DataGroupTransaction:
                     self.writers[(source.partition, method)].write_cells(
                         span, t_run, b_run, values[cells], new_flag[cells])
         self.rows_written[rows] = True
+
+    def mark_written(self, source: PartitionSource) -> None:
+        """Every row of ``source`` written (by the chunk tasks of a cluster's workers, which
+        write their own copies of this transaction: hitops/calibrate/worker_chunks.py)."""
+        self.rows_written[source.row_base:source.row_base + source.n_rows] = True
 
     def flags_now(self, table, rows: np.ndarray) -> np.ndarray:
         raise RuntimeError("flags_now on a processing set: --calibrator-field is refused on "

@@ -19,14 +19,17 @@ For each time chunk of the plan, in time order:
 
 Reads and writes run on one I/O thread (:class:`hitops.calibrate.chunk_io.ChunkIO`):
 chunk k+1 is read while chunk k's kernels run, and chunk k is written while chunk
-k+1's run.
+k+1's run.  Steps 2-3 of one chunk are :meth:`GroupPipeline.advance`, from the
+:class:`PassState` the previous chunk carried out: the same method runs in the chunk
+tasks of hitops/calibrate/worker_chunks.py, where the workers read and write.
 
 With the n0 offset step a first pass (steps 1-3) sums the calibrated phase against the offset
 reference per scan or segment (per target channel across a window); the integers are solved
-(:mod:`hitops.calibrate.n0.step`) and the writing pass follows.  With a segmented tracker (smooth,
-antenna) the first pass keeps its output when it fits in a fifth of the memory budget, and the
-writing pass only shifts it by 2 pi eps k per segment
-(:func:`hitops.calibrate.n0.step.offset_shifted_rows`) instead of tracking and transferring again.
+(:mod:`hitops.calibrate.n0.step`) and the writing pass follows (hitops/calibrate/passes.py
+runs the passes).  With a segmented tracker (smooth, antenna) the first pass keeps its output
+when it fits in a fifth of the memory budget, and the writing pass only shifts it by 2 pi eps k
+per segment (:func:`hitops.calibrate.n0.step.offset_shifted_rows`) instead of tracking and
+transferring again.
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
 import numpy as np
@@ -47,8 +50,8 @@ from ..tracking.factory import new_tracker
 from .chunk_io import ChunkIO
 from .chunk_read import ChunkData, read_chunk, read_target
 from .batch_tasks import BatchTasks, StartedGroups
-from .n0.step import (OffsetSolution, OffsetSums, channel_sums, offset_shifted_rows,
-                      offset_step_needed, solve_offsets)
+from .n0.step import OffsetSums, channel_sums, offset_shifted_rows
+from ..io.msv4.group_rows import PartitionSource
 from .output import OutputTransaction
 from .row_outputs import PlacedGroup, RowOutputs, rows_of_batches
 from .plan import GroupPlan, RunPlan
@@ -77,23 +80,6 @@ class PassResult:
 
 
 @dataclass
-class GroupResult:
-    """What the report of one group pair needs."""
-
-    samples: SampleCounts
-    jump_flagged: int
-    wrap_events: np.ndarray                     # (n_bl, n_corr)
-    offsets: OffsetSolution
-    tracker: WrapTracker
-    n_chunks: int
-
-    @classmethod
-    def of(cls, result: PassResult, offsets: OffsetSolution, n_chunks: int) -> "GroupResult":
-        return cls(result.samples, result.jump_flagged, result.wrap_events, offsets,
-                   result.tracker, n_chunks)
-
-
-@dataclass
 class KeptChunk:
     """The first pass's output of one chunk, kept for the writing pass."""
 
@@ -109,13 +95,42 @@ class StartedTransfer:
     groups: StartedGroups
 
 
-class GroupPipeline:
-    """The passes over one group pair's chunks, written through ``tx``."""
+@dataclass(frozen=True)
+class PassSpec:
+    """What one pass does at every chunk: ``offsets`` per-scan n0 shifts (count) and
+    ``offset_k`` their integers (a per-channel transfer's delays need them); ``segment_k``
+    per-segment integers (segmented trackers); ``write`` the outputs (False: a first pass)."""
 
-    def __init__(self, run: RunPlan, group: GroupPlan, tx: OutputTransaction, client):
+    offsets: Optional[np.ndarray] = None
+    segment_k: Optional[Dict[tuple, int]] = None
+    offset_k: Optional[np.ndarray] = None
+    write: bool = True
+
+
+@dataclass
+class PassState:
+    """What a pass carries from one chunk to the next: the sums so far with the tracker
+    (its state and statistics, ``result.tracker``) and CWU's count of the target phase."""
+
+    result: PassResult
+    tgt_carry: Carry
+    #: seconds of the chunk tasks on the workers, carried to the client with the state
+    timings: Dict[str, float] = field(default_factory=lambda: {"read": 0.0, "transfer": 0.0})
+
+
+class GroupPipeline:
+    """The passes over one group pair's chunks, written through ``tx``.
+
+    ``on_worker``: the pipeline of one chunk task on a dask worker
+    (hitops/calibrate/worker_chunks.py): the batches run in the task's own thread, the
+    timings go to a dict of its own, and nothing is logged."""
+
+    def __init__(self, run: RunPlan, group: GroupPlan, tx: OutputTransaction, client,
+                 on_worker: bool = False):
         import dask.threaded
 
         self.run, self.group, self.tx, self.client = run, group, tx, client
+        self.on_worker = on_worker
         # --scheduler sends the transfer tasks to the cluster; the tables are read and
         # written here, on this process's threads: a graph holding dask-ms table handles
         # would be unpickled by the cluster's scheduler, whose copies keep the table open
@@ -123,23 +138,34 @@ class GroupPipeline:
         self.io_scheduler = dask.threaded.get
         self.codes = [fpt.METHOD_CODES[m] for m in run.methods]
         n_workers = (len(client.scheduler_info()["workers"]) if client is not None
-                     else (os.cpu_count() or 1))
+                     else 0 if on_worker else (os.cpu_count() or 1))
         self.tasks = BatchTasks(client, n_workers)
-        self.baseline_batches = plan_groups(group.match.n_bl, 2 * n_workers)
-        self.timings = run.timings
+        self.baseline_batches = plan_groups(group.match.n_bl, max(1, 2 * n_workers))
+        self.timings = {} if on_worker else run.timings
         for key in ("read", "transfer", "write"):
             self.timings[key] = 0.0
         self._cache: Dict[int, ChunkData] = {}
-        # what to read: the tracker's context does not depend on its state
-        self._reader = self.new_tracker()
+        # what to read: the tracker's context does not depend on its state (and on a
+        # worker, the plan parts and records a packed tracker is unpacked onto)
+        self.plan_tracker = self.new_tracker()
+        if on_worker:
+            return
         log.info("%d chunk(s) of <= %d target rows; %d baseline batches; scheduler %s",
                  group.n_chunks, run.chunk_rows, len(self.baseline_batches),
                  run.opts.run.scheduler or "threads")
 
     @property
+    def workers_do_io(self) -> bool:
+        """Both bands are processing sets and a cluster runs: each worker then reads and
+        writes its own chunks (hitops/calibrate/worker_chunks.py)."""
+        datasets = self.group.match.datasets
+        return self.client is not None and all(
+            isinstance(datasets[b], PartitionSource) for b in ("ref", "tgt"))
+
+    @property
     def segmented(self) -> bool:
         """The tracker's counts come in segments (the n0 step per segment)."""
-        return self._reader.segmented
+        return self.plan_tracker.segmented
 
     # ---- the stages
     def new_tracker(self) -> WrapTracker:
@@ -147,7 +173,7 @@ class GroupPipeline:
         group = self.group
         return new_tracker(self.run.opts.tracking.tracker, group.grid, group.match.corr_names,
                            group.tracking, len(group.antenna_names), list(group.antenna_names),
-                           workers=1 if self.client is not None else 0)
+                           workers=1 if self.client is not None or self.on_worker else 0)
 
     def read(self, k: int, keep: bool = False) -> ChunkData:
         """Chunk ``k``, read (``keep``: cached for a second pass over a one-chunk run)."""
@@ -155,8 +181,8 @@ class GroupPipeline:
             return self._cache[k]
         stage = time.perf_counter()
         t0, t1 = self.group.bounds[k], self.group.bounds[k + 1]
-        chunk = read_chunk(self.run, self.group, k, self._reader.extended(t0, t1),
-                           self._reader.grids_reference, self.io_scheduler)
+        chunk = read_chunk(self.run, self.group, k, self.plan_tracker.extended(t0, t1),
+                           self.plan_tracker.grids_reference, self.io_scheduler)
         if keep:
             self._cache[k] = chunk
         self.timings["read"] += time.perf_counter() - stage
@@ -220,52 +246,63 @@ class GroupPipeline:
         self.timings["write"] += time.perf_counter() - stage
 
     # ---- the passes
-    def run_pass(self, offsets: Optional[np.ndarray] = None,
-                 segment_k: Optional[Dict[tuple, int]] = None, write: bool = True,
-                 kept: Optional[Dict[int, KeptChunk]] = None,
-                 keep_reads: bool = False, offset_k: Optional[np.ndarray] = None) -> PassResult:
-        """One pass over the chunks.  ``offsets``: per-scan n0 shifts (count) and ``offset_k``
-        their integers (a per-channel transfer's delays need them); ``segment_k``:
-        per-segment integers (segmented trackers); ``kept``: a dict that collects the output
+    def run_pass(self, spec: PassSpec = PassSpec(), kept: Optional[Dict[int, KeptChunk]] = None,
+                 keep_reads: bool = False) -> PassResult:
+        """One pass over the chunks (``spec``); ``kept``: a dict that collects the output
         instead of writing (a first pass whose writing pass only shifts)."""
-        match, n_corr, scans = self.group.match, self.group.n_corr, self.group.grid.scans
-        off_col = self.run.columns.offset
-        tracker = self.new_tracker()
-        tgt_carry = Carry.empty(match.n_bl, n_corr)
-        result = PassResult(samples=SampleCounts(), tracker=tracker,
-                            sums=OffsetSums.for_batch(self.group))
+        state = self.start_state()
         with ChunkIO(lambda k: self.read(k, keep_reads), self.group.n_chunks) as io:
             for k in range(self.group.n_chunks):
                 chunk = io.chunk(k)
-                if tracker.grids_reference:   # the tracker reads the chunk here: read beside it
+                if state.result.tracker.grids_reference:   # it reads the chunk: read beside it
                     io.read_ahead(k + 1)
-                stage = time.perf_counter()
-                tracked = tracker.track_chunk(chunk.t0, chunk.t1, chunk.reference)
-                tracked = tracked.with_segment_offsets(segment_k)
-                # a kept first pass sums the offsets here, from the rows (the groups then
-                # need neither the target phases nor the reference/model column)
-                sum_in_groups = offsets is None and kept is None
-                started = self.start_transfer(chunk, tracked, offsets, tgt_carry,
-                                              sum_in_groups, offset_k)
                 # asked for once the kernels run: casacore's getcol holds the GIL, which
                 # each kernel needs to start
-                io.read_ahead(k + 1)
-                out, parts = self.finish_transfer(chunk, started)
-                _add_parts(result, tracker, tgt_carry, parts)
-                if result.sums.window is not None and offsets is None and off_col:
-                    channel_sums(result.sums, self.group, chunk, tracked.segment_keys, out)
-                tracker.finish_chunk(chunk.t1)
-                tgt_carry.last_scan = int(scans.scan_of_time[chunk.t1 - 1])
-                if kept is not None:
-                    kept[k] = KeptChunk(out, tracked.segment_keys)
-                    if offsets is None and off_col:
-                        self._sum_kept(result, chunk, tracked.segment_keys, out.phasor_rows,
-                                       out.calibrated)
-                self.timings["transfer"] += time.perf_counter() - stage
-                if write:   # on the I/O thread, after the next chunk's read
+                out = self.advance(chunk, state, spec, kept,
+                                   transfer_started=lambda: io.read_ahead(k + 1))
+                if spec.write:   # on the I/O thread, after the next chunk's read
                     io.write(self.write, chunk, out)
-                del chunk, out, parts, started, tracked
-        return result
+                del chunk, out
+        return state.result
+
+    def start_state(self) -> PassState:
+        """The state a pass starts from: a fresh tracker, nothing carried, nothing summed."""
+        tracker = self.new_tracker()
+        return PassState(PassResult(samples=SampleCounts(), tracker=tracker,
+                                    sums=OffsetSums.for_batch(self.group)),
+                         Carry.empty(self.group.match.n_bl, self.group.n_corr))
+
+    def advance(self, chunk: ChunkData, state: PassState, spec: PassSpec,
+                kept: Optional[Dict[int, KeptChunk]] = None,
+                transfer_started=None) -> RowOutputs:
+        """Track and transfer one chunk, carrying ``state`` on to the next; the chunk's
+        outputs in its target rows' order.  ``transfer_started``: called once the
+        baseline batches run (the loop asks for the next read there)."""
+        tracker, tgt_carry, result = state.result.tracker, state.tgt_carry, state.result
+        stage = time.perf_counter()
+        tracked = tracker.track_chunk(chunk.t0, chunk.t1, chunk.reference)
+        tracked = tracked.with_segment_offsets(spec.segment_k)
+        # a kept first pass sums the offsets here, from the rows (the groups then
+        # need neither the target phases nor the reference/model column)
+        sum_in_groups = spec.offsets is None and kept is None
+        started = self.start_transfer(chunk, tracked, spec.offsets, tgt_carry, sum_in_groups,
+                                      spec.offset_k)
+        if transfer_started is not None:
+            transfer_started()
+        out, parts = self.finish_transfer(chunk, started)
+        _add_parts(result, tracker, tgt_carry, parts)
+        off_col = self.run.columns.offset
+        if result.sums.window is not None and spec.offsets is None and off_col:
+            channel_sums(result.sums, self.group, chunk, tracked.segment_keys, out)
+        tracker.finish_chunk(chunk.t1)
+        tgt_carry.last_scan = int(self.group.grid.scans.scan_of_time[chunk.t1 - 1])
+        if kept is not None:
+            kept[chunk_index(self.group, chunk)] = KeptChunk(out, tracked.segment_keys)
+            if spec.offsets is None and off_col:
+                self._sum_kept(result, chunk, tracked.segment_keys, out.phasor_rows,
+                               out.calibrated)
+        self.timings["transfer"] += time.perf_counter() - stage
+        return out
 
     def _sum_kept(self, result: PassResult, chunk: ChunkData, seg_keys, phasor_rows,
                   calibrated) -> None:
@@ -322,43 +359,6 @@ def _add_segment_sums(result: OffsetSums, sums: SegmentSums, baselines) -> None:
         entry[1] += int(n)
 
 
-def kept_bytes(group: GroupPlan, n_methods: int) -> int:
-    """Memory the first pass's kept output takes: phasors, mask and segment keys."""
-    n_time, n_bl = group.match.n_time, group.match.n_bl
-    return group.n_target_rows * group.n_corr * (8 * n_methods + 1) + n_bl * group.n_corr * n_time * 8
-
-
-def run_group(run: RunPlan, group: GroupPlan, tx: OutputTransaction, client) -> GroupResult:
-    """Every pass over one group pair; the outputs staged in ``tx``."""
-    pipeline = GroupPipeline(run, group, tx, client)
-    try:
-        return _run_passes(run, group, pipeline)
-    finally:
-        pipeline.close()
-
-
-def _run_passes(run: RunPlan, group: GroupPlan, pipeline: GroupPipeline) -> GroupResult:
-    codes, columns = pipeline.codes, run.columns
-    step = bool(columns.offset) and (fpt.PWC in codes or fpt.CWU in codes)
-    if columns.offset and not step:
-        log.warning("%s applies to pwc and cwu only; ignored for cfpt",
-                    "--offset-model" if columns.offset_is_model else "--offset-reference-column")
-    elif step and not offset_step_needed(group):
-        step = False
-    if not step:
-        return GroupResult.of(pipeline.run_pass(), OffsetSolution(), group.n_chunks)
-    # with a tracker whose n0 step is per segment the first pass's output is kept when it
-    # fits (a fifth of the budget), and the writing pass shifts it; otherwise the writing
-    # pass runs again
-    # (not for a per-channel transfer: its delays would need the same shift)
-    keep = (pipeline.segmented and group.channels is None
-            and kept_bytes(group, len(codes)) <= run.budget // 5)
-    kept = {} if keep else None
-    first = pipeline.run_pass(write=False, kept=kept, keep_reads=group.n_chunks == 1)
-    solution = solve_offsets(run, group, first.tracker, first.sums)
-    if keep:
-        pipeline.write_kept(kept, solution.segment_k)
-        return GroupResult.of(first, solution, group.n_chunks)
-    final = pipeline.run_pass(offsets=solution.offsets, segment_k=solution.segment_k,
-                              offset_k=solution.offset_k)
-    return GroupResult.of(final, solution, group.n_chunks)
+def chunk_index(group: GroupPlan, chunk: ChunkData) -> int:
+    """The plan's index of ``chunk`` (its first time is one of the plan's bounds)."""
+    return group.bounds.index(chunk.t0)

@@ -1,6 +1,6 @@
 """Stage 6 of ``hitops calibrate``: the summary in the log, the JSON report, and what follows.
 
-:func:`group_report` turns one group pair's :class:`hitops.calibrate.pipeline.GroupResult`
+:func:`group_report` turns one group pair's :class:`hitops.calibrate.passes.GroupResult`
 into its report entry (and log lines); :func:`finish_after_commit` adds the verdict,
 the calibration table and the conversions of the run and writes the JSON once
 (:class:`~hitops.calibrate.run_report.RunReport`).
@@ -16,7 +16,7 @@ from typing import Dict, List, Optional, Sequence
 
 from ..errors import HitopsError
 from .output import FLAG_BACKUP, OutputTransaction
-from .pipeline import GroupResult
+from .passes import GroupResult
 from .plan import GroupPlan, RunPlan
 from .files import PreparedInputs, record_conversions_and_export
 from .run_report import AfterCommit, RunReport, report_path, write_run_report

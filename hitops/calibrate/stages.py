@@ -51,7 +51,8 @@ STAGES: Tuple[StageInfo, ...] = (
     StageInfo(Stage.CHUNK_LOOP, "per chunk read -> track -> transfer -> stage, in passes: the "
               "n0 step's first pass, the writing pass, the calibrator step",
               "staged columns, PassResult",
-              ("hitops/calibrate/pipeline.py", "hitops/calibrate/chunk_io.py",
+              ("hitops/calibrate/pipeline.py", "hitops/calibrate/passes.py",
+               "hitops/calibrate/worker_chunks.py", "hitops/calibrate/chunk_io.py",
                "hitops/calibrate/chunk_read.py", "hitops/calibrate/transfer.py",
                "hitops/calibrate/n0/step.py", "hitops/calibrate/phaseref/step.py",
                "hitops/calibrate/from_table.py")),

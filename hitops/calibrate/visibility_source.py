@@ -16,6 +16,7 @@ from typing import Dict, List, Optional, Tuple
 from ..io import read as msio
 from ..io.msv4.store import is_processing_set
 from .output import OutputTransaction, release_cluster_tables
+from ..io.msv4.group_rows import PartitionSource
 from .output_msv4 import DataGroupTransaction
 from .plan import RunPlan
 from .files import PreparedInputs
@@ -42,6 +43,14 @@ class VisibilitySource:
         # --calibrator-field, before anything is written
         return cls(run, client, started, prepared, check_calibrator_field(run))
 
+    @property
+    def reads_tables(self) -> bool:
+        """A cluster runs and a band is a Measurement Set v2 (whose table handles the
+        cluster must let go of before the commit; a processing set has none)."""
+        return self.client is not None and not all(
+            isinstance(g.match.datasets[b], PartitionSource) for g in self.run.groups
+            for b in ("ref", "tgt"))
+
     def open_transaction(self) -> OutputTransaction:
         run, client = self.run, self.client
         # everything this run changes in the target set: a Measurement Set v2's new columns
@@ -58,7 +67,7 @@ class VisibilitySource:
                                        isinstance(g.match.datasets["tgt"], msio.StorageRows)
                                        for g in run.groups))
         tx.check_space()
-        if client is not None:
+        if self.reads_tables:
             release_cluster_tables(client)   # stale handles of an earlier run on this cluster
         # a target not stored in time order and cut into chunks is written in scattered rows
         created = tx.create_columns(scattered=any(
@@ -72,12 +81,12 @@ class VisibilitySource:
         """Every group pair's passes, then the calibrator step on the staged columns:
         (each group's GroupResult, the phase referencing's report or None)."""
         from .phaseref import phase_reference
-        from .pipeline import run_group
+        from .passes import run_group
 
         results = [run_group(self.run, group, tx, self.client) for group in self.run.groups]
         # the instrumental term solved on the calibrator, applied to the staged columns
         referencing = phase_reference(self.run, tx, self.calibrator)
-        if self.client is not None:
+        if self.reads_tables:
             release_cluster_tables(self.client)
         return results, referencing
 

@@ -61,6 +61,7 @@ class AntennaTracker(SmoothTracker):
     """Runs the antenna tracker chunk by chunk (see the module doc)."""
 
     name = "antenna"
+    records = (("antenna_phase", np.nan), ("antenna_segment", -1))
 
     def __init__(self, grid: TrackGrid, corr_names, setup, n_ant: int = 0, antenna_names=(),
                  workers: int = 0, sin_elevation=None):

@@ -24,9 +24,10 @@ independent of the chunk size.
 
 from __future__ import annotations
 
+import copy
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Optional
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 
@@ -175,6 +176,12 @@ class WrapTracker(ABC):
     #: its counts come in tracking segments, each with its own n0 (the n0 step per
     #: segment); False: the n0 step is per scan
     segmented: bool = True
+    #: attributes made from the plan alone (the grid and what follows from it): a tracker
+    #: sent from chunk to chunk between processes leaves them behind (:meth:`packed`)
+    plan_parts: Tuple[str, ...] = ("grid",)
+    #: whole-track records (n_..., n_time) that each chunk fills for its own times
+    #: [t0, t1) only, with their fill values: they travel chunk slice by chunk slice
+    records: Tuple[Tuple[str, object], ...] = ()
 
     @abstractmethod
     def extended(self, t0: int, t1: int):
@@ -205,6 +212,37 @@ class WrapTracker(ABC):
 
     def finish_chunk(self, t1: int) -> None:
         """Chunk [.., t1) is done: every task's share is absorbed."""
+
+    # ---- a tracker carried between processes (hitops/calibrate/worker_chunks.py)
+    def packed(self) -> "WrapTracker":
+        """A copy of the state alone: no plan parts, no records (what a chunk task hands
+        the next one, which may run on another worker)."""
+        out = copy.copy(self)
+        for name in self.plan_parts + tuple(name for name, _ in self.records):
+            setattr(out, name, None)
+        return out
+
+    def unpacked(self, plan: "WrapTracker") -> "WrapTracker":
+        """This packed tracker on the plan parts and record arrays of ``plan`` (a tracker
+        of the same run, made here)."""
+        out = copy.copy(self)
+        for name in self.plan_parts + tuple(name for name, _ in self.records):
+            setattr(out, name, getattr(plan, name))
+        return out
+
+    def clear_records(self, t0: int, t1: int) -> None:
+        """The records' times [t0, t1) back to their fill values (before a chunk fills them)."""
+        for name, fill in self.records:
+            getattr(self, name)[..., t0:t1] = fill
+
+    def record_slices(self, t0: int, t1: int) -> Dict[str, np.ndarray]:
+        """Copies of the records' times [t0, t1) (what a chunk filled)."""
+        return {name: getattr(self, name)[..., t0:t1].copy() for name, _ in self.records}
+
+    def put_records(self, t0: int, t1: int, slices: Dict[str, np.ndarray]) -> None:
+        """A chunk's :meth:`record_slices` into this tracker's records."""
+        for name, values in slices.items():
+            getattr(self, name)[..., t0:t1] = values
 
 
 def scan_runs(scan_of_time: np.ndarray):

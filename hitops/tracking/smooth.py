@@ -83,6 +83,7 @@ class SmoothTracker(WrapTracker):
     """Runs the smooth tracker chunk by chunk (see the module doc)."""
 
     name = "smooth"
+    plan_parts = ("grid", "pos", "station_tc")
 
     def __init__(self, grid: TrackGrid, corr_names, setup: TrackingSetup, n_ant: int = 0,
                  antenna_names=(), workers: int = 0, sin_elevation=None):

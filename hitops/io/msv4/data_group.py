@@ -74,7 +74,7 @@ class DataGroupWriter:
         self.time_chunk = time_chunk
         self.description = description or f"written by hitops from data group '{like}'"
         self._check(name)
-        self._staged = None     # the partition's zarr group once staged
+        self._staged = None     # the new arrays (correlated data, flag) once staged
         self._unregistered = False
 
     def _check(self, name: str) -> None:
@@ -130,6 +130,7 @@ class DataGroupWriter:
         group = self._group()
         for variable in (self.variables.correlated_data, self.variables.flag):
             shutil.rmtree(Path(self.store.path) / self.entry.name / variable, ignore_errors=True)
+        made = []
         for variable, like, fill in ((self.variables.correlated_data, self.like.correlated_data,
                                       complex(np.nan, np.nan)),
                                      (self.variables.flag, self.like.flag, True)):
@@ -138,11 +139,13 @@ class DataGroupWriter:
             attributes[MARK] = self.variables.name
             chunks = source.chunks if self.time_chunk is None else \
                 (min(int(self.time_chunk), source.shape[0]),) + tuple(source.chunks[1:])
-            group.create_array(variable, shape=source.shape, dtype=source.dtype,
-                               chunks=chunks, compressors=source.compressors,
-                               fill_value=fill, attributes=attributes,
-                               dimension_names=source.metadata.dimension_names)
-        self._staged = group
+            made.append(group.create_array(variable, shape=source.shape, dtype=source.dtype,
+                                           chunks=chunks, compressors=source.compressors,
+                                           fill_value=fill, attributes=attributes,
+                                           dimension_names=source.metadata.dimension_names))
+        # the arrays themselves, kept: looking one up in the group reads its metadata
+        # again (about 1.4 ms a write, 0.8 s of a 10^7-row run's three groups)
+        self._staged = tuple(made)
 
     def write(self, rows: PartitionRows, data: np.ndarray, flag: np.ndarray) -> None:
         """The rows' data (n_row, n_chan, n_corr) and flags into their cells; the chunk's other
@@ -154,11 +157,10 @@ class DataGroupWriter:
         """:meth:`write` of rows given by their cells: the time steps ``time_slice`` [start,
         stop) are written whole, the cells (time_index, baseline) from ``data`` and ``flag``,
         every other cell of those steps NaN and flagged."""
-        group = self._staged
-        if group is None:
+        if self._staged is None:
             raise RuntimeError("DataGroupWriter.write before stage()")
         start, stop = time_slice
-        out = group[self.variables.correlated_data]
+        out, flag_out = self._staged
         shape = (stop - start,) + out.shape[1:]
         cell = np.asarray(time_index, np.int64) * shape[1] + np.asarray(baseline, np.int64)
         if cell.size == shape[0] * shape[1] and (cell.size == 0 or (
@@ -172,7 +174,7 @@ class DataGroupWriter:
             block[time_index - start, baseline] = data
             flags[time_index - start, baseline] = flag
         out[start:stop] = block
-        group[self.variables.flag][start:stop] = flags
+        flag_out[start:stop] = flags
 
     def commit(self, consolidate: bool = True) -> None:
         """Register the group in ``data_groups``, then the consolidated metadata (last;

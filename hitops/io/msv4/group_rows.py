@@ -66,10 +66,19 @@ class PartitionSource(StorageRows):
     def cells(self, positions: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """(time index in the partition, baseline_id) of each position (ascending or not)."""
         positions = np.asarray(positions, np.int64)
+        reader = self.reader(self.group)
+        if positions.size:
+            # the steps these positions fall in; when every cell of them is a row, a
+            # position's step and baseline follow by division (no search per position)
+            s0 = int(np.searchsorted(self.step_start, positions.min(), side="right")) - 1
+            s1 = int(np.searchsorted(self.step_start, positions.max(), side="right"))
+            if np.all(np.diff(self.step_start[s0:s1 + 1]) == reader.n_baseline):
+                offset = positions - self.step_start[s0]
+                return (self.steps[s0 + offset // reader.n_baseline],
+                        offset % reader.n_baseline)
         step = np.searchsorted(self.step_start, positions, side="right") - 1
         times = self.steps[step]
         rank = positions - self.step_start[step]        # the k-th row of its time step
-        reader = self.reader(self.group)
         per_step = np.diff(self.step_start)[step]
         if positions.size == 0 or np.all(per_step == reader.n_baseline):
             return times, rank     # every cell of these steps a row: the rank is the baseline

@@ -96,7 +96,7 @@ class PartitionReader:
         """(stop - start, n_baseline) bool: which cells of time steps [start, stop) are rows."""
         if self._presence is None:
             return np.ones((stop - start, self.n_baseline), bool)
-        return np.isfinite(np.asarray(self._zarr[self._presence][start:stop]))
+        return np.isfinite(self._read(self._presence, start, stop))
 
     def time_step(self, rows_per_chunk: int) -> int:
         """Time steps per chunk of about ``rows_per_chunk`` grid cells (at least one): also the
@@ -159,7 +159,18 @@ class PartitionReader:
         return name
 
     def _variable(self, role: str, start: int, stop: int) -> np.ndarray:
-        return np.asarray(self._zarr[self._name_of(role)][start:stop])
+        return self._read(self._name_of(role), start, stop)
+
+    def _read(self, name: str, start: int, stop: int) -> np.ndarray:
+        """Time steps [start, stop) of variable ``name``; a chunk zarr cannot decode is one
+        line naming the variable and the steps."""
+        try:
+            return np.asarray(self._zarr[name][start:stop])
+        except Exception as err:   # zarr's and the codecs' own errors (blosc: RuntimeError)
+            raise ProcessingSetError(
+                f"'{self.layout.store.path}': partition '{self.entry.name}', {name} of time "
+                f"steps {start}-{stop - 1} cannot be read ({' '.join(str(err).split())}); the "
+                "store is damaged: convert the Measurement Set again") from err
 
     def _antenna_index(self, coordinate: str) -> np.ndarray:
         names = [str(n) for n in np.asarray(self._zarr[coordinate][...]).ravel()]
