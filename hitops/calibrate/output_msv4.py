@@ -120,7 +120,16 @@ class DataGroupTransaction:
                 for method, values in out.items():
                     self.writers[(source.partition, method)].write_cells(
                         span, t_run, b_run, values[cells], new_flag[cells])
-        self.rows_written[rows] = True
+        if self.rows_written is not None:   # None: a worker's copy (see __getstate__)
+            self.rows_written[rows] = True
+
+    def __getstate__(self) -> Dict:
+        """A copy for a dask worker (hitops/calibrate/worker_chunks.py) leaves the
+        per-row record of written rows behind (a byte per row of the store): the client
+        keeps it (:meth:`mark_written`)."""
+        state = dict(vars(self))
+        state["rows_written"] = state["flags_staged"] = None
+        return state
 
     def mark_written(self, source: PartitionSource) -> None:
         """Every row of ``source`` written (by the chunk tasks of a cluster's workers, which

@@ -43,6 +43,7 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from ..kernels import fpt
+from ..logs import Progress
 from ..kernels.segments import SegmentSums, segment_row_sums
 from ..tracking.base import ChunkTracking, WrapTracker
 from ..tracking.count import Carry
@@ -150,6 +151,11 @@ class GroupPipeline:
         self.plan_tracker = self.new_tracker()
         if on_worker:
             return
+        if self.workers_do_io:
+            log.info("%d chunk(s) of <= %d target rows, each read, tracked, transferred and "
+                     "written by the workers of %s", group.n_chunks, run.chunk_rows,
+                     run.opts.run.scheduler)
+            return
         log.info("%d chunk(s) of <= %d target rows; %d baseline batches; scheduler %s",
                  group.n_chunks, run.chunk_rows, len(self.baseline_batches),
                  run.opts.run.scheduler or "threads")
@@ -251,6 +257,7 @@ class GroupPipeline:
         """One pass over the chunks (``spec``); ``kept``: a dict that collects the output
         instead of writing (a first pass whose writing pass only shifts)."""
         state = self.start_state()
+        progress = self.progress(spec)
         with ChunkIO(lambda k: self.read(k, keep_reads), self.group.n_chunks) as io:
             for k in range(self.group.n_chunks):
                 chunk = io.chunk(k)
@@ -263,7 +270,17 @@ class GroupPipeline:
                 if spec.write:   # on the I/O thread, after the next chunk's read
                     io.write(self.write, chunk, out)
                 del chunk, out
+                if progress is not None:
+                    progress.update()
         return state.result
+
+    def progress(self, spec: PassSpec) -> Optional[Progress]:
+        """The pass's progress in the log (at most every 5 s; none for a one-chunk group)."""
+        if self.group.n_chunks < 2:
+            return None
+        what = "writing pass" if spec.write else "first pass (n0 step)"
+        label = f"{self.group.label} {what}" if self.group.label else what
+        return Progress(f"calibrate {label}: chunks", self.group.n_chunks, logger=log)
 
     def start_state(self) -> PassState:
         """The state a pass starts from: a fresh tracker, nothing carried, nothing summed."""

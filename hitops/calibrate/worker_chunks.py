@@ -36,6 +36,7 @@ array after it was removed.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import logging
 import time
 import uuid
@@ -160,8 +161,9 @@ def run_pass_on_workers(pipeline: GroupPipeline, spec: PassSpec) -> PassResult:
     """One pass over ``pipeline``'s chunks as chunk tasks on its cluster."""
     client, group = pipeline.client, pipeline.group
     token = uuid.uuid4().hex[:12]
-    job = client.scatter(ChunkJob(pipeline.run, group, pipeline.tx, spec), broadcast=True,
-                         hash=False)
+    # the run without its other groups (a worker reads this one)
+    run = dataclasses.replace(pipeline.run, groups=[group])
+    job = client.scatter(ChunkJob(run, group, pipeline.tx, spec), broadcast=True, hash=False)
     start = pipeline.start_state()
     tracker = start.result.tracker      # the client's, which the records are put back into
     start.result.tracker = tracker.packed()
@@ -169,8 +171,7 @@ def run_pass_on_workers(pipeline: GroupPipeline, spec: PassSpec) -> PassResult:
     workers = sorted(client.scheduler_info()["workers"])
     window = in_flight(len(workers))
     flight: Deque[ChunkFutures] = deque()
-    log.info("%d chunk(s) read, tracked, transferred and written on the cluster's workers "
-             "(at most %d in flight)", group.n_chunks, window)
+    progress = pipeline.progress(spec)
     try:
         last = None
         for k in range(group.n_chunks):
@@ -179,6 +180,8 @@ def run_pass_on_workers(pipeline: GroupPipeline, spec: PassSpec) -> PassResult:
             state, last = flight[-1].state, flight[-1].last
             while len(flight) > (window if k + 1 < group.n_chunks else 0):
                 _finish(pipeline, flight.popleft(), spec.write, tracker)
+                if progress is not None:
+                    progress.update()
         final: PassState = state.result()
     except BaseException:
         _stop(client, token, flight)
