@@ -100,8 +100,8 @@ class PartitionReader:
 
     def time_step(self, rows_per_chunk: int) -> int:
         """Time steps per chunk of about ``rows_per_chunk`` grid cells (at least one): also the
-        time chunk a :class:`~hitops.io.msv4.DataGroupWriter` should store, so that each
-        chunk's write is whole zarr chunks (no read-modify-write, one writer per chunk)."""
+        time chunk a :class:`~hitops.io.msv4.DataGroupWriter` should store, so that a write
+        of these chunks is whole zarr chunks (no read-modify-write)."""
         return max(1, int(rows_per_chunk) // max(1, self.n_baseline))
 
     def time_slices(self, rows_per_chunk: int) -> Tuple[Tuple[int, int], ...]:
