@@ -93,7 +93,10 @@ def test_cluster_n0_step_writes_what_one_process_writes(copies, scenes, cluster,
     shutil.copytree(tgt4, one)
     flags = dict(method=",".join(METHODS), no_verdict=True, **flags)
     r1 = calibrate_flat(ref4, str(one), **flags)
-    rc = calibrate_flat(ref4, tgt4, scheduler=cluster.scheduler_address, **flags)
+    with distributed.Client(cluster) as client, distributed.get_task_stream(client) as stream:
+        rc = calibrate_flat(ref4, tgt4, scheduler=cluster.scheduler_address, **flags)
+    if scene == "wideband":   # the two windows' chains ran at once
+        assert _overlapping_chains(stream.data)
     steps = [[g["offset_step"] for g in r.get("groups", [r])] for r in (rc, r1)]
     assert all(s["applied_to"] == ["pwc", "cwu"] for s in steps[0])
     assert [g["samples"] for g in rc.get("groups", [rc])] == \
@@ -116,6 +119,21 @@ def test_cluster_n0_step_writes_what_one_process_writes(copies, scenes, cluster,
         else:
             np.testing.assert_allclose(cluster_run[3], one_run[3], rtol=2e-7, atol=1e-6,
                                        err_msg=method)
+
+
+def _overlapping_chains(records) -> bool:
+    """Whether the advance tasks of two passes (each pass's tasks share a token) ran at
+    overlapping times."""
+    spans = {}
+    for record in records:
+        key = str(record["key"])
+        if key.startswith("hitops-advance-"):
+            token = key.split("-")[2]
+            for part in record["startstops"]:
+                lo, hi = spans.get(token, (np.inf, -np.inf))
+                spans[token] = (min(lo, part["start"]), max(hi, part["stop"]))
+    ordered = sorted(spans.values())
+    return any(b[0] < a[1] for a, b in zip(ordered, ordered[1:]))
 
 
 def _chunked_copy(converted, tmp_path, step: int):
@@ -166,4 +184,26 @@ def test_cluster_run_stopped_mid_way_registers_no_group(converted, cluster, tmp_
                        scheduler=cluster.scheduler_address)
     assert len(calls) == 2
     assert set(_groups(tgt4)) == {"base"}
+    assert file_digests(Path(tgt4)) == before
+
+
+def test_a_failure_in_one_window_stops_the_other_and_rolls_back(scenes, cluster, tmp_path):
+    """The wideband scene's two target windows (two partitions) run at once on the
+    workers; a damaged chunk in the second stops the first at its next chunk, the error
+    named is the damage (not the stop), and every file of the store stays as it was."""
+    for path in scenes["wideband"][2:]:
+        shutil.copytree(path, tmp_path / Path(path).name)
+    ref4, tgt4 = (str(tmp_path / Path(p).name) for p in scenes["wideband"][2:])
+    partitions = sorted(p.name for p in Path(tgt4).iterdir() if p.is_dir())
+    assert len(partitions) == 2
+    damaged = Path(tgt4) / partitions[1] / "VISIBILITY" / "c" / "0" / "0" / "0" / "0"
+    damaged.write_bytes(b"not a blosc frame" * 8)
+    before = file_digests(Path(tgt4))
+    with pytest.raises(ProcessingSetError, match=f"partition '{partitions[1]}', VISIBILITY"):
+        calibrate_flat(ref4, tgt4, method="pwc,cfpt,cwu", no_verdict=True, chunk_rows=200,
+                       scheduler=cluster.scheduler_address)
+    for partition in partitions:
+        groups = json.loads((Path(tgt4) / partition / "zarr.json").read_text())[
+            "attributes"]["data_groups"]
+        assert set(groups) == {"base"}
     assert file_digests(Path(tgt4)) == before

@@ -13,8 +13,10 @@ on the workers (:func:`hitops.calibrate.worker_chunks.run_pass_on_workers`).
 from __future__ import annotations
 
 import logging
+import threading
+from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 from dataclasses import dataclass
-from typing import Dict, Optional
+from typing import Dict, List, Optional
 
 import numpy as np
 
@@ -22,10 +24,11 @@ from ..kernels import fpt
 from ..tracking.base import WrapTracker
 from .n0.step import OffsetSolution, offset_step_needed, solve_offsets
 from .output import OutputTransaction
-from .pipeline import GroupPipeline, KeptChunk, PassResult, PassSpec
+from ..io.msv4.group_rows import PartitionSource
+from .pipeline import GroupPipeline, KeptChunk, Lane, PassResult, PassSpec
 from .plan import GroupPlan, RunPlan
 from .transfer import SampleCounts
-from .worker_chunks import run_pass_on_workers
+from .worker_chunks import LaneStopped, run_pass_on_workers
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -62,9 +65,66 @@ def kept_bytes(group: GroupPlan, n_methods: int) -> int:
     return group.n_target_rows * group.n_corr * (8 * n_methods + 1) + n_bl * group.n_corr * n_time * 8
 
 
-def run_group(run: RunPlan, group: GroupPlan, tx: OutputTransaction, client) -> GroupResult:
-    """Every pass over one group pair; the outputs staged in ``tx``."""
-    pipeline = GroupPipeline(run, group, tx, client)
+def run_groups(run: RunPlan, tx: OutputTransaction, client) -> List[GroupResult]:
+    """Every group pair's passes, each pair's result in the plan's order.
+
+    One pair after the other, except on a cluster whose workers read and write: there
+    the pairs of different target partitions run at once (each a chain of chunk tasks
+    whose advances follow each other; two chains at once keep twice as many workers
+    busy), and the pairs of one partition one after the other (a partition holding
+    several fields interleaves their time steps, so their writes may share a zarr chunk
+    of the new arrays and must not run at once)."""
+    if client is None or not workers_do_io(run):
+        return [run_group(run, group, tx, client) for group in run.groups]
+    lanes: Dict[str, List[int]] = {}
+    for i, group in enumerate(run.groups):
+        lanes.setdefault(group.match.datasets["tgt"].partition, []).append(i)
+    if len(lanes) < 2:
+        return [run_group(run, group, tx, client) for group in run.groups]
+    return _run_lanes(run, tx, client, list(lanes.values()))
+
+
+def _run_lanes(run: RunPlan, tx: OutputTransaction, client,
+               lanes: List[List[int]]) -> List[GroupResult]:
+    """The lanes' group pairs, each lane on a thread of its own; the first failure stops
+    the others (at their next chunk, their tasks waited for) and is raised."""
+    stop = threading.Event()
+    results: Dict[int, GroupResult] = {}
+    states = [Lane(stop) for _ in lanes]
+
+    def one_lane(indices: List[int], lane: Lane) -> None:
+        for i in indices:
+            results[i] = run_group(run, run.groups[i], tx, client, lane)
+
+    with ThreadPoolExecutor(len(lanes), thread_name_prefix="hitops-lane") as pool:
+        futures = [pool.submit(one_lane, indices, lane) for indices, lane in zip(lanes, states)]
+        try:
+            wait(futures, return_when=FIRST_EXCEPTION)
+        finally:   # an error, or an interrupt here: the other lanes stop at their next chunk
+            if not all(f.done() and f.exception() is None for f in futures):
+                stop.set()
+    errors = [f.exception() for f in futures if f.exception() is not None]
+    first = next((e for e in errors if not isinstance(e, LaneStopped)), None)
+    if first is not None or errors:
+        raise first or errors[0]
+    for lane in states:
+        for key, seconds in lane.timings.items():
+            run.timings[key] = run.timings.get(key, 0.0) + seconds
+    return [results[i] for i in range(len(run.groups))]
+
+
+def workers_do_io(run: RunPlan) -> bool:
+    """Every group pair of ``run`` reads processing sets in both bands (on a cluster, the
+    workers then read and write each chunk: hitops/calibrate/worker_chunks.py)."""
+    return all(isinstance(g.match.datasets[band], PartitionSource)
+               for g in run.groups for band in ("ref", "tgt"))
+
+
+def run_group(run: RunPlan, group: GroupPlan, tx: OutputTransaction, client,
+              lane: Optional[Lane] = None) -> GroupResult:
+    """Every pass over one group pair; the outputs staged in ``tx`` (``lane``: run at once
+    with others, :func:`run_groups`)."""
+    pipeline = GroupPipeline(run, group, tx, client, lane=lane)
     try:
         return _run_passes(run, group, pipeline)
     finally:

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional
@@ -109,6 +110,15 @@ class PassSpec:
 
 
 @dataclass
+class Lane:
+    """Group pairs run one after the other while others run at once (on a cluster whose
+    workers read and write): their timings, and ``stop``, set when another lane failed."""
+
+    stop: threading.Event
+    timings: Dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
 class PassState:
     """What a pass carries from one chunk to the next: the sums so far with the tracker
     (its state and statistics, ``result.tracker``) and CWU's count of the target phase."""
@@ -127,11 +137,14 @@ class GroupPipeline:
     timings go to a dict of its own, and nothing is logged."""
 
     def __init__(self, run: RunPlan, group: GroupPlan, tx: OutputTransaction, client,
-                 on_worker: bool = False):
+                 on_worker: bool = False, lane: Optional["Lane"] = None):
         import dask.threaded
 
         self.run, self.group, self.tx, self.client = run, group, tx, client
         self.on_worker = on_worker
+        #: the group pairs run at once on a cluster (hitops/calibrate/passes.py): this
+        #: pipeline's own timings and the signal to stop when another pair failed
+        self.lane = lane
         # --scheduler sends the transfer tasks to the cluster; the tables are read and
         # written here, on this process's threads: a graph holding dask-ms table handles
         # would be unpickled by the cluster's scheduler, whose copies keep the table open
@@ -142,9 +155,9 @@ class GroupPipeline:
                      else 0 if on_worker else (os.cpu_count() or 1))
         self.tasks = BatchTasks(client, n_workers)
         self.baseline_batches = plan_groups(group.match.n_bl, max(1, 2 * n_workers))
-        self.timings = {} if on_worker else run.timings
-        for key in ("read", "transfer", "write"):
-            self.timings[key] = 0.0
+        self.timings = {} if on_worker else run.timings if lane is None else lane.timings
+        for key in ("read", "transfer", "write"):   # summed over the run's group pairs
+            self.timings.setdefault(key, 0.0)
         self._cache: Dict[int, ChunkData] = {}
         # what to read: the tracker's context does not depend on its state (and on a
         # worker, the plan parts and records a packed tracker is unpacked onto)

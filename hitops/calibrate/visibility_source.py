@@ -16,7 +16,6 @@ from typing import Dict, List, Optional, Tuple
 from ..io import read as msio
 from ..io.msv4.store import is_processing_set
 from .output import OutputTransaction, release_cluster_tables
-from ..io.msv4.group_rows import PartitionSource
 from .output_msv4 import DataGroupTransaction
 from .plan import RunPlan
 from .files import PreparedInputs
@@ -47,9 +46,9 @@ class VisibilitySource:
     def reads_tables(self) -> bool:
         """A cluster runs and a band is a Measurement Set v2 (whose table handles the
         cluster must let go of before the commit; a processing set has none)."""
-        return self.client is not None and not all(
-            isinstance(g.match.datasets[b], PartitionSource) for g in self.run.groups
-            for b in ("ref", "tgt"))
+        from .passes import workers_do_io
+
+        return self.client is not None and not workers_do_io(self.run)
 
     def open_transaction(self) -> OutputTransaction:
         run, client = self.run, self.client
@@ -81,9 +80,9 @@ class VisibilitySource:
         """Every group pair's passes, then the calibrator step on the staged columns:
         (each group's GroupResult, the phase referencing's report or None)."""
         from .phaseref import phase_reference
-        from .passes import run_group
+        from .passes import run_groups
 
-        results = [run_group(self.run, group, tx, self.client) for group in self.run.groups]
+        results = run_groups(self.run, tx, self.client)
         # the instrumental term solved on the calibrator, applied to the staged columns
         referencing = phase_reference(self.run, tx, self.calibrator)
         if self.reads_tables:

@@ -59,6 +59,11 @@ log = logging.getLogger("hitops.calibrate")
 STOP_WAIT_S = 120.0
 
 
+class LaneStopped(Exception):
+    """A group pair's chain stopped because another one, running at once, failed (that
+    one's error is what the run raises: hitops/calibrate/passes.py)."""
+
+
 @dataclass(frozen=True)
 class ChunkJob:
     """What every chunk task of one pass needs, sent to each worker once."""
@@ -178,6 +183,8 @@ def run_pass_on_workers(pipeline: GroupPipeline, spec: PassSpec) -> PassResult:
             flight.append(_submit_chunk(client, job, (state, last), k, token, spec.write,
                                         workers[k % len(workers)], bool(tracker.records)))
             state, last = flight[-1].state, flight[-1].last
+            if pipeline.lane is not None and pipeline.lane.stop.is_set():
+                raise LaneStopped(f"group pair {group.label} stopped: another one failed")
             while len(flight) > (window if k + 1 < group.n_chunks else 0):
                 _finish(pipeline, flight.popleft(), spec.write, tracker)
                 if progress is not None:
