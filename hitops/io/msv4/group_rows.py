@@ -66,6 +66,11 @@ class PartitionSource(StorageRows):
     def cells(self, positions: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """(time index in the partition, baseline_id) of each position (ascending or not)."""
         positions = np.asarray(positions, np.int64)
+        n_baseline = self.reader(self.group).n_baseline
+        if self.n_rows == self.steps.size * n_baseline:
+            # every step of the group a full row of baselines: no search per position
+            # (0.12 s of a 10^7-row run's writes)
+            return self.steps[positions // n_baseline], positions % n_baseline
         step = np.searchsorted(self.step_start, positions, side="right") - 1
         times = self.steps[step]
         rank = positions - self.step_start[step]        # the k-th row of its time step
