@@ -34,6 +34,7 @@ than 10^6 rows: the machine is shared).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import shutil
 import statistics
@@ -190,33 +191,97 @@ _IMPORTS = ("import zarr, hitops.calibrate.api, hitops.calibrate.plan, "
             "hitops.calibrate.pipeline, hitops.cli")
 
 
+def _partitions(ps: Path) -> list:
+    """The partitions of processing set ``ps`` (its child groups), in name order."""
+    return sorted(p.name for p in ps.iterdir() if (p / "zarr.json").is_file())
+
+
 def _run_floor(ref_ps: Path, tgt_ps: Path, n_methods: int, repeats: int) -> dict:
-    """The zarr floor of a calibration's variables: both bands' read, the outputs' write."""
+    """The zarr floor of a calibration's variables, in this (warm) process: every
+    partition of both bands read, the outputs written (one VISIBILITY and FLAG per method
+    and target partition, whole, in the store's chunks)."""
     import zarr
 
     from hitops.io.msv4.store import quiet_zarr
 
-    with quiet_zarr():
-        groups = [zarr.open_group(str(ps), path=sorted(p.name for p in ps.iterdir()
-                                                       if p.is_dir())[0], mode="r+",
-                                  use_consolidated=False) for ps in (ref_ps, tgt_ps)]
+    with quiet_zarr(), _floor_arrays_removed(tgt_ps):
+        groups = [zarr.open_group(str(ps), path=name, mode="r+", use_consolidated=False)
+                  for ps in (ref_ps, tgt_ps) for name in _partitions(ps)]
         read_s = _timed(lambda: [g[v][...] for g in groups for v in
                                  ("EFFECTIVE_INTEGRATION_TIME", "VISIBILITY", "FLAG")], repeats)
-        target = groups[1]
-        vis, flag = target["VISIBILITY"][...], target["FLAG"][...]
+        targets = groups[len(_partitions(ref_ps)):]
+        values = [(g, g["VISIBILITY"][...], g["FLAG"][...]) for g in targets]
         runs = iter(range(1000))
 
         def write():
             k = next(runs)
-            for m in range(n_methods):
-                for name, like, values in ((f"FLOOR_VIS{k}_{m}", "VISIBILITY", vis),
-                                           (f"FLOOR_FLAG{k}_{m}", "FLAG", flag)):
-                    source = target[like]
-                    target.create_array(name, shape=source.shape, dtype=source.dtype,
-                                        chunks=source.chunks,
-                                        compressors=source.compressors)[...] = values
+            for target, vis, flag in values:
+                for m in range(n_methods):
+                    for name, like, array in ((f"FLOOR_VIS{k}_{m}", "VISIBILITY", vis),
+                                              (f"FLOOR_FLAG{k}_{m}", "FLAG", flag)):
+                        source = target[like]
+                        target.create_array(name, shape=source.shape, dtype=source.dtype,
+                                            chunks=source.chunks,
+                                            compressors=source.compressors)[...] = array
         write_s = _timed(write, repeats)
     return {"read": read_s, "write": write_s}
+
+
+#: the floor as a process of its own: what a run pays besides its kernels and bookkeeping
+#: (python's start, numpy's and zarr's imports, every partition of both bands read, one
+#: VISIBILITY and FLAG per method and target partition written in the store's chunks)
+_FLOOR_PROCESS = """
+import sys, warnings
+from pathlib import Path
+import numpy, zarr
+warnings.filterwarnings("ignore")
+ref, tgt, n_methods, tag = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
+def partitions(ps):
+    return sorted(p.name for p in ps.iterdir() if (p / "zarr.json").is_file())
+outputs = []
+for ps in (ref, tgt):
+    for name in partitions(ps):
+        group = zarr.open_group(str(ps), path=name, mode="r+", use_consolidated=False)
+        arrays = {v: group[v][...] for v in ("EFFECTIVE_INTEGRATION_TIME", "VISIBILITY", "FLAG")}
+        if ps == tgt:
+            outputs.append((group, arrays))
+for group, arrays in outputs:
+    for m in range(n_methods):
+        for like in ("VISIBILITY", "FLAG"):
+            source = group[like]
+            group.create_array(f"FLOOR_{tag}_{like}_{m}", shape=source.shape, dtype=source.dtype,
+                               chunks=source.chunks, compressors=source.compressors
+                               )[...] = arrays[like]
+"""
+
+
+def _run_floor_process(ref_ps: Path, tgt_ps: Path, n_methods: int, repeats: int) -> dict:
+    """The floor as a process of its own (:data:`_FLOOR_PROCESS`): median wall and the
+    largest peak RSS of ``repeats`` runs; the arrays it wrote are removed after each."""
+    runs = []
+    for k in range(repeats):
+        with _floor_arrays_removed(tgt_ps):
+            runs.append(run_process([sys.executable, "-c", _FLOOR_PROCESS, ref_ps, tgt_ps,
+                                     n_methods, f"P{k}"]))
+    return {"wall": statistics.median(r["wall_s"] for r in runs),
+            "walls": [r["wall_s"] for r in runs], "rss": max(r["peak_rss_mb"] for r in runs)}
+
+
+@contextlib.contextmanager
+def _floor_arrays_removed(ps: Path):
+    """The floors' arrays off the store again on exit: their files removed and the
+    root's and partitions' zarr.json (zarr lists a new array in its group's consolidated
+    metadata) put back as they were, so that the runs after see the store as converted."""
+    documents = [ps / "zarr.json"] + [ps / name / "zarr.json" for name in _partitions(ps)]
+    before = {doc: doc.read_bytes() for doc in documents}
+    try:
+        yield
+    finally:
+        for name in _partitions(ps):
+            for array in (ps / name).glob("FLOOR_*"):
+                shutil.rmtree(array)
+        for doc, text in before.items():
+            doc.write_bytes(text)
 
 
 def _calibrate_runs(ref: Path, tgt: Path, repeats: int) -> dict:

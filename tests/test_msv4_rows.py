@@ -255,3 +255,59 @@ def test_read_only_store_refused(simulator_sets, tmp_path):
         assert file_digests(store) == before
     finally:
         subprocess.run(["umount", str(view)], capture_output=True)
+
+
+def test_full_steps_read_without_presence_give_the_same_rows(simulator_sets):
+    """``every_cell`` (the group's row counts say the steps are full) skips the presence
+    read and builds the rows' cells by arithmetic: the rows are the ones read through the
+    presence array, value for value; and the run-length lookup of field and scan names
+    gives each step's FIELD_ID and SCAN_NUMBER as a lookup per step does."""
+    from hitops.io.msv4.group_rows import open_partition_groups
+    from hitops.io.msv4.rows import _per_time
+
+    _, ps = simulator_sets
+    layout = read_layout(open_store(ps))
+    for place in layout.partitions:
+        reader = PartitionReader(layout, place.name)
+        present = reader.present(0, reader.n_time)
+        full = present.all(axis=1)
+        # the first two consecutive full steps (several steps: the cells' order is tested)
+        start = int(np.flatnonzero(full[:-1] & full[1:])[0])
+        span = (start, start + 2)
+        a = reader.read(span, ("DATA", "FLAG", "UVW"))
+        b = reader.read(span, ("DATA", "FLAG", "UVW"), every_cell=True)
+        for key, value in vars(a).items():
+            np.testing.assert_array_equal(getattr(b, key), value, err_msg=key)
+        known = {n: i for i, n in enumerate(layout.fields.v4_names)}
+        names = np.asarray(zarr.open_group(ps, mode="r")[place.name]["field_name"][...])
+        np.testing.assert_array_equal(reader.field_ids, [known[str(n)] for n in names])
+    # names that come back after another run (A A B A C): one number per step still
+    steps = np.array(["A", "A", "B", "A", "C", "C"])
+    np.testing.assert_array_equal(_per_time(steps, {"A": 0, "B": 7, "C": 3}.get),
+                                  [0, 0, 7, 0, 3, 3])
+    # a group whose steps are not all full (the simulator's flagged-out cells or fields
+    # sharing a partition) keeps the per-step search; a full one the arithmetic
+    for source in open_partition_groups(ps, ["DATA"]).values():
+        positions = np.arange(source.n_rows, dtype=np.int64)
+        times, baselines = source.cells(positions)
+        reader = source.reader(source.group)
+        present = reader.present(0, reader.n_time)
+        assert present[times, baselines].all()
+        assert np.unique(times * reader.n_baseline + baselines).size == source.n_rows
+
+
+def test_time_ordered_blocks_merge_as_the_sort_merges():
+    """The index pass appends a time-ordered block's distinct times (the one time a block
+    boundary cuts counted once, its rows added); the result is the sorting merge's."""
+    from hitops.calibrate.band_index import _merge_time_counts
+
+    rng = np.random.default_rng(4)
+    times = np.sort(rng.integers(0, 400, 5000)).astype(np.float64)
+    known, counts = np.zeros(0), np.zeros(0, np.int64)
+    for a in range(0, times.size, 613):    # blocks cutting times in two
+        values, n = np.unique(times[a:a + 613], return_counts=True)
+        known, counts = _merge_time_counts(known, counts, values, n.astype(np.int64))
+    expected, expected_counts = np.unique(times, return_counts=True)
+    np.testing.assert_array_equal(known, expected)
+    np.testing.assert_array_equal(counts, expected_counts)
+    assert counts.dtype == np.int64

@@ -158,7 +158,13 @@ class PartitionTable:
 
 def _rows(src: PartitionSource, group: str, span, roles, n_expected: int) -> PartitionRows:
     """The partition's rows of the time steps ``span`` of this group's field."""
-    rows = src.reader(group).read(span, roles)
+    reader = src.reader(group)
+    # steps whose rows (counted when the group was opened) fill every baseline: their
+    # presence is not read again
+    every_cell = not src.several_fields and bool(np.all(
+        np.diff(src.step_start[np.searchsorted(src.steps, span[0]):
+                               np.searchsorted(src.steps, span[1]) + 1]) == reader.n_baseline))
+    rows = reader.read(span, roles, every_cell=every_cell)
     if src.several_fields:
         keep = rows.field_id == src.key[0]
         rows = PartitionRows(**{k: (v[keep] if isinstance(v, np.ndarray) and v.shape[:1] ==
@@ -249,8 +255,11 @@ def open_partition_groups(ps: str, columns: Sequence[str],
 
 
 def row_count(ps: str) -> int:
-    """Rows of every partition of ``ps`` (cells holding an integration)."""
-    return sum(s.n_rows for s in open_partition_groups(ps, ["DATA"]).values())
+    """Rows of every partition of ``ps`` (cells holding an integration): the presence
+    arrays counted, no field or scan read."""
+    layout = read_layout(open_store(ps))
+    return sum(int(_step_rows(PartitionReader(layout, place.name)).sum())
+               for place in layout.partitions)
 
 
 def weight_source(ps: str, sample_rows: int) -> str:
