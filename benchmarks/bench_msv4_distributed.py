@@ -10,8 +10,10 @@ the workers after the runs); beside them the zarr floor of the same variables
 (benchmarks/bench_msv4.py ``_run_floor``) and the load average before each
 configuration (the machine is shared).
 
-What the cluster runs today: each chunk's baseline batches (the transfer kernels);
-the stores are read and written on the client (docs/msv4.md, "Distributed").
+What the cluster runs: each chunk read, tracked, transferred and written by tasks on
+the workers (hitops/calibrate/worker_chunks.py; docs/msv4.md, "Distributed"); the
+client plans and commits.  The table of stage timings is the last run's report: on a
+cluster its read, transfer and write are the workers' seconds summed (they overlap).
 
 The floor is measured twice: as a process of its own (python started, numpy and zarr
 imported, every partition of both bands read, one VISIBILITY and FLAG per method
@@ -77,12 +79,13 @@ def _runs(ref: Path, tgt: Path, chunk_rows: int, repeats: int, n_workers: int) -
             walls.append(r["wall_s"])
             rss.append(r["peak_rss_mb"])
         workers = _worker_peak_mb(client) if client else []
+        report = json.loads(Path(f"{tgt}.hitops-calibrate.json").read_text())
     finally:
         if client:
             client.close()
             cluster.close()
     return {"wall": statistics.median(walls), "walls": walls, "client_rss": max(rss),
-            "workers_rss": workers, "load": load}
+            "workers_rss": workers, "load": load, "stages": report.get("timings_s", {})}
 
 
 @dataclass(frozen=True)
@@ -175,6 +178,12 @@ def bench(work: Path, n_time: int, chunk_rows: int, repeats: int,
                      f" | {r['wall'] / floor_s:.2f} | {r['client_rss']:.0f} | "
                      f"{', '.join(f'{m:.0f}' for m in r['workers_rss']) or '-'} | "
                      f"{r['load']:.2f} |")
+    stages = list(dict.fromkeys(k for r in results.values() for k in r["stages"]))
+    lines += ["", "| the last run's stage timings, s | " + " | ".join(stages) + " |",
+              "|---|" + "---|" * len(stages)]
+    for name, r in results.items():
+        lines.append(f"| {name} | " + " | ".join(
+            f"{r['stages'][k]:.2f}" if k in r["stages"] else "" for k in stages) + " |")
     (work / "results.json").write_text(json.dumps(
         {"floor": floor, "floor_process": floor_process, "runs": results}, indent=1))
     return "\n".join(lines)
