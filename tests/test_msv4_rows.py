@@ -297,17 +297,22 @@ def test_full_steps_read_without_presence_give_the_same_rows(simulator_sets):
 
 
 def test_time_ordered_blocks_merge_as_the_sort_merges():
-    """The index pass appends a time-ordered block's distinct times (the one time a block
-    boundary cuts counted once, its rows added); the result is the sorting merge's."""
-    from hitops.calibrate.band_index import _merge_time_counts
+    """The index pass keeps a time-ordered band's blocks' distinct times and joins them
+    once (the one time a block boundary cuts counted once, its rows added), and a block
+    after the known times (storage order's new times) is appended: both give the sorting
+    merge's result."""
+    from hitops.calibrate.band_index import _merge_time_counts, _OrderedTimes
 
     rng = np.random.default_rng(4)
     times = np.sort(rng.integers(0, 400, 5000)).astype(np.float64)
+    expected, expected_counts = np.unique(times, return_counts=True)
+    ordered = _OrderedTimes()
     known, counts = np.zeros(0), np.zeros(0, np.int64)
     for a in range(0, times.size, 613):    # blocks cutting times in two
         values, n = np.unique(times[a:a + 613], return_counts=True)
+        ordered.add(values, n)
         known, counts = _merge_time_counts(known, counts, values, n.astype(np.int64))
-    expected, expected_counts = np.unique(times, return_counts=True)
-    np.testing.assert_array_equal(known, expected)
-    np.testing.assert_array_equal(counts, expected_counts)
-    assert counts.dtype == np.int64
+    for got, got_counts in (ordered.join(), (known, counts)):
+        np.testing.assert_array_equal(got, expected)
+        np.testing.assert_array_equal(got_counts, expected_counts)
+        assert got_counts.dtype == np.int64
