@@ -40,13 +40,16 @@ from typing import Callable, Dict, List, Optional
 import numpy as np
 
 from ..io.metadata import SetMetadata, read_metadata
+from ..io.msv4.store import is_processing_set
 from ..io.table_rows import MainTable
 from ..solutions.api import (PreparedTransfer, TransferReport, pair_table, transfer_paired,
                              transfer_report, write_target_table)
 from .chunk_io import ChunkIO
 from .table_source import TargetLayout, correct_chunk, target_layout, window_rows
+from .table_store import StoreRows
 from .inputs import CalibrateOptions, Columns, check_inputs
 from .output import OutputTransaction
+from .output_msv4 import DataGroupTransaction, data_groups_entry
 from .files import PreparedInputs, record_conversions_and_export
 from .run_report import (AfterCommit, AntennaWraps, RunReport, TableTracking, report_path,
                          write_run_report)
@@ -73,9 +76,13 @@ class TableRun:
     layout: TargetLayout
     n_rows: int                     # rows of the target set
     chunk_rows: int                 # rows per chunk: --chunk-rows, else from --memory-budget
+    #: a processing set's groups and chunks (hitops/calibrate/table_store.py); None: MSv2
+    store: Optional[StoreRows] = None
 
     @property
     def n_chunks(self) -> int:
+        if self.store is not None:
+            return self.store.n_chunks
         return -(-self.n_rows // self.chunk_rows)
 
 
@@ -95,16 +102,24 @@ class TargetChunk:
 
 def _read_chunk(run: TableRun, k: int, offset_column: Optional[str]) -> TargetChunk:
     """Chunk ``k`` of the target set, in storage order (python-casacore, hitops/io)."""
-    start = k * run.chunk_rows
-    stop = min(start + run.chunk_rows, run.n_rows)
     names = {"data": run.columns.target_data, "flag": run.columns.flag}
     if offset_column:
         names["offset"] = offset_column
+    wanted = list(dict.fromkeys(list(ROW_COLUMNS) + list(names.values())))
+    if run.store is not None:   # a processing set: chunk k's rows of the group holding it
+        return TargetChunk(run.store.bounds[k], _named(run.store.read(wanted, k), names))
+    start = k * run.chunk_rows
+    stop = min(start + run.chunk_rows, run.n_rows)
     with MainTable(run.target_ms) as table:
-        read = table.read(list(ROW_COLUMNS) + list(names.values()), start, stop)
+        read = table.read(wanted, start, stop)
+    return TargetChunk(start, _named(read, names))
+
+
+def _named(read: Dict[str, np.ndarray], names: Dict[str, str]) -> Dict[str, np.ndarray]:
+    """The row columns by name, the data, flag and offset columns by their role."""
     cols = {name: read[name] for name in ROW_COLUMNS}
     cols.update({key: read[column] for key, column in names.items()})
-    return TargetChunk(start, cols)
+    return cols
 
 
 def each_chunk(run: TableRun, work: Callable[[TargetChunk, ChunkIO], None],
@@ -212,8 +227,11 @@ def plan_table_run(opts: CalibrateOptions, methods: List[str], ref_ms: str,
     outputs, columns = check_inputs(opts, methods, ref_ms, target_ms)
     meta = read_metadata(target_ms)
     n_rows = row_count(target_ms)
+    chunk_rows = _rows_per_chunk(opts, meta, n_rows, len(methods))
+    store = (StoreRows.of(target_ms, [columns.target_data], chunk_rows)
+             if is_processing_set(target_ms) else None)
     return TableRun(opts, methods, target_ms, outputs, columns, meta, target_layout(meta),
-                    n_rows, _rows_per_chunk(opts, meta, n_rows, len(methods)))
+                    n_rows, chunk_rows, store)
 
 
 def _tracking(report: TransferReport) -> TableTracking:
@@ -279,8 +297,13 @@ class TableSource:
 
     def open_transaction(self) -> OutputTransaction:
         run = self.run
-        tx = OutputTransaction(run.target_ms, run.outputs, run.columns.target_data, run.n_rows,
-                               run.chunk_rows, direct_writes=True)
+        if run.store is not None:   # a processing set: a data group per method
+            tx = DataGroupTransaction(run.target_ms, run.outputs, run.columns.target_data,
+                                      list(run.store.sources), run.chunk_rows,
+                                      bool(run.opts.output.overwrite))
+        else:
+            tx = OutputTransaction(run.target_ms, run.outputs, run.columns.target_data,
+                                   run.n_rows, run.chunk_rows, direct_writes=True)
         tx.check_space()
         tx.create_columns()
         return tx
@@ -293,18 +316,22 @@ class TableSource:
 
     def report(self, tx: OutputTransaction, counts: SampleCounts) -> Dict:
         return _finish(self.run, self.ref_ms, self.transfers, counts, self.offsets,
-                       self.started, self.prepared)
+                       self.started, self.prepared, data_groups_entry(tx))
 
 
 def _finish(run: TableRun, ref_ms: str, transfers: Dict[str, PreparedTransfer],
-            counts: SampleCounts, offsets, started: float, prepared: PreparedInputs) -> Dict:
-    """After the commit: --caltable, --export-uvfits, the report written once."""
+            counts: SampleCounts, offsets, started: float, prepared: PreparedInputs,
+            data_groups: Optional[Dict]) -> Dict:
+    """After the commit: --caltable, --export-uvfits, the report written once
+    (``data_groups``: where a processing set's results are, else None)."""
     opts, method = run.opts, run.methods[0]
     log.info("%d of %d target samples not calibrated by the table (no unflagged solution on "
              "either side), %d flagged before", counts.not_calibrated, counts.n_samples,
              counts.flagged_before)
-    report = RunReport(report_path(opts, run.target_ms),
-                       _sections(run, ref_ms, transfers, counts, offsets, started),
+    sections = _sections(run, ref_ms, transfers, counts, offsets, started)
+    if data_groups is not None:
+        sections["data_groups"] = data_groups
+    report = RunReport(report_path(opts, run.target_ms), sections,
                        AfterCommit(verdict={"skipped": "reference table: no reference-band "
                                                        "visibilities are read"}))
 

@@ -102,6 +102,15 @@ class DataGroupTransaction:
                    for m, p in phasors.items()}
         else:
             out = {m: rotate_channels(data, p, delays[m], chan_offset) for m, p in phasors.items()}
+        self.write_outputs(rows, out, new_flag)
+
+    def write_outputs(self, rows: np.ndarray, outputs: Dict[str, np.ndarray],
+                      new_flag: np.ndarray, scheduler=None,
+                      flag_read: Optional[np.ndarray] = None) -> None:
+        """One chunk's finished outputs (method -> (n, n_chan, n_corr), corrected already:
+        the ``--reference-table`` path's) and new flags into their cells of each method's
+        group (``scheduler`` and ``flag_read`` are the MSv2 transaction's concerns)."""
+        out = {m: np.asarray(v).astype(np.complex64, copy=False) for m, v in outputs.items()}
         rows = np.asarray(rows, np.int64)
         which = np.searchsorted(self.row_bases, rows, side="right") - 1
         # a chunk's rows are one group's (a run's chunk never spans two): no sort
@@ -182,3 +191,12 @@ def _runs_of_steps(times: np.ndarray) -> List[np.ndarray]:
     run_of_step[breaks] = 1
     run = np.cumsum(run_of_step)[np.searchsorted(steps, times)]
     return [np.flatnonzero(run == r) for r in range(int(run.max()) + 1)]
+
+
+def data_groups_entry(tx) -> Optional[Dict]:
+    """The report's ``data_groups``: each method's group and the partitions it is in, for a
+    run that wrote a processing set (None for a Measurement Set v2's transaction)."""
+    if not isinstance(tx, DataGroupTransaction):
+        return None
+    partitions = sorted({s.partition for s in tx.sources})
+    return {m: {"data_group": g, "partitions": partitions} for m, g in tx.data_groups.items()}

@@ -16,7 +16,7 @@ from typing import Dict, List, Optional, Tuple
 from ..io import read as msio
 from ..io.msv4.store import is_processing_set
 from .output import OutputTransaction, release_cluster_tables
-from .output_msv4 import DataGroupTransaction
+from .output_msv4 import DataGroupTransaction, data_groups_entry
 from .plan import RunPlan
 from .files import PreparedInputs
 
@@ -101,8 +101,7 @@ class VisibilitySource:
                    for group, result in zip(run.groups, results)]
         report = reports[0] if len(reports) == 1 else combined_report(run, reports)
         if isinstance(tx, DataGroupTransaction):   # where a processing set's results are
-            report["data_groups"] = {m: {"data_group": g, "partitions": sorted(
-                {s.partition for s in tx.sources})} for m, g in tx.data_groups.items()}
+            report["data_groups"] = data_groups_entry(tx)
         if referencing is not None:
             report["phase_referencing"] = referencing
             settle_n0_warnings(report, self.calibrator)

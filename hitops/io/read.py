@@ -120,6 +120,22 @@ def row_count(ms: str) -> int:
     return tables.row_count(ms)
 
 
+def read_row_columns(ms: str, columns: Sequence[str]) -> Dict[str, np.ndarray]:
+    """Per-row columns (TIME, INTERVAL, ANTENNA1, ANTENNA2, FLAG_ROW, ...) of every row: a
+    Measurement Set's main table, or a processing set's rows (its groups in row order,
+    read without their visibilities)."""
+    if is_processing_set(ms):
+        from .msv4.group_rows import open_partition_groups
+
+        parts = []
+        for source in sorted(open_partition_groups(ms, ["DATA"]).values(),
+                             key=lambda s: s.row_base):
+            with source.open() as table:
+                parts.append(table.read_rows(list(columns), None))
+        return {c: np.concatenate([p[c] for p in parts]) for c in columns}
+    return tables.read_columns(ms, columns)
+
+
 def open_for_reading(ms: str, columns: Sequence[str], chunks, time_ordered: bool,
                      direct: bool, local: bool = False,
                      mixed: Optional[bool] = None) -> Dict[tuple, object]:

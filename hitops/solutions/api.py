@@ -23,7 +23,7 @@ from .errors import TableMismatchError, TransferOptionError
 from .read import SolutionTable, WindowSolutions, _ms_time_range, read_solutions
 from .transfer import TargetWindow, UnwrappedWindow, check_interval, transfer_window, unwrap_window
 from .wraps import UNBRIDGED
-from ..io import tables
+from ..io.read import read_row_columns
 from ..io.metadata import SetMetadata, read_metadata
 
 log = logging.getLogger("hitops.solutions")
@@ -70,9 +70,8 @@ def _target_windows(target_ms: str, meta: SetMetadata):
         freq = meta.windows[spw].chan_freq
         windows.append((spw, 0.5 * (freq.min() + freq.max())))
     fields = list(meta.fields.names)
-    with tables.main_table(target_ms) as t:
-        ant1, ant2 = t.getcol("ANTENNA1"), t.getcol("ANTENNA2")
-    return windows, fields, ant1, ant2
+    rows = read_row_columns(target_ms, ["ANTENNA1", "ANTENNA2"])   # MSv2 or a processing set
+    return windows, fields, rows["ANTENNA1"], rows["ANTENNA2"]
 
 
 def _check_overlap(table: SolutionTable, target_ms: str) -> None:

@@ -174,9 +174,11 @@ def _window(t, kind, rows, spw, field, field_name, ref_freq_hz, n_ant) -> Window
 
 
 def _ms_time_range(ms: str):
-    with tables.main_table(ms) as t:
-        time = t.getcol("TIME")
-        interval = t.getcol("INTERVAL")
+    """(first TIME, last TIME, longest INTERVAL) of a Measurement Set or processing set."""
+    from ..io.read import read_row_columns
+
+    cols = read_row_columns(ms, ["TIME", "INTERVAL"])
+    time, interval = cols["TIME"], cols["INTERVAL"]
     return float(time.min()), float(time.max()), float(np.max(interval)) if interval.size else 0.0
 
 
