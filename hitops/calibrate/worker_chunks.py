@@ -23,7 +23,8 @@ over a group pair's chunks is three tasks per chunk, all on the workers:
 
 The client sends the plan once (:class:`ChunkJob`, scattered to every worker), submits
 a few chunks ahead of the last finished write (:func:`in_flight`: the workers hold at
-most that many chunks), and gathers only the pass's last state and each write's time.
+most that many chunks), and gathers only the pass's last state, each write's time and,
+for the antenna tracker, the part of its whole-track records each chunk filled.
 A chunk's three tasks prefer one worker (chunk k the k-th worker in turn, others
 allowed), so its visibilities stay where they were read and only the small state
 moves from worker to worker.
