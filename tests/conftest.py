@@ -157,6 +157,16 @@ def importuvfits(fits: Path, ms: Path) -> Path:
 
 
 @pytest.fixture(scope="session")
+def fringe_fitted(tmp_path_factory):
+    """(pair, table): tests/solutions_scene.py's pair (two 230 GHz windows of 16 channels)
+    and CASA fringefit's 4-s solutions of its reference band, made once for the suite;
+    read-only (a test that writes copies the set first)."""
+    from solutions_scene import fringe_fitted_pair
+
+    return fringe_fitted_pair(tmp_path_factory.mktemp("fringe_fitted"))
+
+
+@pytest.fixture(scope="session")
 def eht_imported(tmp_path_factory):
     """(lo.ms, hi.ms): the EHT pair as CASA importuvfits writes it, read-only."""
     root = tmp_path_factory.mktemp("eht2017")

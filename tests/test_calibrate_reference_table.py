@@ -27,7 +27,7 @@ from casacore import tables as pt
 
 from hitops.casa.runner import run_task
 from hitops.casa.tasks import gaincal
-from solutions_scene import fringe_fitted_pair, refant_sets_halfway
+from solutions_scene import refant_sets_halfway
 from test_io_metadata import counted_opens  # noqa: F401 - the fixture, shared
 
 pytestmark = pytest.mark.slow
@@ -37,9 +37,10 @@ COHERENCE_MIN = 0.99
 
 
 @pytest.fixture(scope="module")
-def solved(tmp_path_factory):
-    """The pair and CASA fringefit's 4-s solutions of its reference band."""
-    return fringe_fitted_pair(tmp_path_factory.mktemp("reference_table"))
+def solved(fringe_fitted):
+    """The pair and CASA fringefit's 4-s solutions of its reference band (the session's,
+    read-only: each test writes a copy of the target)."""
+    return fringe_fitted
 
 
 def hitops(*args):

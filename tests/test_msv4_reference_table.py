@@ -23,7 +23,6 @@ pytest.importorskip("xradio")
 
 from hitops.calibrate import calibrate_flat  # noqa: E402
 from msv4_sets import convert  # noqa: E402
-from solutions_scene import fringe_fitted_pair  # noqa: E402
 from test_msv4_calibrate import (_flag_some, _input_digests,  # noqa: E402
                                  assert_group_equals_column)
 
@@ -32,14 +31,17 @@ pytestmark = pytest.mark.filterwarnings("ignore:.*Zarr V3 specification",
 
 
 @pytest.fixture(scope="module")
-def solved_store(tmp_path_factory):
-    """(v2 reference, v2 target, the target's processing set, fringefit's table); 3% of
-    the target's samples flagged before the conversion (the groups' flags carry them)."""
+def solved_store(fringe_fitted, tmp_path_factory):
+    """(v2 reference, v2 target, the target's processing set, fringefit's table): the
+    session's pair, its target copied with 3% of the samples flagged before the conversion
+    (the groups' flags carry them)."""
+    pair, table = fringe_fitted
     root = tmp_path_factory.mktemp("v4table")
-    pair, table = fringe_fitted_pair(root)
-    _flag_some(pair.target_ms)
-    return (str(pair.ref_ms), str(pair.target_ms),
-            str(convert(pair.target_ms, root / "target.ps.zarr")), str(table))
+    target = root / "target.ms"
+    shutil.copytree(pair.target_ms, target)
+    _flag_some(target)
+    return (str(pair.ref_ms), str(target), str(convert(target, root / "target.ps.zarr")),
+            str(table))
 
 
 @pytest.mark.parametrize("flags", [
