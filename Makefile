@@ -45,7 +45,7 @@ run: setup ## set up, then run the demo recipe quietly: one line per step, then 
 	@$(PY) -m hitops.run recipes/fpt-demo.yml $(ARGS)
 
 test: setup ## set up, then run all the tests
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --durations=20
 
 bench: setup ## set up, then run every benchmark (each rewrites its section of docs/performance.md)
 	$(PY) -m benchmarks.run_all
