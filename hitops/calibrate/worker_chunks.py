@@ -251,9 +251,13 @@ def _stop(client, token: str, flight: Deque[ChunkFutures]) -> None:
                     " ".join(str(err).split()))
 
 
+#: states of a worker's task that will not run its function any more
+_SETTLED = ("memory", "error", "released", "forgotten", "missing", "rescheduled")
+
+
 def _running(token: str, dask_worker=None) -> Optional[int]:
-    """Tasks of the run ``token`` that run on this worker (cancelled ones included: a
-    cancelled task goes on until its function returns)."""
-    busy = ("executing", "long-running", "cancelled", "resumed")
+    """Tasks of the run ``token`` on this worker that run, or may still start: a cancelled
+    task goes on until its function returns, and one queued here ("ready", "waiting",
+    ...) may start before the scheduler's word to drop it arrives."""
     return sum(1 for key, task in dask_worker.state.tasks.items()
-               if token in str(key) and task.state in busy)
+               if token in str(key) and task.state not in _SETTLED)
