@@ -58,6 +58,8 @@ log = logging.getLogger("hitops.calibrate")
 
 #: seconds to wait for a failed run's tasks to stop before the rollback goes on anyway
 STOP_WAIT_S = 120.0
+#: looks 0.1 s apart that must find none of the run's tasks on the workers
+QUIET_POLLS = 4
 
 
 class LaneStopped(Exception):
@@ -240,10 +242,15 @@ def _stop(client, token: str, flight: Deque[ChunkFutures]) -> None:
     try:
         client.cancel(futures, force=True)
         deadline = time.monotonic() + STOP_WAIT_S
+        quiet = 0
         while time.monotonic() < deadline:
-            if not any(client.run(_running, token).values()):
+            # idle several times running: a task the scheduler sent just before the
+            # cancel reaches its worker within milliseconds (its messages are batched),
+            # and one look could come before it
+            quiet = 0 if any(client.run(_running, token).values()) else quiet + 1
+            if quiet >= QUIET_POLLS:
                 return
-            time.sleep(0.05)
+            time.sleep(0.1)
         log.warning("tasks of this run still run on the cluster after %.0f s; removing the "
                     "staged data groups anyway", STOP_WAIT_S)
     except Exception as err:   # the run's own error matters more
