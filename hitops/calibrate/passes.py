@@ -24,7 +24,6 @@ from ..kernels import fpt
 from ..tracking.base import WrapTracker
 from .n0.step import OffsetSolution, offset_step_needed, solve_offsets
 from .output import OutputTransaction
-from ..io.msv4.group_rows import PartitionSource
 from .pipeline import GroupPipeline, KeptChunk, Lane, PassResult, PassSpec
 from .plan import GroupPlan, RunPlan
 from .transfer import SampleCounts
@@ -116,8 +115,7 @@ def _run_lanes(run: RunPlan, tx: OutputTransaction, client,
 def workers_do_io(run: RunPlan) -> bool:
     """Every group pair of ``run`` reads processing sets in both bands (on a cluster, the
     workers then read and write each chunk: hitops/calibrate/worker_chunks.py)."""
-    return all(isinstance(g.match.datasets[band], PartitionSource)
-               for g in run.groups for band in ("ref", "tgt"))
+    return all(group.reads_stores for group in run.groups)
 
 
 def run_group(run: RunPlan, group: GroupPlan, tx: OutputTransaction, client,

@@ -53,7 +53,6 @@ from .chunk_io import ChunkIO
 from .chunk_read import ChunkData, read_chunk, read_target
 from .batch_tasks import BatchTasks, StartedGroups
 from .n0.step import OffsetSums, channel_sums, offset_shifted_rows
-from ..io.msv4.group_rows import PartitionSource
 from .output import OutputTransaction
 from .row_outputs import PlacedGroup, RowOutputs, rows_of_batches
 from .plan import GroupPlan, RunPlan
@@ -177,9 +176,7 @@ class GroupPipeline:
     def workers_do_io(self) -> bool:
         """Both bands are processing sets and a cluster runs: each worker then reads and
         writes its own chunks (hitops/calibrate/worker_chunks.py)."""
-        datasets = self.group.match.datasets
-        return self.client is not None and all(
-            isinstance(datasets[b], PartitionSource) for b in ("ref", "tgt"))
+        return self.client is not None and self.group.reads_stores
 
     @property
     def segmented(self) -> bool:

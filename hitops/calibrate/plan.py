@@ -68,6 +68,15 @@ class GroupPlan:
     def n_corr(self) -> int:
         return len(self.match.corr_names)
 
+    @property
+    def reads_stores(self) -> bool:
+        """Both bands' groups are partitions of MSv4 processing sets (on a cluster, its
+        workers then read and write each chunk: hitops/calibrate/worker_chunks.py)."""
+        from ..io.msv4.group_rows import PartitionSource
+
+        return all(isinstance(self.match.datasets[band], PartitionSource)
+                   for band in ("ref", "tgt"))
+
 
 @dataclass
 class RunPlan:
