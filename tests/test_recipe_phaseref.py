@@ -20,16 +20,13 @@ import json
 import numpy as np
 import pytest
 
-from test_recipes import RECIPES, stimela  # tests/ is on sys.path (rootdir-relative)
+from test_recipes import run_recipe  # tests/ is on sys.path (rootdir-relative)
 
 
 @pytest.fixture(scope="module")
 def phaseref_run(tmp_path_factory):
-    work = tmp_path_factory.mktemp("phaseref")
-    out = work / "out"
-    done = stimela("run", str(RECIPES / "fpt-phaseref.yml"), f"dir={out}", "duration=1800",
-                   cwd=work)
-    assert done.returncode == 0, done.stdout[-6000:] + done.stderr[-3000:]
+    out, _ = run_recipe("fpt-phaseref.yml", tmp_path_factory.mktemp("phaseref"),
+                        "duration=1800")
     return out
 
 

@@ -34,6 +34,15 @@ def stimela(*args, cwd, timeout=900):
                           text=True, env=env, timeout=timeout)
 
 
+def run_recipe(recipe: str, work: Path, *params: str):
+    """``stimela run`` of ``recipe`` with its outputs in ``work``/out, which must succeed:
+    (out, the finished process)."""
+    out = work / "out"
+    done = stimela("run", str(RECIPES / recipe), f"dir={out}", *params, cwd=work)
+    assert done.returncode == 0, done.stdout[-6000:] + done.stderr[-3000:]
+    return out, done
+
+
 @pytest.mark.parametrize("recipe", ["fpt-demo.yml", "fpt-paper.yml"])
 def test_recipe_loads_and_validates(recipe, tmp_path):
     done = stimela("doc", str(RECIPES / recipe), cwd=tmp_path)
@@ -46,11 +55,8 @@ def test_recipe_loads_and_validates(recipe, tmp_path):
 @pytest.fixture(scope="module")
 def demo_run(tmp_path_factory):
     work = tmp_path_factory.mktemp("demo")
-    out = work / "out"
     # a command-line override (coherence_interval=30) must reach the step
-    done = stimela("run", str(RECIPES / "fpt-demo.yml"), f"dir={out}", "coherence_interval=30",
-                   cwd=work)
-    assert done.returncode == 0, done.stdout[-6000:] + done.stderr[-3000:]
+    out, done = run_recipe("fpt-demo.yml", work, "coherence_interval=30")
     return work, out, done
 
 
