@@ -129,7 +129,9 @@ def phaseref_cases():
     switches)."""
     chunk = {"chunk_rows": CHUNK_ROWS[PHASEREF_SCENE]}
     sfpr = {"pair": "sfpr", "calibrator_field": "CAL", "ref_model_column": "MODEL_DATA"}
-    packaged = {"pair": "packaged", "calibrator_field": "3C273"}
+    # the packaged scene's calibrator is resolved: its model in both bands (check_model)
+    packaged = {"pair": "packaged", "calibrator_field": "3C273",
+                "ref_model_column": "MODEL_DATA"}
     rows = [
         ("sfpr-count-whole", {**sfpr, "method": "pwc"}),
         ("sfpr-count-chunked", {**sfpr, "method": "pwc", **chunk}),

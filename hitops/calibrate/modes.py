@@ -161,8 +161,6 @@ _PROCESSING_SET_OPTIONS = {
 }
 #: what no mode takes when either band is a processing set (docs/msv4.md)
 REFUSED_ON_PROCESSING_SETS: Tuple[Refused, ...] = (
-    _on_processing_set("--calibrator-field", "the calibrator step rewrites MSv2 columns so "
-                       "far: run it on the v2 sets"),
     _on_processing_set("--restore-flags", "CASA flag versions belong to Measurement Sets v2; "
                        "a processing set's run starts from its data group's flags and leaves "
                        "them as they were"),

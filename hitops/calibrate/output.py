@@ -228,15 +228,16 @@ class OutputTransaction:
         if stage_flags:
             self.flags_staged[rows] = True
 
-    def flags_now(self, table, rows: np.ndarray) -> np.ndarray:
+    def flags_now(self, set_rows, rows: np.ndarray) -> np.ndarray:
         """(n, n_chan, n_corr) the flags this run has given ascending ``rows`` so far, read
-        from the open ``table``: the staged ones where it staged them, FLAG elsewhere (a
-        chunk whose new flags equalled FLAG staged none; a row not written keeps FLAG)."""
+        through ``set_rows`` (hitops/calibrate/phaseref/set_rows.py: the target's open main
+        table): the staged ones where it staged them, FLAG elsewhere (a chunk whose new
+        flags equalled FLAG staged none; a row not written keeps FLAG)."""
         rows = np.asarray(rows)
-        flags = msio.rows_reader(table, rows)("FLAG")
+        flags = set_rows.reader(rows)("FLAG")
         staged = self.flags_staged[rows]
         if staged.any():
-            flags[staged] = msio.rows_reader(table, rows[staged])(STAGING_FLAG)
+            flags[staged] = set_rows.reader(rows[staged])(STAGING_FLAG)
         return flags
 
     def restage(self, rows: np.ndarray, outputs: Dict[str, np.ndarray],

@@ -25,10 +25,13 @@ from ..errors import InputError, RollbackError
 from ..io import access
 from ..io.msv4.columns import BASE_GROUP, group_of_column
 from ..io.msv4.data_group import DataGroupWriter, consolidate_partition
-from ..io.msv4.group_rows import PartitionSource
+from ..io.msv4.group_rows import PartitionSource, rows_by_source
 from ..kernels.wideband import rotate_channels
 
 log = logging.getLogger("hitops.calibrate")
+
+#: what the names of the staged groups start with (:attr:`DataGroupTransaction.staging`)
+STAGED = "staged:"
 
 
 class DataGroupTransaction:
@@ -145,13 +148,54 @@ class DataGroupTransaction:
         write their own copies of this transaction: hitops/calibrate/worker_chunks.py)."""
         self.rows_written[source.row_base:source.row_base + source.n_rows] = True
 
-    def flags_now(self, table, rows: np.ndarray) -> np.ndarray:
-        raise RuntimeError("flags_now on a processing set: --calibrator-field is refused on "
-                           "processing sets (calibrate/modes.py); this is a hitops bug")
+    @property
+    def staging(self) -> Dict[str, str]:
+        """method -> the name its staged group is read back and rewritten by (the
+        calibrator step's, hitops/calibrate/phaseref/set_rows.py)."""
+        return {m: f"{STAGED}{g}" for m, g in self.data_groups.items()}
 
-    def restage(self, rows, outputs, new_flag=None) -> None:
-        raise RuntimeError("restage on a processing set: --calibrator-field is refused on "
-                           "processing sets (calibrate/modes.py); this is a hitops bug")
+    def _cells(self, rows: np.ndarray):
+        """(partition, indices into ``rows``, time indices, baselines) per group of the
+        ascending ROWIDs ``rows``."""
+        for source, sel, positions in rows_by_source(self.sources, rows):
+            times, baselines = source.cells(positions)
+            yield source.partition, sel, times, baselines
+
+    def read_staged(self, rows: np.ndarray, name: str) -> np.ndarray:
+        """(n, n_chan, n_corr) what the run has written at ``rows`` into the staged group
+        named ``name`` (one of :attr:`staging`)."""
+        method = next(m for m, n in self.staging.items() if n == name)
+        return self._read(rows, method, 0)
+
+    def _read(self, rows: np.ndarray, method: str, which: int) -> np.ndarray:
+        rows = np.asarray(rows, np.int64)
+        parts = [self.writers[(p, method)].read_cells(t, b)[which]
+                 for p, _, t, b in self._cells(rows)]
+        if not parts:
+            return self.writers[next(iter(self.writers))].read_cells(
+                np.zeros(0, np.int64), np.zeros(0, np.int64))[which]
+        return np.concatenate(parts) if len(parts) > 1 else parts[0]
+
+    def flags_now(self, set_rows, rows: np.ndarray) -> np.ndarray:
+        """(n, n_chan, n_corr) the flags the run has given ``rows`` so far: every written
+        row has them staged, the same in each method's group (``set_rows`` is the MSv2
+        transaction's concern)."""
+        return self._read(rows, next(iter(self.data_groups)), 1)
+
+    def restage(self, rows: np.ndarray, outputs: Dict[str, np.ndarray],
+                new_flag: Optional[np.ndarray] = None) -> None:
+        """Staged groups (by their :attr:`staging` names) rewritten at ``rows`` by a later
+        step of the same run (``--calibrator-field``); new flags, when given, go to every
+        method's group, as an MSv2 run's one FLAG holds them for every column."""
+        method_of = {n: m for m, n in self.staging.items()}
+        for partition, sel, times, baselines in self._cells(np.asarray(rows, np.int64)):
+            for name, values in outputs.items():
+                self.writers[(partition, method_of[name])].rewrite_cells(
+                    times, baselines, data=np.asarray(values)[sel].astype(np.complex64))
+            if new_flag is not None:
+                for method in self.data_groups:
+                    self.writers[(partition, method)].rewrite_cells(
+                        times, baselines, flag=np.asarray(new_flag)[sel])
 
     def commit(self) -> None:
         """Register every new group (each partition's data_groups, then its and the root's

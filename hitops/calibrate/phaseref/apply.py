@@ -15,7 +15,6 @@ from typing import Tuple
 
 import numpy as np
 
-from ...io import read as msio
 from ...kernels.antenna_terms import AntennaTerms, apply_antenna_terms
 from ...kernels.phase_ref import phase_and_delay, scan_integers, times_factors
 from ...kernels.wideband import rotate_channels
@@ -65,7 +64,7 @@ def baseline_factors(solution: WindowSolution, ant1, ant2, corr_hands, n_ant: in
     return out
 
 
-def apply_chunk(table, tx, column: str, rows, solution: WindowSolution,
+def apply_chunk(set_rows, tx, column: str, rows, solution: WindowSolution,
                 corr_hands: np.ndarray, frame: WindowFrame,
                 n_ant: int) -> Tuple[int, np.ndarray, np.ndarray]:
     """The interpolated correction applied to one chunk's target rows (``rows``: a
@@ -76,13 +75,13 @@ def apply_chunk(table, tx, column: str, rows, solution: WindowSolution,
     rows as corrected)."""
     phase, delay, solved = solution.at(rows.time)
     terms = AntennaTerms(phase, delay, np.broadcast_to(solved, phase.shape))
-    read = msio.rows_reader(table, rows.rows)
+    read = set_rows.reader(rows.rows)
     corrected = apply_antenna_terms(read(column), np.arange(rows.rows.size), rows.ant1,
                                     rows.ant2, corr_hands, terms, frame.chan_offset,
                                     keep_uncalibrated=True)
     rotated = times_factors(corrected.data, np.broadcast_to(baseline_factors(
         solution, rows.ant1, rows.ant2, corr_hands, n_ant), corrected.data.shape))
-    flags = tx.flags_now(table, rows.rows)
+    flags = tx.flags_now(set_rows, rows.rows)
     ok = corrected.calibrated
     n_flagged, new_flag = 0, None
     if not ok.all():
@@ -131,7 +130,7 @@ def row_counts(scan_of_row: np.ndarray, scans: np.ndarray, bl_of_row: np.ndarray
     return out
 
 
-def remove_integers(table, tx, column: str, rows: np.ndarray, counts: np.ndarray,
+def remove_integers(set_rows, tx, column: str, rows: np.ndarray, counts: np.ndarray,
                     frame: WindowFrame, block: int) -> None:
     """Rows times exp(-i 2 pi R_k n), n per row and correlation (``counts``), as a phase at
     nu_0 and a delay n / nu_ref, the per-channel transfer's own form; rows with n = 0
@@ -140,19 +139,19 @@ def remove_integers(table, tx, column: str, rows: np.ndarray, counts: np.ndarray
     rows, counts = rows[moved], counts[moved]
     for start in range(0, rows.size, block):
         part, n = rows[start:start + block], counts[start:start + block]
-        read = msio.rows_reader(table, part)
+        read = set_rows.reader(part)
         turns = n * frame.ratio
         phasor = np.exp(-2j * np.pi * (turns - np.round(turns)))
         tx.restage(part, {column: rotate_channels(read(column), phasor, n * frame.wrap_delay,
                                                   frame.chan_offset)})
 
 
-def flag_rows(table, tx, rows: np.ndarray, mask: np.ndarray, block: int) -> int:
+def flag_rows(set_rows, tx, rows: np.ndarray, mask: np.ndarray, block: int) -> int:
     """Flags of ``rows`` raised on the correlations of ``mask`` (n_row, n_corr) bool,
     staged for the commit; the number of rows touched."""
     hit = mask.any(axis=1)
     rows, mask = rows[hit], mask[hit]
     for start in range(0, rows.size, block):
         part = rows[start:start + block]
-        tx.restage(part, {}, tx.flags_now(table, part) | mask[start:start + block, None, :])
+        tx.restage(part, {}, tx.flags_now(set_rows, part) | mask[start:start + block, None, :])
     return int(rows.size)

@@ -24,11 +24,10 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 
-from ...io import read as msio
-from ...io import tables
 from ...io.match import correlation_map, parse_antenna_map
-from ...io.stations import read_stations
+from ...io.stations import stations_of
 from ..channels import reduce_rows
+from .set_rows import open_set_rows, reference_sources
 
 #: a step at a scan's first sample beyond this (deg) is counted as a risky switch
 RISKY_STEP_DEG = 90.0
@@ -54,9 +53,9 @@ def _reference_series(run, groups, ref_rows: np.ndarray) -> Tuple[Dict, np.ndarr
     block = max(int(run.chunk_rows), 1)
     meta = {c: [] for c in ("TIME", "ANTENNA1", "ANTENNA2")}
     phases, oks = [], []
-    with tables.main_table(run.ref_ms) as table:
+    with open_set_rows(run.ref_ms, reference_sources(run)) as set_rows:
         for start in range(0, ref_rows.size, block):
-            read = msio.rows_reader(table, ref_rows[start:start + block])
+            read = set_rows.reader(ref_rows[start:start + block])
             for c in meta:
                 meta[c].append(read(c))
             phase, ok = _reduced_phase(run, groups, read)
@@ -130,8 +129,8 @@ def switch_counts(run, groups: List, tgt_meta: Dict[str, np.ndarray],
     ref_fields = [g.pair.ref.key[0] for g in groups]
     ref_rows = _window_rows(run, pair.ref.key[1], ref_fields)
     meta, phase, ok = _reference_series(run, groups, ref_rows)
-    ref_codes = read_stations(run.ref_ms).codes
-    tgt_codes = read_stations(run.target_ms).codes
+    ref_codes = stations_of(run.ref_ms, run.ref_meta.antennas).codes
+    tgt_codes = stations_of(run.target_ms, run.tgt_meta.antennas).codes
     rename = parse_antenna_map(run.opts.input.antenna_map)
     to_tgt = np.array([tgt_codes.index(rename.get(c, c)) if rename.get(c, c) in tgt_codes
                        else -1 for c in ref_codes])
@@ -170,12 +169,12 @@ def _window_rows(run, ddid: int, fields) -> np.ndarray:
     FIELD_ID read chunk by chunk."""
     block = max(int(run.chunk_rows), 1)
     found = []
-    with tables.main_table(run.ref_ms) as table:
-        n_rows = table.nrows()
+    with open_set_rows(run.ref_ms, reference_sources(run)) as set_rows:
+        n_rows = set_rows.n_rows
         for start in range(0, n_rows, block):
             n = min(block, n_rows - start)
-            here = (table.getcol("DATA_DESC_ID", start, n) == ddid) \
-                & np.isin(table.getcol("FIELD_ID", start, n), fields)
+            index = set_rows.index(["DATA_DESC_ID", "FIELD_ID"], start, n)
+            here = (index["DATA_DESC_ID"] == ddid) & np.isin(index["FIELD_ID"], fields)
             found.append(start + np.flatnonzero(here))
     return np.concatenate(found) if found else np.zeros(0, np.int64)
 

@@ -21,7 +21,6 @@ from typing import Dict, Iterator, List, Optional, Tuple
 
 import numpy as np
 
-from ...io import read as msio
 from ...kernels.phase_ref import add_baseline_sums
 from .bridge import tracking_scans
 
@@ -68,15 +67,17 @@ class WindowPass:
     groups: List
     chunk_rows: int
 
-    def chunks(self, table, written: np.ndarray) -> Iterator[WindowChunk]:
-        """The window's rows chunk by chunk (chunks without any are skipped)."""
-        n_rows = table.nrows()
+    def chunks(self, set_rows, written: np.ndarray) -> Iterator[WindowChunk]:
+        """The window's rows chunk by chunk (chunks without any are skipped); ``set_rows``
+        the target's (:mod:`.set_rows`)."""
+        n_rows = set_rows.n_rows
         for start in range(0, n_rows, self.chunk_rows):
             n = min(self.chunk_rows, n_rows - start)
-            here = written[start:start + n] & (table.getcol("DATA_DESC_ID", start, n) == self.ddid)
+            index = set_rows.index(INDEX_COLUMNS + ("DATA_DESC_ID",), start, n)
+            here = written[start:start + n] & (index["DATA_DESC_ID"] == self.ddid)
             if not here.any():
                 continue
-            cols = {c: table.getcol(c, start, n)[here] for c in INDEX_COLUMNS}
+            cols = {c: index[c][here] for c in INDEX_COLUMNS}
             rows = RowsOf(start + np.flatnonzero(here), cols["TIME"],
                           cols["ANTENNA1"].astype(np.int64), cols["ANTENNA2"].astype(np.int64),
                           cols["FIELD_ID"], cols["SCAN_NUMBER"],
@@ -146,7 +147,7 @@ class CalibratorScans:
         return self.baselines % n_ant
 
 
-def calibrator_pass(table, tx, column: str, window: WindowPass, hand_corr: np.ndarray,
+def calibrator_pass(set_rows, tx, column: str, window: WindowPass, hand_corr: np.ndarray,
                     model_column: Optional[str], n_ant: int, n_chan: int) -> CalibratorScans:
     """The staged column on the calibrator's rows, model divided, summed per tracking scan
     and baseline, chunk by chunk."""
@@ -154,13 +155,13 @@ def calibrator_pass(table, tx, column: str, window: WindowPass, hand_corr: np.nd
 
     sums = ScanSums((n_ant * n_ant, n_chan, hand_corr.size))
     runs, first_number, seen = ScanRuns(), {}, np.zeros(n_ant * n_ant, bool)
-    for chunk in window.chunks(table, tx.rows_written):
+    for chunk in window.chunks(set_rows, tx.rows_written):
         cal = chunk.cal
         if not cal.rows.size:
             continue
-        read = msio.rows_reader(table, cal.rows)
+        read = set_rows.reader(cal.rows)
         vis = model_divided(read(column), read(model_column) if model_column else None)
-        flags, code = tx.flags_now(table, cal.rows), cal.code(n_ant)
+        flags, code = tx.flags_now(set_rows, cal.rows), cal.code(n_ant)
         seen[code] = True
         for scan in np.unique(cal.scan):
             mine = cal.scan == scan

@@ -32,8 +32,10 @@ per-scan sums are kept between chunks.
 The correction is written into the staged output column itself (the same
 :class:`~hitops.calibrate.output.OutputTransaction`, committed or rolled back with the
 transfer), so PWC_DATA holds the phase-referenced target: one column, as diagnose,
-export and the recipes expect.  The calibrator's rows keep the transfer's output with
-their integers removed, to be checked.  Rows of an antenna with no solution on any
+export and the recipes expect (on a processing set the same passes read and rewrite
+each method's staged data group: :mod:`.set_rows`,
+:class:`~hitops.calibrate.output_msv4.DataGroupTransaction`).  The calibrator's rows
+keep the transfer's output with their integers removed, to be checked.  Rows of an antenna with no solution on any
 calibrator scan are flagged.
 
 docs/solutions.md, "The instrumental term", has the measurements and the limits.
@@ -49,12 +51,12 @@ import numpy as np
 
 from ...errors import ColumnError, InputError
 from ...io import read as msio
-from ...io import tables
 from ...io.ms_create import CORR_NAMES
 from . import apply as target_side
 from . import passes
 from . import solve as calibrator_side
 from .passes import WindowPass
+from .set_rows import open_set_rows, target_sources
 from .solve import CalibratorIntegers, WindowFrame
 
 log = logging.getLogger("hitops.calibrate")
@@ -83,7 +85,7 @@ def _model_column(run, name: str) -> Optional[str]:
     given = run.opts.input.calibrator_model_column
     if given == "point":
         return None
-    present = tables.column_names(run.target_ms)
+    present = msio.column_names(run.target_ms)
     if given is None:
         return "MODEL_DATA" if "MODEL_DATA" in present else None
     if given not in present:
@@ -107,7 +109,7 @@ def check_calibrator_field(run) -> Optional[CalibratorField]:
                          "the count tracker's per-scan counts across the field switches "
                          "(no delay across the window to find each scan's integer from; "
                          f"docs/solutions.md): drop --tracker {run.opts.tracking.tracker}")
-    names = [str(n) for n in msio.read_subtable(run.target_ms, "FIELD", ["NAME"])["NAME"]]
+    names = [str(n) for n in run.tgt_meta.fields.names]
     if name not in names:
         raise InputError(f"--calibrator-field {name}: no such field in {run.target_ms} "
                          f"(FIELD::NAME holds {', '.join(names) or 'nothing'}); give one of "
@@ -174,14 +176,15 @@ def check_model(run, cal: CalibratorField) -> None:
     if cal.model_column is None:
         return
     resolved, zero_scans = False, set()
-    with tables.main_table(run.target_ms) as table:
-        n_rows, step = table.nrows(), max(run.chunk_rows, 1)
+    with open_set_rows(run.target_ms, target_sources(run)) as set_rows:
+        n_rows, step = set_rows.n_rows, max(run.chunk_rows, 1)
         for start in range(0, n_rows, step):
             n = min(step, n_rows - start)
-            rows = start + np.flatnonzero(table.getcol("FIELD_ID", start, n) == cal.field_id)
+            rows = start + np.flatnonzero(
+                set_rows.index(["FIELD_ID"], start, n)["FIELD_ID"] == cal.field_id)
             if not rows.size:
                 continue
-            read = msio.rows_reader(table, rows)
+            read = set_rows.reader(rows)
             model = read(cal.model_column)
             zero = (np.abs(model) == 0).any(axis=(1, 2))
             zero_scans.update(np.unique(read("SCAN_NUMBER")[zero]).tolist())
@@ -208,12 +211,12 @@ class CarriedCounts:
     switches: object             # bridge.SwitchCounts
 
 
-def _carried_counts(run, table, tx, window: WindowPass, groups) -> CarriedCounts:
+def _carried_counts(run, set_rows, tx, window: WindowPass, groups) -> CarriedCounts:
     """The continued counts of every calibrator and target row of a one-channel window,
     from their index columns read chunk by chunk."""
     from .bridge import switch_counts
 
-    parts = [(c.cal, c.target) for c in window.chunks(table, tx.rows_written)]
+    parts = [(c.cal, c.target) for c in window.chunks(set_rows, tx.rows_written)]
     both = [p for pair in parts for p in pair]
     rows = np.concatenate([p.rows for p in both]) if both else np.zeros(0, np.int64)
     order = np.argsort(rows, kind="stable")
@@ -239,7 +242,7 @@ def _calibrator_integers(cal: CalibratorField, found: passes.CalibratorScans, fr
     return integers
 
 
-def _apply_pass(table, tx, column: str, window: WindowPass, found: passes.CalibratorScans,
+def _apply_pass(set_rows, tx, column: str, window: WindowPass, found: passes.CalibratorScans,
                 integers: Optional[CalibratorIntegers], solution, corr_hands, frame,
                 n_ant: int) -> Tuple[int, passes.TargetLeft]:
     """The second pass: each calibrator scan's integers removed from its rows (``integers``;
@@ -250,39 +253,39 @@ def _apply_pass(table, tx, column: str, window: WindowPass, found: passes.Calibr
     left = passes.TargetLeft(window.chunk_rows, (n_ant * n_ant, frame.chan_offset.size,
                                                  hand_corr.size))
     n_flagged = 0
-    for chunk in window.chunks(table, tx.rows_written):
+    for chunk in window.chunks(set_rows, tx.rows_written):
         if integers is not None and chunk.cal.rows.size:
             bl = np.searchsorted(found.baselines, chunk.cal.code(n_ant))
-            target_side.remove_integers(table, tx, column, chunk.cal.rows, target_side.row_counts(
+            target_side.remove_integers(set_rows, tx, column, chunk.cal.rows, target_side.row_counts(
                 chunk.cal.scan, found.scans, bl, integers.integers, corr_hands), frame,
                 window.chunk_rows)
         if chunk.target.rows.size:
-            flagged, flags, rotated = target_side.apply_chunk(table, tx, column, chunk.target,
+            flagged, flags, rotated = target_side.apply_chunk(set_rows, tx, column, chunk.target,
                                                               solution, corr_hands, frame, n_ant)
             n_flagged += flagged
             left.add(chunk.target, rotated, flags, hand_corr, n_ant)
     return n_flagged, left
 
 
-def _target_pass(table, tx, column: str, window: WindowPass, found, corr_hands, frame,
+def _target_pass(set_rows, tx, column: str, window: WindowPass, found, corr_hands, frame,
                  n_ant: int) -> int:
     """The third pass: each target scan's integer removed, the undecided ones' rows flagged;
     the number of rows flagged."""
     n_undecided = 0
-    for chunk in window.chunks(table, tx.rows_written):
+    for chunk in window.chunks(set_rows, tx.rows_written):
         t = chunk.target
         if not t.rows.size:
             continue
         code = t.code(n_ant)
-        target_side.remove_integers(table, tx, column, t.rows, target_side.row_counts(
+        target_side.remove_integers(set_rows, tx, column, t.rows, target_side.row_counts(
             t.scan, found.scans, code, found.integers, corr_hands), frame, window.chunk_rows)
         undecided = target_side.row_counts(t.scan, found.scans, code, found.undecided,
                                            corr_hands)
-        n_undecided += target_side.flag_rows(table, tx, t.rows, undecided, window.chunk_rows)
+        n_undecided += target_side.flag_rows(set_rows, tx, t.rows, undecided, window.chunk_rows)
     return n_undecided
 
 
-def _reference_window(run, tx, table, column, cal, window: WindowPass,
+def _reference_window(run, tx, set_rows, column, cal, window: WindowPass,
                       carried: Optional[CarriedCounts]) -> Dict:
     """One target window of one staged column, in passes over the run's chunks: each
     calibrator scan's integers found, solved on the calibrator, applied to the other
@@ -298,9 +301,9 @@ def _reference_window(run, tx, table, column, cal, window: WindowPass,
                          f"{run.target_ms} has no parallel-hand correlation (RR, LL, XX, YY) "
                          "to solve on")
     if carried is not None:    # one channel: the count carried across the switches
-        target_side.remove_integers(table, tx, column, carried.rows, carried.switches.counts,
+        target_side.remove_integers(set_rows, tx, column, carried.rows, carried.switches.counts,
                                     frame, window.chunk_rows)
-    found = passes.calibrator_pass(table, tx, column, window, hand_corr, cal.model_column,
+    found = passes.calibrator_pass(set_rows, tx, column, window, hand_corr, cal.model_column,
                                    n_ant, frame.chan_offset.size)
     integers = _calibrator_integers(cal, found, frame, names, spw, carried is not None)
     ant1, ant2 = found.ant1(n_ant), found.ant2(n_ant)
@@ -313,7 +316,7 @@ def _reference_window(run, tx, table, column, cal, window: WindowPass,
                          f"{spw} has unflagged data in both bands (REF_MS {run.ref_ms}, "
                          f"TARGET_MS {run.target_ms}) to solve on; unflag it or name a "
                          "calibrator observed in both bands")
-    n_flagged, left = _apply_pass(table, tx, column, window, found,
+    n_flagged, left = _apply_pass(set_rows, tx, column, window, found,
                                   None if carried is not None else integers, solution,
                                   corr_hands, frame, n_ant)
     entry = window_report(solution, names, left.n_rows, n_flagged)
@@ -329,7 +332,7 @@ def _reference_window(run, tx, table, column, cal, window: WindowPass,
         return entry
     t_scans, t_times, t_sums, t_counts = left.finish()
     found_t = target_side.target_integers(t_scans, t_times, t_sums, t_counts, frame, n_ant)
-    n_undecided = _target_pass(table, tx, column, window, found_t, corr_hands, frame, n_ant)
+    n_undecided = _target_pass(set_rows, tx, column, window, found_t, corr_hands, frame, n_ant)
     entry["integers"]["target"] = dict(
         _integer_summary(found_t.integers, found_t.margin, found_t.valid),
         undecided_scans=int(found_t.undecided.sum()), rows_flagged=n_undecided)
@@ -360,7 +363,7 @@ def phase_reference(run, tx, cal: Optional[CalibratorField]) -> Optional[Dict]:
     entry: Dict = {"calibrator_field": cal.name, "field_id": cal.field_id,
                    "target_field_ids": list(cal.target_field_ids),
                    "calibrator_model": cal.model_label, "methods": {}}
-    with tables.main_table(run.target_ms) as table:
+    with open_set_rows(run.target_ms, target_sources(run), tx) as set_rows:
         plan: Dict[int, Tuple[WindowPass, Optional[CarriedCounts]]] = {}
         for ddid, groups in sorted(windows.items()):
             if groups[0].pair.tgt.field != cal.name:
@@ -369,11 +372,11 @@ def phase_reference(run, tx, cal: Optional[CalibratorField]) -> Optional[Dict]:
                                 max(int(run.chunk_rows), 1))
             carried = None
             if integer_rule(WindowFrame.of_group(groups[0])) != "delay":
-                carried = _carried_counts(run, table, tx, window, groups)
+                carried = _carried_counts(run, set_rows, tx, window, groups)
             plan[ddid] = (window, carried)
         for method, column in tx.staging.items():
             entry["methods"][run.outputs[method]] = [
-                _reference_window(run, tx, table, column, cal, window, carried)
+                _reference_window(run, tx, set_rows, column, cal, window, carried)
                 for window, carried in plan.values()]
     log_summary(entry)
     return entry

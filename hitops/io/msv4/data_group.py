@@ -176,6 +176,41 @@ class DataGroupWriter:
         out[start:stop] = block
         flag_out[start:stop] = flags
 
+    def read_cells(self, time_index: np.ndarray, baseline: np.ndarray):
+        """(data, flag) the staged arrays hold at the cells (time_index, baseline), each
+        (n, n_chan, n_corr): what this run has written there so far (the calibrator step
+        reads its transfer's output back, hitops/calibrate/phaseref)."""
+        out, flag_out = self._arrays()
+        time_index = np.asarray(time_index, np.int64)
+        if time_index.size == 0:
+            return (np.zeros((0,) + out.shape[2:], out.dtype),
+                    np.zeros((0,) + flag_out.shape[2:], bool))
+        start, stop = int(time_index.min()), int(time_index.max()) + 1
+        rel = time_index - start
+        return out[start:stop][rel, baseline], flag_out[start:stop][rel, baseline]
+
+    def rewrite_cells(self, time_index: np.ndarray, baseline: np.ndarray,
+                      data: Optional[np.ndarray] = None,
+                      flag: Optional[np.ndarray] = None) -> None:
+        """Cells written before given new ``data`` and/or ``flag``; every other cell of
+        their time steps kept as it is (a later step of the same run: the calibrator's)."""
+        time_index = np.asarray(time_index, np.int64)
+        if time_index.size == 0:
+            return
+        start, stop = int(time_index.min()), int(time_index.max()) + 1
+        rel = time_index - start
+        for array, values in zip(self._arrays(), (data, flag)):
+            if values is None:
+                continue
+            block = array[start:stop]
+            block[rel, baseline] = values
+            array[start:stop] = block
+
+    def _arrays(self):
+        if self._staged is None:
+            raise RuntimeError("DataGroupWriter: cells read or rewritten before stage()")
+        return self._staged
+
     def commit(self, consolidate: bool = True) -> None:
         """Register the group in ``data_groups``, then the consolidated metadata (last;
         ``consolidate`` False: the caller does that once for several groups, :func:`consolidate`)."""

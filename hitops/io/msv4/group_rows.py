@@ -92,6 +92,27 @@ class PartitionSource(StorageRows):
         return times, lookup[times - t_a, rank]
 
 
+def rows_by_source(sources: Sequence[PartitionSource], rows: np.ndarray):
+    """(source, the indices of ``rows`` in it, their positions) for each of ``sources``
+    (sorted by ``row_base``) that holds some of the ascending ROWIDs ``rows``."""
+    rows = np.asarray(rows, np.int64)
+    bases = np.array([s.row_base for s in sources], np.int64)
+    which = np.searchsorted(bases, rows, side="right") - 1
+    if which.size and which[0] < 0:
+        raise ProcessingSetError(f"row {int(rows[0])} lies in no group of the run; this is a "
+                                 "hitops bug")
+    bounds = np.searchsorted(which, np.arange(len(sources) + 1))
+    for k, source in enumerate(sources):
+        lo, hi = int(bounds[k]), int(bounds[k + 1])
+        if lo == hi:
+            continue
+        positions = rows[lo:hi] - source.row_base
+        if positions[-1] >= source.n_rows:
+            raise ProcessingSetError(f"'{source.ms}': row {int(rows[hi - 1])} lies in no group "
+                                     "of the run; this is a hitops bug")
+        yield source, np.arange(lo, hi), positions
+
+
 class PartitionTable:
     """What :class:`PartitionSource` reads through: the counterpart of
     :class:`hitops.io.table_rows.MainTable` (``n_rows``, ``read``, ``read_rows``)."""
