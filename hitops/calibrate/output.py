@@ -230,7 +230,7 @@ class OutputTransaction:
 
     def flags_now(self, set_rows, rows: np.ndarray) -> np.ndarray:
         """(n, n_chan, n_corr) the flags this run has given ascending ``rows`` so far, read
-        through ``set_rows`` (hitops/calibrate/phaseref/set_rows.py: the target's open main
+        through ``set_rows`` (hitops/calibrate/set_rows.py: the target's open main
         table): the staged ones where it staged them, FLAG elsewhere (a chunk whose new
         flags equalled FLAG staged none; a row not written keeps FLAG)."""
         rows = np.asarray(rows)

@@ -151,7 +151,7 @@ class DataGroupTransaction:
     @property
     def staging(self) -> Dict[str, str]:
         """method -> the name its staged group is read back and rewritten by (the
-        calibrator step's, hitops/calibrate/phaseref/set_rows.py)."""
+        calibrator step's, hitops/calibrate/set_rows.py)."""
         return {m: f"{STAGED}{g}" for m, g in self.data_groups.items()}
 
     def _cells(self, rows: np.ndarray):

@@ -253,7 +253,8 @@ def _verdict(run: RunPlan, group: GroupPlan, report_path: str) -> Dict:
     try:
         verdict = predict(run.ref_ms, run.target_ms, group.ratio, opts.input.ref_column,
                           opts.input.target_column, float(opts.run.verdict_interval),
-                          ref_meta=run.ref_meta, tgt_meta=run.tgt_meta)
+                          ref_meta=run.ref_meta, tgt_meta=run.tgt_meta,
+                          target_flags_of=next(iter(run.outputs.values())))
     except HitopsError as err:   # the columns are written: say why there is no verdict
         log.warning("no verdict: %s", err)
         return {"error": str(err)}

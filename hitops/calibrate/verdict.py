@@ -264,20 +264,14 @@ def window_variances(phi_t, phi_r, valid, segment, n_window: int, ratio: float):
 
 def predict(ref_ms: str, target_ms: str, ratio: float, ref_column: str = "DATA",
             target_column: str = "DATA", interval: float = 60.0,
-            ref_meta=None, tgt_meta=None) -> Verdict:
+            ref_meta=None, tgt_meta=None, target_flags_of: Optional[str] = None) -> Verdict:
     """The prediction per baseline (parallel hands) and the reference closure check, from
     blocks of times spread over the track (:mod:`hitops.calibrate.verdict_sample`).
     ``ref_meta``/``tgt_meta``: the run's SetMetadata of each set (``RunPlan``), read
-    again when None."""
+    again when None; ``target_flags_of``: the output column whose flags a processing
+    set's target samples take (:func:`~hitops.calibrate.verdict_sample.read_sampled`)."""
     from .verdict_sample import (choose_blocks, distinct_times, read_sampled, read_times,
                                  sampling_interval)
-    from ..io.msv4.store import is_processing_set
-
-    for ms in (ref_ms, target_ms):
-        if is_processing_set(ms):   # the sampled reads are python-casacore's
-            raise MeasurementSetError(f"'{ms}' is an MSv4 processing set and the verdict reads "
-                                      "Measurement Sets v2 so far; run the verdict on the v2 "
-                                      "sets, or pass --no-verdict")
 
     tgt_time, ref_time = read_times(target_ms), read_times(ref_ms)
     tgt_times, ref_times = distinct_times(tgt_time), distinct_times(ref_time)
@@ -290,7 +284,7 @@ def predict(ref_ms: str, target_ms: str, ratio: float, ref_column: str = "DATA",
                        sampled={"times_read": 0, "times": int(tgt_times.size), "blocks": 0})
     n_window = int(round(interval / dt["tgt"]))
     blocks = choose_blocks(tgt_times, n_window, MAX_PAIRS)
-    tgt = read_sampled(target_ms, target_column, tgt_time, blocks, tgt_meta)
+    tgt = read_sampled(target_ms, target_column, tgt_time, blocks, tgt_meta, target_flags_of)
     ref = read_sampled(ref_ms, ref_column, ref_time, blocks, ref_meta)
     verdict = Verdict(interval=float(interval), ratio=float(ratio), sampled=blocks.as_dict())
     sig_t, _, s_t = thermal_phase_noise(tgt.vis, tgt.flag, tgt.segment)

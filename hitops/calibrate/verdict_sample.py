@@ -8,7 +8,8 @@ track: :func:`choose_blocks` picks blocks of 2 n_window consecutive times spread
 evenly over the target's track, enough of them that the longest lag still has
 about ``max_pairs`` pairs per baseline, and :func:`read_sampled` reads only
 those rows of each band (python-casacore, one open per table; runs of rows
-where the table is in time order, one row selection otherwise).  A track with
+where the table is in time order, one row selection otherwise; a processing set's
+groups through hitops/calibrate/set_rows.py, the rows of the blocks' time steps).  A track with
 fewer times than twice that is read whole, so short observations (the EHT's
 public files among them) give exactly the whole-track result.
 
@@ -28,10 +29,9 @@ import numpy as np
 
 from ..errors import ColumnError, MeasurementSetError
 from ..io.layout import baseline_time_layout
-from ..io.read import rows_reader
 from ..io.metadata import SetMetadata, read_metadata
 from ..io.stations import stations_of
-from ..io import tables
+from .set_rows import open_band_rows
 
 #: casacore Stokes codes of the parallel hands, the only correlations the verdict uses
 PARALLEL_CODES = {5: "RR", 8: "LL", 9: "XX", 12: "YY", 1: "I"}
@@ -133,9 +133,9 @@ def _rows_in_blocks(time: np.ndarray, blocks: TimeBlocks) -> np.ndarray:
     return np.flatnonzero(inside)
 
 
-def _parallel_hands(meta: SetMetadata, table, first_row: int):
-    """(indices, names) of the parallel-hand correlations of the row's data description."""
-    corr = list(meta.corr_types_of(int(table.getcell("DATA_DESC_ID", first_row))))
+def _parallel_hands(meta: SetMetadata, ddid: int):
+    """(indices, names) of the parallel-hand correlations of data description ``ddid``."""
+    corr = list(meta.corr_types_of(int(ddid)))
     index = [i for i, c in enumerate(corr) if c in PARALLEL_CODES]
     if not index:   # no parallel hand: every correlation (as diagnose does)
         from ..io.ms_create import CORR_NAMES
@@ -144,32 +144,40 @@ def _parallel_hands(meta: SetMetadata, table, first_row: int):
 
 
 def read_times(ms: str) -> np.ndarray:
-    """The TIME column of a main table (storage order)."""
-    with tables.main_table(ms) as table:
-        return table.getcol("TIME") if table.nrows() else np.zeros(0)
+    """The TIME of every row of a band (a main table's storage order; a processing set's
+    groups one after the other, hitops/calibrate/set_rows.py)."""
+    with open_band_rows(ms, ["DATA"]) as band:
+        n_rows = band.n_rows
+        return band.index(["TIME"], 0, n_rows)["TIME"] if n_rows else np.zeros(0)
 
 
 def read_sampled(ms: str, column: str, time: np.ndarray, blocks: TimeBlocks,
-                 meta: Optional[SetMetadata] = None) -> SampledBand:
+                 meta: Optional[SetMetadata] = None,
+                 flags_of: Optional[str] = None) -> SampledBand:
     """The rows of ``ms`` in ``blocks`` (``time``: its TIME column) on a (baseline, time) grid.
 
     Several channels are vector-averaged over their unflagged channels (the verdict
     needs each sample's phase); autocorrelations are left out.  ``meta``: the run's
     :class:`SetMetadata` of ``ms`` (``RunPlan.ref_meta``/``tgt_meta``), read here when None.
+    ``flags_of``: on a processing set, the data column whose group's flags the samples
+    take (the run's output group: its flags are the input's and what the run flagged,
+    which an MSv2 run writes into the FLAG read here); its own group's when None.
     """
     meta = read_metadata(ms) if meta is None else meta
     rows = _rows_in_blocks(time, blocks)
     if rows.size == 0:
         raise MeasurementSetError(f"{ms}: no row at the times the verdict samples")
-    with tables.main_table(ms) as table:
-        if column not in table.colnames():
+    with open_band_rows(ms, [flags_of or column]) as band:
+        present = band.column_names
+        if column not in present:
             raise ColumnError(f"{ms} has no column {column}")
-        corr_idx, corr_names = _parallel_hands(meta, table, int(rows[0]))
-        read = rows_reader(table, rows)
+        corr_idx, corr_names = _parallel_hands(
+            meta, band.index(["DATA_DESC_ID"], int(rows[0]), 1)["DATA_DESC_ID"][0])
+        read = band.reader(rows)
         ant1, ant2 = read("ANTENNA1"), read("ANTENNA2")
-        flag_row = read("FLAG_ROW") if "FLAG_ROW" in table.colnames() else None
+        flag_row = read("FLAG_ROW") if "FLAG_ROW" in present else None
         scan, data, flag = read("SCAN_NUMBER"), read(column), read("FLAG")
-        sigma = _optional(read, table, "SIGMA")
+        sigma = _optional(read, present, "SIGMA")
         sigma = sigma[:, corr_idx] if sigma is not None else None
     cross = ant1 != ant2
     flag = flag[cross][..., corr_idx]
@@ -197,10 +205,10 @@ def read_sampled(ms: str, column: str, time: np.ndarray, blocks: TimeBlocks,
                                                   layout.bl_of_row, layout.n_bl, len(corr_idx)))
 
 
-def _optional(read, table, column: str):
+def _optional(read, present: List[str], column: str):
     """A column's values, or None where it is absent or holds no values (undefined
     cells, as some conversions leave SIGMA): the verdict then has no SIGMA ratio."""
-    if column not in table.colnames():
+    if column not in present:
         return None
     try:
         return read(column)

@@ -10,9 +10,11 @@
   its rows flagged);
 * :mod:`.bridge`: the reference wrap count carried across scan and field switches (one-
   channel windows, where there is no delay to find a scan's integer from);
-* :mod:`.report`: the per-antenna report and the log's summary line;
-* :mod:`.set_rows`: what the step reads of a band by row number, from a Measurement
-  Set v2's main table or a processing set's groups (and their staged data groups).
+* :mod:`.report`: the per-antenna report and the log's summary line.
+
+What the step reads of a band by row number (a Measurement Set v2's main table, or a
+processing set's groups and the run's staged data groups) is
+:mod:`hitops.calibrate.set_rows`.
 
 The kernels are in :mod:`hitops.kernels.phase_ref`.
 """

@@ -27,7 +27,7 @@ import numpy as np
 from ...io.match import correlation_map, parse_antenna_map
 from ...io.stations import stations_of
 from ..channels import reduce_rows
-from .set_rows import open_set_rows, reference_sources
+from ..set_rows import open_set_rows, reference_sources
 
 #: a step at a scan's first sample beyond this (deg) is counted as a risky switch
 RISKY_STEP_DEG = 90.0

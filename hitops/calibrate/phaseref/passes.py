@@ -69,7 +69,7 @@ class WindowPass:
 
     def chunks(self, set_rows, written: np.ndarray) -> Iterator[WindowChunk]:
         """The window's rows chunk by chunk (chunks without any are skipped); ``set_rows``
-        the target's (:mod:`.set_rows`)."""
+        the target's (:mod:`hitops.calibrate.set_rows`)."""
         n_rows = set_rows.n_rows
         for start in range(0, n_rows, self.chunk_rows):
             n = min(self.chunk_rows, n_rows - start)

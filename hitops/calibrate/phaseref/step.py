@@ -33,7 +33,7 @@ The correction is written into the staged output column itself (the same
 :class:`~hitops.calibrate.output.OutputTransaction`, committed or rolled back with the
 transfer), so PWC_DATA holds the phase-referenced target: one column, as diagnose,
 export and the recipes expect (on a processing set the same passes read and rewrite
-each method's staged data group: :mod:`.set_rows`,
+each method's staged data group: :mod:`hitops.calibrate.set_rows`,
 :class:`~hitops.calibrate.output_msv4.DataGroupTransaction`).  The calibrator's rows
 keep the transfer's output with their integers removed, to be checked.  Rows of an antenna with no solution on any
 calibrator scan are flagged.
@@ -56,7 +56,7 @@ from . import apply as target_side
 from . import passes
 from . import solve as calibrator_side
 from .passes import WindowPass
-from .set_rows import open_set_rows, target_sources
+from ..set_rows import open_set_rows, target_sources
 from .solve import CalibratorIntegers, WindowFrame
 
 log = logging.getLogger("hitops.calibrate")

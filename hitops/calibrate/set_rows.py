@@ -1,9 +1,11 @@
-"""What the calibrator step reads of a band, by row number, on either backend.
+"""What a step reads of a band by row number, on either backend.
 
-The step (:mod:`.step`) walks a band's rows by number in chunks: the index columns of a
-range of rows (:meth:`SetRows.index`), then data columns at some of them
-(:meth:`SetRows.reader`), and the transaction's staged outputs, which it reads back
-and rewrites (``tx.flags_now``, ``tx.restage``).  Two backends give the same:
+The calibrator step (hitops/calibrate/phaseref) walks a band's rows by number in
+chunks: the index columns of a range of rows (``index``), then data columns at some of
+them (``reader``), and the transaction's staged outputs, which it reads back and
+rewrites (``tx.flags_now``, ``tx.restage``); the verdict (:mod:`.verdict_sample`) reads
+the TIME of every row and the rest at the rows of its blocks.  Two backends give the
+same:
 
 * :class:`MainTableRows`: a Measurement Set v2's main table (python-casacore), the row
   numbers its own; the staged columns are columns of the table;
@@ -15,20 +17,22 @@ and rewrites (``tx.flags_now``, ``tx.restage``).  Two backends give the same:
 The row order differs between the two (an MSv2 set interleaves fields and windows in
 time; a processing set's groups follow each other), which the step does not depend on
 beyond float rounding: each baseline's rows come in time order either way
-(docs/msv4.md, "The calibrator step").
+(docs/msv4.md, "--calibrator-field on processing sets"); the verdict puts its rows on a
+(baseline, time) grid.
 """
 
 from __future__ import annotations
 
 from contextlib import contextmanager
-from typing import Callable, Dict, Iterator, Sequence
+from typing import Callable, Dict, Iterator, List, Sequence
 
 import numpy as np
 
-from ...io import tables
-from ...io.msv4.group_rows import rows_by_source
-from ...io.msv4.store import is_processing_set
-from ...io.table_rows import rows_reader
+from ..io import tables
+from ..io.msv4.group_rows import rows_by_source
+from ..io.msv4.store import is_processing_set
+from ..io.read import column_names
+from ..io.table_rows import rows_reader
 
 
 class MainTableRows:
@@ -40,6 +44,10 @@ class MainTableRows:
     @property
     def n_rows(self) -> int:
         return int(self.table.nrows())
+
+    @property
+    def column_names(self) -> List[str]:
+        return list(self.table.colnames())
 
     def index(self, columns: Sequence[str], start: int, n: int) -> Dict[str, np.ndarray]:
         """Per-row columns of rows [start, start + n)."""
@@ -62,6 +70,11 @@ class ProcessingSetRows:
     @property
     def n_rows(self) -> int:
         return max((s.row_base + s.n_rows for s in self.sources), default=0)
+
+    @property
+    def column_names(self) -> List[str]:
+        """The MSv2 names the store answers to (hitops/io/msv4/columns.py)."""
+        return column_names(self.sources[0].ms) if self.sources else []
 
     def index(self, columns: Sequence[str], start: int, n: int) -> Dict[str, np.ndarray]:
         """Per-row columns of rows [start, start + n); a row of a group the run does not
@@ -107,6 +120,19 @@ def target_sources(run) -> list:
 def reference_sources(run) -> list:
     """What the run reads each reference group through."""
     return [g.match.datasets["ref"] for g in run.groups]
+
+
+@contextmanager
+def open_band_rows(ms: str, columns: Sequence[str]) -> Iterator:
+    """Every row of band ``ms``: a processing set's groups (their FLAG that of the data
+    group of ``columns``' first data column), a Measurement Set's main table."""
+    if is_processing_set(ms):
+        from ..io.msv4.group_rows import open_partition_groups
+
+        yield ProcessingSetRows(open_partition_groups(ms, list(columns)).values())
+        return
+    with tables.main_table(ms) as table:
+        yield MainTableRows(table)
 
 
 @contextmanager
