@@ -1,0 +1,105 @@
+"""What the UVFITS export reads of a processing set: one data group as MSv2 rows and the setup.
+
+The second backend of hitops/io/uvfits_ms.py (issue 37): the same :class:`MainRows`
+and :class:`Setup`, so :func:`hitops.io.uvfits.export_uvfits` writes a data group of
+an MSv4 processing set exactly as it writes the MSv2 column the group came from.
+
+* a "column" names a data group as calibrate's do (hitops/io/msv4/columns.py: DATA ->
+  ``base``, PWC_DATA -> ``pwc``); the group's own correlated data, flag, weight and
+  UVW are read (a result group's flags are its own, e.g. FLAG_PWC: the MSv2 FLAG after
+  the same run);
+* rows: every partition's present cells (:class:`~hitops.io.msv4.rows.PartitionReader`),
+  sorted by time, then baseline (ANTENNA1, ANTENNA2), then data description, as the
+  writer's random groups are; ANTENNA1/2 index the set's merged antennas;
+* MSv4 keeps a weight per channel: it is given as the weight spectrum (xradio spreads an
+  MSv2's WEIGHT over the channels, so the values are the v2 writer's);
+  WEIGHT (per row) is its channel mean, as hitops/io/msv4/columns.py defines it;
+* INTERVAL is the partition's ``integration_time`` (MSv4 keeps one per partition);
+  FLAG_ROW is all False (xradio folds it into the flags);
+* the setup: windows, field and stations from :func:`hitops.io.metadata.read_metadata`
+  (hitops/io/msv4/layout.py), TELESCOP from the antenna dataset's
+  ``overall_telescope_name`` and OBSERVER from the partition's ``observation_info``
+  (where xradio puts OBSERVATION::TELESCOPE_NAME and OBSERVER).
+
+The store is only read.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import List, Tuple
+
+import numpy as np
+
+from ...errors import MeasurementSetError
+from ..uvfits_ms import MainRows, Setup, setup_of
+from .columns import group_of_column, require_columns
+from .layout import ProcessingSetLayout, read_layout
+from .rows import PartitionReader, PartitionRows
+from .store import open_store, quiet_zarr, zarr_group
+
+#: the MSv2 columns the writer reads, in the order uvfits_ms.read_main gives them
+_ROW_COLUMNS = ("TIME", "ANTENNA1", "ANTENNA2", "SCAN_NUMBER", "DATA_DESC_ID", "FIELD_ID")
+
+
+def read_group_rows(ps: str, column: str, role: str) -> MainRows:
+    """The data group ``column`` names, every partition's rows, as :class:`MainRows`."""
+    store = open_store(ps, role)
+    require_columns(store, [column], role, "name a data group the store holds "
+                                           "(DATA is 'base', PWC_DATA is 'pwc')")
+    layout = read_layout(store)
+    group = group_of_column(column)
+    parts = [_partition_rows(layout, p.name, group) for p in layout.partitions]
+    rows = [r for r, _ in parts]
+    if sum(r.n_row for r in rows) == 0:
+        raise MeasurementSetError(f"{role} '{ps}' has no rows to export")
+    interval = np.concatenate([np.full(r.n_row, seconds) for r, seconds in parts])
+    cols = {name: np.concatenate([getattr(r, name.lower()) for r in rows])
+            for name in _ROW_COLUMNS}
+    order = np.lexsort((cols["DATA_DESC_ID"], cols["ANTENNA2"], cols["ANTENNA1"], cols["TIME"]))
+    weight_spectrum = np.concatenate([r.weight for r in rows])[order]
+    cols = {name: values[order] for name, values in cols.items()}
+    cols["UVW"] = np.concatenate([r.uvw for r in rows])[order]
+    cols["INTERVAL"] = interval[order]
+    cols["FLAG"] = np.concatenate([r.flag for r in rows])[order]
+    cols["FLAG_ROW"] = np.zeros(order.size, bool)
+    cols["WEIGHT"] = weight_spectrum.mean(axis=1)
+    vis = np.concatenate([r.data for r in rows])[order]
+    return MainRows(cols, vis, weight_spectrum)
+
+
+def _partition_rows(layout: ProcessingSetLayout, partition: str,
+                    group: str) -> Tuple[PartitionRows, float]:
+    """(every row of the partition's ``group``, its integration time in seconds)."""
+    reader = PartitionReader(layout, partition, group)
+    variables: List[str] = ["DATA", "FLAG", "UVW"]
+    if reader.group.weight:
+        variables.append("WEIGHT")
+    rows = reader.read((0, reader.n_time), variables)
+    if rows.weight is None:
+        # a group without weights: every sample counts once (the MSv2's default WEIGHT)
+        rows = replace(rows, weight=np.ones(rows.data.shape, np.float32))
+    return rows, reader.integration_time
+
+
+def read_group_setup(ps: str, main: MainRows, role: str) -> Setup:
+    """The windows (as IFs), correlations, field and stations of the processing set."""
+    from ..metadata import read_metadata
+
+    meta = read_metadata(ps)
+    telescope, observer = observation_of(ps)
+    return setup_of(meta, main, role, telescope or "VLBA", observer or "hitops")
+
+
+def observation_of(ps: str) -> Tuple[str, str]:
+    """(telescope, observer) as xradio keeps OBSERVATION's TELESCOPE_NAME and OBSERVER:
+    the first partition's antenna dataset and observation_info; '' where absent."""
+    store = open_store(ps)
+    with quiet_zarr():
+        partition = zarr_group(store.path)[store.partitions[0].name]
+        info = partition.attrs.get("observation_info") or {}
+        telescope = str(partition["antenna_xds"].attrs.get("overall_telescope_name") or "")
+    observer = info.get("observer", "")
+    if isinstance(observer, (list, tuple)):
+        observer = observer[0] if observer else ""
+    return telescope, str(observer)
