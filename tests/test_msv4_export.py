@@ -1,0 +1,182 @@
+"""UVFITS from an MSv4 processing set's data group equals UVFITS from the v2 set's column.
+
+Truth from outside: the same ``hitops calibrate --export-uvfits`` run on the Measurement
+Sets v2 that xradio converted (v2 reader, hitops/io/uvfits_ms.py).  The file written from
+the v4 run's ``pwc`` group must equal the file written from the v2 run's PWC_DATA: every
+header card but the HISTORY lines naming the inputs, the random-group parameters exactly
+(u, v, w, baseline, date, integration time), the visibilities to float32 rounding, the
+weights exactly (their sign is the flag: the group's own FLAG_PWC must give the v2
+run's FLAG, which carries the reference band's gaps, not the input's FLAG of ``base``),
+and the AIPS AN/FQ/NX tables column by column; eht-imaging loads it.  Two windows of a
+casatools.simulator layout become the same two IFs from either backend; two fields, a
+missing data group and an existing file are one line each, the store as it was.  Cost:
+about 15 s here (conversion and the two runs; the pair's build is shared with
+tests/test_msv4_calibrate.py).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("xradio")
+fits = pytest.importorskip("astropy.io.fits")
+
+from hitops.calibrate import calibrate_flat  # noqa: E402
+from hitops.errors import ColumnError, MeasurementSetError, OutputExistsError  # noqa: E402
+from hitops.io import tables  # noqa: E402
+from hitops.io.uvfits import export_uvfits  # noqa: E402
+from msv4_sets import convert, file_digests, simulator_layout  # noqa: E402
+from test_msv4_calibrate import SPEC, _flag_some  # noqa: E402
+
+pytestmark = pytest.mark.filterwarnings("ignore:.*Zarr V3 specification",
+                                        "ignore:Consolidated metadata is currently not part")
+
+
+def _vary_weights(ms) -> None:
+    """WEIGHT per row and correlation drawn at random, so that the weights compared are not
+    all one value."""
+    rng = np.random.default_rng(4)
+    weight = tables.read_columns(str(ms), ["WEIGHT"])["WEIGHT"]
+    with tables.main_table(str(ms), writable=True) as t:
+        t.putcol("WEIGHT", rng.uniform(0.5, 3.0, weight.shape).astype(np.float32))
+
+
+@pytest.fixture(scope="module")
+def runs(pair_store, tmp_path_factory):
+    """{"v2"|"v4": (reference, target, exported file, report)} of the same calibrate run."""
+    root = tmp_path_factory.mktemp("v4export")
+    pair = pair_store.copy(SPEC, root)
+    _flag_some(pair.ref_ms, pair.target_ms)
+    _vary_weights(pair.target_ms)
+    sets = {"v2": (str(pair.ref_ms), str(pair.target_ms)),
+            "v4": (str(convert(pair.ref_ms, root / "ref.ps.zarr")),
+                   str(convert(pair.target_ms, root / "tgt.ps.zarr")))}
+    out = {}
+    for kind, (ref, target) in sets.items():
+        path = root / f"{kind}.uvfits"
+        report = calibrate_flat(ref, target, method="pwc,cfpt", chunk_rows=400,
+                                no_verdict=True, export_uvfits=str(path))
+        out[kind] = (ref, target, path, report)
+    return out
+
+
+def _cards(hdu, drop=()):
+    """The header's cards as text, without the HISTORY lines that name ``drop``."""
+    return [c.image for c in hdu.header.cards
+            if not (c.keyword == "HISTORY" and any(d in str(c.value) for d in drop))]
+
+
+def assert_same_uvfits(v2_path, v4_path, names) -> None:
+    """The files equal as the module's docstring says; ``names``: input names whose HISTORY
+    lines differ."""
+    with fits.open(v2_path) as a, fits.open(v4_path) as b:
+        assert len(a) == len(b) == 4
+        assert _cards(a[0], names) == _cards(b[0], names)
+        assert len(_cards(a[0])) == len(_cards(b[0]))
+        ga, gb = a[0].data, b[0].data
+        for k in range(len(ga.parnames)):
+            np.testing.assert_array_equal(ga.par(k), gb.par(k), err_msg=ga.parnames[k])
+        cube_a, cube_b = ga.data, gb.data        # (group, 1, 1, IF, chan, stokes, 3)
+        np.testing.assert_allclose(cube_b[..., :2], cube_a[..., :2], rtol=2e-7, atol=1e-6)
+        np.testing.assert_array_equal(cube_b[..., 2], cube_a[..., 2], err_msg="weights")
+        for ha, hb in zip(a[1:], b[1:]):
+            assert ha.name == hb.name and _cards(ha) == _cards(hb)
+            for column in ha.columns.names:
+                np.testing.assert_array_equal(ha.data[column], hb.data[column],
+                                              err_msg=f"{ha.name} {column}")
+
+
+def test_the_v4_runs_export_equals_the_v2_runs(runs):
+    v2, v4 = runs["v2"], runs["v4"]
+    names = [Path(p).name for p in (*v2[:2], *v4[:2])]
+    assert_same_uvfits(v2[2], v4[2], names)
+    s2, s4 = v2[3]["export_uvfits"], v4[3]["export_uvfits"]
+    assert s4["rows"] == s2["rows"] > 0 and s4["flagged"] == s2["flagged"]
+    assert 0 < s4["flagged_fraction"] < 0.5
+    with fits.open(v4[2]) as f:
+        history = [str(c.value) for c in f[0].header.cards if c.keyword == "HISTORY"]
+    assert "hitops: visibilities from data group pwc of tgt.ps.zarr" in history
+
+
+def test_the_flags_are_the_output_groups_not_the_inputs(runs, tmp_path):
+    """The pwc group's flags hold the reference band's gaps: the base group's flags (the
+    input's FLAG) give other negative weights, so an export that took them would fail the
+    comparison above.  The standalone export of ``base`` (DATA) equals the v2 DATA export
+    of the set as converted, and leaves the store byte for byte as it was."""
+    _, tgt4, v4_file, _ = runs["v4"]
+    before = file_digests(Path(tgt4))
+    base4 = export_uvfits(tgt4, tmp_path / "base.uvfits", "DATA")
+    assert file_digests(Path(tgt4)) == before
+    with fits.open(v4_file) as pwc, fits.open(tmp_path / "base.uvfits") as base:
+        flagged_pwc = pwc[0].data.data[..., 2] < 0
+        flagged_base = base[0].data.data[..., 2] < 0
+    assert base4["flagged"] < flagged_pwc.sum() and (flagged_pwc & ~flagged_base).any()
+    assert not (flagged_base & ~flagged_pwc).any()      # the input's flags are kept
+
+
+def test_eht_imaging_loads_the_v4_export(runs):
+    """eht-imaging drops the groups with no positive weight (every correlation flagged) and
+    reads the rest: its RR visibilities are the file's unflagged RR values."""
+    eh = pytest.importorskip("ehtim")
+    v4_file = runs["v4"][2]
+    obs = eh.obsdata.load_uvfits(str(v4_file), polrep="circ")
+    with fits.open(v4_file) as f:
+        an_names = [str(n).strip() for n in f["AIPS AN"].data["ANNAME"]]
+        cube = np.asarray(f[0].data.data[:, 0, 0, 0, 0], np.float64)   # (group, stokes, 3)
+    assert sorted(obs.tarr["site"]) == sorted(an_names)
+    kept_groups = (cube[..., 2] > 0).any(axis=1)
+    assert 0 < kept_groups.sum() < kept_groups.size       # some groups wholly flagged
+    assert len(obs.data) == kept_groups.sum()
+    rr = cube[kept_groups, 0]
+    in_file = (rr[:, 0] + 1j * rr[:, 1])[rr[:, 2] > 0]
+    read = obs.data["rrvis"][np.isfinite(obs.data["rrvis"])]
+    # eht-imaging orders the rows its own way: the same values, compared sorted
+    np.testing.assert_allclose(np.sort(read), np.sort(in_file), rtol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def two_windows(tmp_path_factory):
+    """A casatools.simulator layout (two windows of 16 channels, two correlations, two fields over
+    three scans) and the same with every row moved to field 0, each as v2 and v4."""
+    from casacore import tables as pt
+
+    root = tmp_path_factory.mktemp("v4export-ifs")
+    two_fields = simulator_layout(root / "fields.ms")
+    one_field = simulator_layout(root / "field.ms")
+    with pt.table(str(one_field), readonly=False, ack=False) as t:
+        t.putcol("FIELD_ID", np.zeros(t.nrows(), np.int32))
+    return {name: (str(ms), str(convert(ms, root / f"{name}.ps.zarr")))
+            for name, ms in (("fields", two_fields), ("field", one_field))}
+
+
+def test_windows_become_the_same_ifs_and_two_fields_are_one_line(two_windows, tmp_path):
+    ms, ps = two_windows["field"]
+    export_uvfits(ms, tmp_path / "v2.uvfits", "DATA")
+    export_uvfits(ps, tmp_path / "v4.uvfits", "DATA")
+    with fits.open(tmp_path / "v4.uvfits") as f:
+        assert f[0].header["NAXIS5"] == 2 and f[0].header["NAXIS4"] == 16
+    assert_same_uvfits(tmp_path / "v2.uvfits", tmp_path / "v4.uvfits",
+                       [Path(ms).name, Path(ps).name])
+    ms, ps = two_windows["fields"]
+    before = file_digests(Path(ps))
+    for path in (ms, ps):
+        with pytest.raises(MeasurementSetError, match="holds 2 fields \\[0, 1\\]; UVFITS "
+                                                      "export takes one") as err:
+            export_uvfits(path, tmp_path / "x.uvfits", "DATA")
+        assert "\n" not in str(err.value)
+    assert not (tmp_path / "x.uvfits").exists() and file_digests(Path(ps)) == before
+
+
+def test_a_missing_group_and_an_existing_file_are_one_line(runs, tmp_path):
+    _, tgt4, v4_file, _ = runs["v4"]
+    before = file_digests(Path(tgt4))
+    with pytest.raises(ColumnError, match="has no data group 'corrected' \\(the column "
+                                          "CORRECTED_DATA\\); name a data group") as err:
+        export_uvfits(tgt4, tmp_path / "c.uvfits", "CORRECTED_DATA")
+    assert "\n" not in str(err.value) and not (tmp_path / "c.uvfits").exists()
+    with pytest.raises(OutputExistsError, match="exists; pass --overwrite"):
+        export_uvfits(tgt4, v4_file, "PWC_DATA")
+    assert file_digests(Path(tgt4)) == before
