@@ -221,7 +221,7 @@ def test_a_run_stopped_in_a_chunk_leaves_the_store_as_it_was(copies, monkeypatch
 
 
 @pytest.mark.parametrize("flag, value", [
-    ("calibrator_field", "3C279"), ("caltable", "g.tab"),
+    ("calibrator_field", "3C279"),
     ("restore_flags", "before"), ("save_flags", "after")])
 def test_modes_not_on_processing_sets_are_one_line(converted, flag, value):
     ref2, _, ref4, tgt4 = converted

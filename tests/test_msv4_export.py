@@ -9,9 +9,14 @@ weights exactly (their sign is the flag: the group's own FLAG_PWC must give the 
 run's FLAG, which carries the reference band's gaps, not the input's FLAG of ``base``),
 and the AIPS AN/FQ/NX tables column by column; eht-imaging loads it.  Two windows of a
 casatools.simulator layout become the same two IFs from either backend; two fields, a
-missing data group and an existing file are one line each, the store as it was.  Cost:
-about 15 s here (conversion and the two runs; the pair's build is shared with
-tests/test_msv4_calibrate.py).
+missing data group and an existing file are one line each, the store as it was.
+
+``--caltable`` (step 4 of the task): CASA's G Jones table of the antenna tracker written
+from the processing set equals the v2 run's table, every column of it and of its
+ANTENNA/FIELD/SPECTRAL_WINDOW/OBSERVATION/HISTORY subtables, keywords but MSName; CASA
+applycal applies it to the v2 set and gives the pwc phases; the wideband scene's Fringe
+Jones table (two windows) likewise.  Cost: about 25 s here (conversions, the runs,
+one applycal; the pair's build is shared with tests/test_msv4_calibrate.py).
 """
 
 from __future__ import annotations
@@ -180,3 +185,103 @@ def test_a_missing_group_and_an_existing_file_are_one_line(runs, tmp_path):
     with pytest.raises(OutputExistsError, match="exists; pass --overwrite"):
         export_uvfits(tgt4, v4_file, "PWC_DATA")
     assert file_digests(Path(tgt4)) == before
+
+
+# ---------------------------------------------------------------- --caltable from a store
+
+def _table_columns(path):
+    """{(subtable, column): values} of a CASA table and the subtables a caltable carries
+    (a column with no value in a row, e.g. OBSERVATION::LOG, is None), and its keywords
+    but the subtables'."""
+    from casacore import tables as pt
+
+    out = {}
+    for sub in ("", "ANTENNA", "FIELD", "SPECTRAL_WINDOW", "OBSERVATION", "HISTORY"):
+        with pt.table(f"{path}/{sub}" if sub else str(path), ack=False) as t:
+            out[(sub, "#rows")] = t.nrows()
+            for column in t.colnames():
+                try:
+                    out[(sub, column)] = t.getcol(column)
+                except RuntimeError:
+                    out[(sub, column)] = None
+            if not sub:
+                out[("", "#keywords")] = {k: v for k, v in t.getkeywords().items()
+                                          if not str(v).startswith("Table:")}
+    return out
+
+
+def assert_same_table(v2_table, v4_table, v4_store) -> None:
+    """Every column of the main table and of its subtables equal; the keywords equal but
+    MSName, which names the set each run was given."""
+    a, b = _table_columns(v2_table), _table_columns(v4_table)
+    assert a.keys() == b.keys()
+    keywords_a, keywords_b = a.pop(("", "#keywords")), b.pop(("", "#keywords"))
+    assert keywords_b.pop("MSName") == v4_store and keywords_a.pop("MSName")
+    assert keywords_a == keywords_b
+    for key, value in a.items():
+        if isinstance(value, (list, dict)) or value is None:
+            assert value == b[key], key
+        else:
+            np.testing.assert_array_equal(value, b[key], err_msg=str(key))
+    assert a[("", "#rows")] > 0
+
+
+def _applycal(ms, table) -> None:
+    """CASA applycal in its own process (as tests/test_caltable_fpt.py runs it)."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from hitops.casa.runner import run_task; "
+            "run_task('applycal', vis=sys.argv[1], gaintable=[sys.argv[2]], "
+            "interp=['nearest'], applymode='calflag', calwt=[False], flagbackup=False)")
+    subprocess.run([sys.executable, "-c", code, str(ms), str(table)], check=True,
+                   capture_output=True, timeout=300)
+
+
+def test_the_v4_runs_gain_table_equals_the_v2_runs_and_casa_applies_it(pair_store, tmp_path):
+    """--tracker antenna --caltable: CASA's G Jones table written from the processing set
+    (its subtables through hitops/io/msv4/casa_view.py) equals the v2 run's, every column;
+    CASA applycal of it on the v2 set gives the pwc phases on every sample it keeps."""
+    pair = pair_store.copy(SPEC, tmp_path)
+    _flag_some(pair.ref_ms, pair.target_ms)
+    ref4 = str(convert(pair.ref_ms, tmp_path / "ref.ps.zarr"))
+    tgt4 = str(convert(pair.target_ms, tmp_path / "tgt.ps.zarr"))
+    flags = dict(method="pwc", tracker="antenna", no_verdict=True, chunk_rows=700)
+    before = file_digests(Path(tgt4))
+    r4 = calibrate_flat(ref4, tgt4, caltable=str(tmp_path / "v4.G"), **flags)
+    after_run = file_digests(Path(tgt4))
+    # the table's view of the store only read it: the input's files are as they were
+    # (the zarr.json files register the new pwc group)
+    assert {k: v for k, v in after_run.items() if k in before and Path(k).name != "zarr.json"} \
+        == {k: v for k, v in before.items() if Path(k).name != "zarr.json"}
+    r2 = calibrate_flat(str(pair.ref_ms), str(pair.target_ms), caltable=str(tmp_path / "v2.G"),
+                        **flags)
+    assert r4["caltable"] == {**r2["caltable"], "path": str(tmp_path / "v4.G")}
+    assert_same_table(tmp_path / "v2.G", tmp_path / "v4.G", tgt4)
+    cols = tables.read_columns(str(pair.target_ms), ["PWC_DATA", "FLAG"])
+    _applycal(pair.target_ms, tmp_path / "v4.G")
+    after = tables.read_columns(str(pair.target_ms), ["CORRECTED_DATA", "FLAG"])
+    ok = ~cols["FLAG"] & ~after["FLAG"]
+    assert ok.mean() > 0.9
+    turn = np.angle(after["CORRECTED_DATA"].astype(np.complex128)
+                    * np.conj(cols["PWC_DATA"].astype(np.complex128)))[ok]
+    assert np.max(np.abs(turn)) < 1e-5
+
+
+def test_the_v4_runs_fringe_table_equals_the_v2_runs(tmp_path):
+    """Two 230 GHz windows of 16 channels (the wideband scene, 10 minutes): the per-channel
+    transfer's CASA Fringe Jones table (one SPECTRAL_WINDOW row per window, at its centre)
+    from the processing set equals the v2 run's, every column."""
+    from hitops.simulate import simulate
+    from hitops.simulate.scene import load_scene_mapping
+
+    scene = load_scene_mapping("wideband")[0]
+    scene["observation"]["duration"] = 600
+    sets = simulate(scene, tmp_path)
+    ref4 = str(convert(sets["86"], tmp_path / "ref.ps.zarr"))
+    tgt4 = str(convert(sets["230"], tmp_path / "tgt.ps.zarr"))
+    flags = dict(method="pwc", tracker="antenna", no_verdict=True)
+    calibrate_flat(ref4, tgt4, caltable=str(tmp_path / "v4.F"), **flags)
+    calibrate_flat(str(sets["86"]), str(sets["230"]), caltable=str(tmp_path / "v2.F"), **flags)
+    assert_same_table(tmp_path / "v2.F", tmp_path / "v4.F", tgt4)
+    assert _table_columns(tmp_path / "v4.F")[("SPECTRAL_WINDOW", "#rows")] == 2
