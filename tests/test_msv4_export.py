@@ -142,6 +142,36 @@ def test_eht_imaging_loads_the_v4_export(runs):
     np.testing.assert_allclose(np.sort(read), np.sort(in_file), rtol=1e-6)
 
 
+def test_the_export_cab_takes_a_processing_set(runs, tmp_path):
+    """`stimela run` of cabs/interop.yml's hitops.export-uvfits with the store as its `ms`:
+    the file equals export_uvfits' own of the same group, byte for byte."""
+    import os
+    import subprocess
+    import sys
+
+    tgt4 = runs["v4"][1]
+    cabs = Path(__file__).resolve().parent.parent / "cabs"
+    recipe = tmp_path / "export.yml"
+    recipe.write_text(f"""_include:
+  - {cabs / "hitops-pipeline.yml"}
+  - {cabs / "interop.yml"}
+export-v4:
+  inputs:
+    store: {{dtype: MS, required: true}}
+  steps:
+    export:
+      cab: hitops.export-uvfits
+      params: {{ms: =recipe.store, column: PWC_DATA, uvfits: {tmp_path / "cab.uvfits"}}}
+""")
+    bin_dir = Path(sys.executable).parent
+    env = {**os.environ, "PATH": f"{bin_dir}:{os.environ.get('PATH', '')}"}
+    proc = subprocess.run([str(bin_dir / "stimela"), "run", str(recipe), f"store={tgt4}"],
+                          cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    export_uvfits(tgt4, tmp_path / "direct.uvfits", "PWC_DATA")
+    assert (tmp_path / "cab.uvfits").read_bytes() == (tmp_path / "direct.uvfits").read_bytes()
+
+
 @pytest.fixture(scope="module")
 def two_windows(tmp_path_factory):
     """A casatools.simulator layout (two windows of 16 channels, two correlations, two fields over

@@ -306,6 +306,8 @@ def _read_set(ms: str, column: str, role: str) -> Tuple[MainRows, Setup, str]:
         from .msv4.uvfits_rows import read_group_rows, read_group_setup
         from .msv4.columns import group_of_column
 
+        role = "MSv4 processing set" if role == "Measurement Set" else role
+
         main = read_group_rows(ms, column, role)
         return main, read_group_setup(ms, main, role), f"data group {group_of_column(column)}"
     main = read_main(ms, column, role)

@@ -87,6 +87,13 @@ def read_group_setup(ps: str, main: MainRows, role: str) -> Setup:
     from ..metadata import read_metadata
 
     meta = read_metadata(ps)
+    fields = np.unique(main.cols["FIELD_ID"])
+    if fields.size > 1:
+        names = ", ".join(meta.fields.names[int(f)] for f in fields)
+        raise MeasurementSetError(
+            f"{role} '{ps}' holds {fields.size} fields {fields.tolist()}; UVFITS export takes "
+            f"one ({names}): split the Measurement Set v2 it came from by field (CASA split "
+            "field=...) and convert each part")
     telescope, observer = observation_of(ps)
     return setup_of(meta, main, role, telescope or "VLBA", observer or "hitops")
 
