@@ -83,8 +83,7 @@ def _write_view(ps: str, meta: SetMetadata, ms: str) -> None:
         t.putcol("TIME_RANGE", np.array([[first, last]]))
         t.putcell("OBSERVER", 0, observer or "hitops")
         project, release = _project_and_release(ps)
-        if project:
-            t.putcell("PROJECT", 0, project)
+        t.putcell("PROJECT", 0, project)
         t.putcell("RELEASE_DATE", 0, last if release is None else release)
 
 

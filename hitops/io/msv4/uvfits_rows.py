@@ -14,8 +14,9 @@ an MSv4 processing set exactly as it writes the MSv2 column the group came from.
 * MSv4 keeps a weight per channel: it is given as the weight spectrum (xradio spreads an
   MSv2's WEIGHT over the channels, so the values are the v2 writer's);
   WEIGHT (per row) is its channel mean, as hitops/io/msv4/columns.py defines it;
-* INTERVAL is the partition's ``integration_time`` (MSv4 keeps one per partition);
-  FLAG_ROW is all False (xradio folds it into the flags);
+* INTERVAL (the file's INTTIM) is each cell's EFFECTIVE_INTEGRATION_TIME (the MSv2's
+  EXPOSURE, equal to INTERVAL in the sets CASA importuvfits and hitops write), else the
+  partition's ``integration_time``; FLAG_ROW is all False (xradio folds it into the flags);
 * the setup: windows, field and stations from :func:`hitops.io.metadata.read_metadata`
   (hitops/io/msv4/layout.py), TELESCOP from the antenna dataset's
   ``overall_telescope_name`` and OBSERVER from the partition's ``observation_info``
@@ -53,7 +54,7 @@ def read_group_rows(ps: str, column: str, role: str) -> MainRows:
     rows = [r for r, _ in parts]
     if sum(r.n_row for r in rows) == 0:
         raise MeasurementSetError(f"{role} '{ps}' has no rows to export")
-    interval = np.concatenate([np.full(r.n_row, seconds) for r, seconds in parts])
+    interval = np.concatenate([seconds for _, seconds in parts])
     cols = {name: np.concatenate([getattr(r, name.lower()) for r in rows])
             for name in _ROW_COLUMNS}
     order = np.lexsort((cols["DATA_DESC_ID"], cols["ANTENNA2"], cols["ANTENNA1"], cols["TIME"]))
@@ -69,8 +70,8 @@ def read_group_rows(ps: str, column: str, role: str) -> MainRows:
 
 
 def _partition_rows(layout: ProcessingSetLayout, partition: str,
-                    group: str) -> Tuple[PartitionRows, float]:
-    """(every row of the partition's ``group``, its integration time in seconds)."""
+                    group: str) -> Tuple[PartitionRows, np.ndarray]:
+    """(every row of the partition's ``group``, each row's integration time in seconds)."""
     reader = PartitionReader(layout, partition, group)
     variables: List[str] = ["DATA", "FLAG", "UVW"]
     if reader.group.weight:
@@ -79,7 +80,21 @@ def _partition_rows(layout: ProcessingSetLayout, partition: str,
     if rows.weight is None:
         # a group without weights: every sample counts once (the MSv2's default WEIGHT)
         rows = replace(rows, weight=np.ones(rows.data.shape, np.float32))
-    return rows, reader.integration_time
+    return rows, _integration_times(reader, rows)
+
+
+def _integration_times(reader: PartitionReader, rows: PartitionRows) -> np.ndarray:
+    """INTTIM of each row: EFFECTIVE_INTEGRATION_TIME of its cell (xradio's name for the
+    MSv2's EXPOSURE, which CASA importuvfits and hitops write equal to INTERVAL: the EHT's
+    averaged rows have 4.4-10 s each), else the partition's one ``integration_time``."""
+    name = "EFFECTIVE_INTEGRATION_TIME"
+    if name not in reader.entry.arrays:
+        return np.full(rows.n_row, reader.integration_time)
+    with quiet_zarr():
+        grid = np.asarray(zarr_group(reader.layout.store.path)[reader.entry.name][name][...],
+                          np.float64)
+    seconds = grid[rows.time_index, rows.baseline]
+    return np.where(np.isfinite(seconds), seconds, reader.integration_time)
 
 
 def read_group_setup(ps: str, main: MainRows, role: str) -> Setup:
