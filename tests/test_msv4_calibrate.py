@@ -221,7 +221,6 @@ def test_a_run_stopped_in_a_chunk_leaves_the_store_as_it_was(copies, monkeypatch
 
 
 @pytest.mark.parametrize("flag, value", [
-    ("export_uvfits", "out.uvfits"), ("caltable", "g.tab"),
     ("restore_flags", "before"), ("save_flags", "after")])
 def test_modes_not_on_processing_sets_are_one_line(converted, flag, value):
     ref2, _, ref4, tgt4 = converted

@@ -115,5 +115,5 @@ def record_conversions_and_export(after: AfterCommit, opts, ref_ms: str, target_
     if path:
         after.export_uvfits = export_uvfits(
             target_ms, path, outputs[methods[0]], overwrite=bool(opts.output.overwrite),
-            role="target-band Measurement Set",
+            role="target band",
             history=history_lines(methods, opts.tracking.tracker, ref_ms))

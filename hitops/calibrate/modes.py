@@ -166,10 +166,6 @@ REFUSED_ON_PROCESSING_SETS: Tuple[Refused, ...] = (
                        "them as they were"),
     _on_processing_set("--save-flags", "the run's flags are its data group's own (no CASA "
                        "flag version); drop --save-flags"),
-    _on_processing_set("--export-uvfits", "the UVFITS export reads Measurement Sets v2 so "
-                       "far: export from the v2 sets"),
-    _on_processing_set("--caltable", "CASA tables are written from Measurement Sets v2 so "
-                       "far: run with --caltable on the v2 sets"),
 )
 
 

@@ -38,6 +38,8 @@ import numpy as np
 from ..errors import InputError, MeasurementSetError, OutputExistsError
 from .atomic import replaced_directory
 from . import tables
+from .metadata import read_metadata
+from .msv4.store import is_processing_set
 
 log = logging.getLogger("hitops.io")
 
@@ -46,10 +48,17 @@ RECEPTOR = {"RR": 0, "LL": 1, "XX": 0, "YY": 1}
 
 
 def scan_of_times(ms: str, time: np.ndarray) -> np.ndarray:
-    """SCAN_NUMBER of the Measurement Set at each solution time (the nearest row's)."""
-    with tables.main_table(ms) as t:
-        ms_time = t.getcol("TIME")
-        ms_scan = t.getcol("SCAN_NUMBER")
+    """SCAN_NUMBER of the set at each solution time (the nearest row's); the set may be an
+    MSv4 processing set (its rows as hitops/io/msv4/set_columns.py gives them)."""
+    if is_processing_set(ms):
+        from .msv4.set_columns import read_set_columns
+
+        rows = read_set_columns(ms, ["TIME", "SCAN_NUMBER"])
+        ms_time, ms_scan = rows["TIME"], rows["SCAN_NUMBER"]
+    else:
+        with tables.main_table(ms) as t:
+            ms_time = t.getcol("TIME")
+            ms_scan = t.getcol("SCAN_NUMBER")
     order = np.argsort(ms_time, kind="stable")
     ms_time, ms_scan = ms_time[order], ms_scan[order]
     if ms_time.size == 0:
@@ -91,7 +100,7 @@ def write_gain_table(path, ms, time, antenna_phase, valid, corr_names: Sequence[
     """
     path = Path(str(path).rstrip("/"))
     ms = str(ms).rstrip("/")
-    if not (Path(ms) / "table.dat").is_file():
+    if not ((Path(ms) / "table.dat").is_file() or is_processing_set(ms)):
         raise MeasurementSetError(f"caltable: Measurement Set '{ms}' does not exist or is "
                                   "not a table")
     if path.exists() and not overwrite:
@@ -104,8 +113,11 @@ def write_gain_table(path, ms, time, antenna_phase, valid, corr_names: Sequence[
         raise InputError(f"caltable: antenna_phase has shape {phase.shape}; expected "
                          f"(n_time={time.size}, n_ant, n_corr={len(corr_names)})")
     n_time, n_ant, _ = phase.shape
-    with tables.subtable(ms, "ANTENNA") as t:
-        n_ms_ant = t.nrows()
+    if is_processing_set(ms):
+        n_ms_ant = read_metadata(ms).antennas.n_ant
+    else:
+        with tables.subtable(ms, "ANTENNA") as t:
+            n_ms_ant = t.nrows()
     if n_ant != n_ms_ant:
         raise InputError(f"caltable: {n_ant} antennas in the solutions, {n_ms_ant} in "
                          f"{ms}::ANTENNA; give one entry per ANTENNA row")
@@ -162,7 +174,21 @@ def write_gain_table(path, ms, time, antenna_phase, valid, corr_names: Sequence[
 
 def _create_empty(ms: str, path: str, par_type: str = "Complex", vis_cal: str = "G Jones") -> None:
     """An empty table laid out by CASA itself (calibrater.createcaltable): G Jones by
-    default; hitops.solutions.write makes a 'Float' 'Fringe Jones' one."""
+    default; hitops.solutions.write makes a 'Float' 'Fringe Jones' one.  From an MSv4
+    processing set, CASA reads its subtables through a Measurement Set v2 of no rows
+    (hitops/io/msv4/casa_view.py), and the table's MSName names the store."""
+    if is_processing_set(ms):
+        from .msv4.casa_view import casa_view
+
+        with casa_view(ms) as view:
+            _create_from_ms(view, path, par_type, vis_cal)
+        with tables.open_table(path, writable=True) as t:
+            t.putkeyword("MSName", ms)
+        return
+    _create_from_ms(ms, path, par_type, vis_cal)
+
+
+def _create_from_ms(ms: str, path: str, par_type: str, vis_cal: str) -> None:
     from ..casa_env import ensure_casa_offline
 
     ensure_casa_offline()

@@ -1,7 +1,8 @@
 """A calibrated band as UVFITS (random groups) for eht-imaging, AIPS and DIFMAP.
 
-:func:`export_uvfits` writes any complex column of a single-field,
-single-spectral-window Measurement Set (e.g. ``PWC_DATA``) as the visibilities
+:func:`export_uvfits` writes any complex column of a single-field Measurement
+Set (e.g. ``PWC_DATA``), or any data group of an MSv4 processing set (``pwc``:
+hitops/io/msv4/uvfits_rows.py reads it as the same rows), as the visibilities
 of a UVFITS file.  CASA ``exportuvfits`` only exports DATA, CORRECTED_DATA or
 MODEL_DATA and took ~5 s for a 1.2 M-row band (this writer: about 1 s,
 docs/interop.md); writing the file here reads the column directly and never
@@ -48,6 +49,7 @@ import numpy as np
 
 from ..errors import InputError, MeasurementSetError, OutputExistsError
 from .fits import bintable, card, gst0_deg, header_bytes, iso_date, pad, tai_minus_utc
+from .msv4.store import is_processing_set
 from .uvfits_ms import AIPS_STOKES, MainRows, Setup, read_main, read_setup
 
 log = logging.getLogger("hitops.io")
@@ -66,7 +68,7 @@ def _check_destination(ms: str, path: Path, overwrite: bool, role: str) -> None:
     if path.is_dir():
         raise InputError(f"--export-uvfits '{path}' is a directory; give a file name "
                          "(e.g. target-pwc.uvfits)")
-    if not (Path(ms) / "table.dat").is_file():
+    if not ((Path(ms) / "table.dat").is_file() or is_processing_set(ms)):
         raise MeasurementSetError(f"{role} '{ms}' does not exist or is not a table")
 
 
@@ -297,12 +299,28 @@ def _write_whole(path: Path, header: bytes, groups: np.ndarray, tables: Sequence
 
 # ---------------------------------------------------------------- export
 
+def _read_set(ms: str, column: str, role: str) -> Tuple[MainRows, Setup, str]:
+    """(rows, setup, what was read) of a Measurement Set v2's ``column`` or of the data group
+    it names in an MSv4 processing set (hitops/io/msv4/uvfits_rows.py): the same file."""
+    if is_processing_set(ms):
+        from .msv4.uvfits_rows import read_group_rows, read_group_setup
+        from .msv4.columns import group_of_column
+
+        role = "MSv4 processing set" if role == "Measurement Set" else role
+
+        main = read_group_rows(ms, column, role)
+        return main, read_group_setup(ms, main, role), f"data group {group_of_column(column)}"
+    main = read_main(ms, column, role)
+    return main, read_setup(ms, main, role), f"column {column}"
+
+
 def export_uvfits(ms, path, column: str = "DATA", overwrite: bool = False,
                   role: str = "Measurement Set", history: Sequence[str] = ()) -> Dict:
     """Write ``column`` of ``ms`` (flags and weights kept) as the UVFITS file ``path``.
 
-    ``ms`` must hold one spectral window and one field (as hitops calibrate's
-    sets do).  ``path`` is replaced only with ``overwrite``; the file is
+    ``ms`` must hold one field; its spectral windows become IFs.  It may be an
+    MSv4 processing set, whose data group ``column`` names is written (PWC_DATA ->
+    ``pwc``, DATA -> ``base``: hitops/io/msv4/columns.py).  ``path`` is replaced only with ``overwrite``; the file is
     written under a temporary name and renamed, so a failure leaves nothing.
     The Measurement Set is only read.  Returns a summary (rows, flagged
     fraction, scans, seconds).
@@ -311,13 +329,11 @@ def export_uvfits(ms, path, column: str = "DATA", overwrite: bool = False,
     ms = str(ms).rstrip("/")
     path = Path(path)
     _check_destination(ms, path, overwrite, role)
-    main = read_main(ms, column, role)
-    setup = read_setup(ms, main, role)
+    main, setup, source = _read_set(ms, column, role)
     stokes = _StokesAxis.of(setup.corr_types)
     groups = _random_groups(main, setup, stokes)
     cards = _primary_cards(setup, stokes, groups,
-                           [f"hitops: visibilities from column {column} of {Path(ms).name}",
-                            *history])
+                           [f"hitops: visibilities from {source} of {Path(ms).name}", *history])
     nx, n_scans = _nx_table(groups)
     _write_whole(path, header_bytes(cards), groups.data,
                  [_an_table(setup, stokes, groups.jd0), _fq_table(setup), nx])
@@ -328,8 +344,8 @@ def export_uvfits(ms, path, column: str = "DATA", overwrite: bool = False,
                "samples": int(flag.size), "flagged": n_flagged,
                "flagged_fraction": n_flagged / max(flag.size, 1), "scans": n_scans,
                "stokes": stokes.codes, "seconds": seconds}
-    log.info("wrote %s: column %s of %s, %d rows, %d scans, %.1f%% flagged (negative weights), "
-             "%.2f s", path, column, ms, n_row, n_scans, 100.0 * summary["flagged_fraction"],
+    log.info("wrote %s: %s of %s, %d rows, %d scans, %.1f%% flagged (negative weights), "
+             "%.2f s", path, source, ms, n_row, n_scans, 100.0 * summary["flagged_fraction"],
              seconds)
     return summary
 

@@ -120,7 +120,19 @@ def read_windows(meta: SetMetadata, ddids: np.ndarray):
 
 def read_setup(ms: str, main: MainRows, role: str) -> Setup:
     """The data descriptions' windows (as IFs) and correlations, the field, the stations."""
-    meta = read_metadata(ms)
+    telescope, observer = "VLBA", "hitops"
+    with tables.subtable(ms, "OBSERVATION") as t:
+        if t.nrows():
+            telescope = str(t.getcell("TELESCOPE_NAME", 0)) or telescope
+            observer = str(t.getcell("OBSERVER", 0)) or observer
+    return setup_of(read_metadata(ms), main, role, telescope, observer)
+
+
+def setup_of(meta: SetMetadata, main: MainRows, role: str, telescope: str,
+             observer: str) -> Setup:
+    """The :class:`Setup` of a set's metadata (either backend: hitops/io/msv4/uvfits_rows.py
+    reads a processing set's) and the rows' fields and data descriptions."""
+    ms = meta.ms
     field_id = single_value(main.cols["FIELD_ID"], "fields", ms)
     ddids, chan_freq, chan_width, total_bw, sideband, pol = read_windows(
         meta, np.unique(main.cols["DATA_DESC_ID"]))
@@ -133,11 +145,6 @@ def read_setup(ms: str, main: MainRows, role: str) -> Setup:
     diameters = antennas.dish_diameters if antennas.dish_diameters is not None else np.zeros(n_ant)
     mounts = ([m.lower() for m in antennas.mounts] if antennas.mounts is not None
               else ["alt-az"] * n_ant)
-    telescope, observer = "VLBA", "hitops"
-    with tables.subtable(ms, "OBSERVATION") as t:
-        if t.nrows():
-            telescope = str(t.getcell("TELESCOPE_NAME", 0)) or telescope
-            observer = str(t.getcell("OBSERVER", 0)) or observer
     codes = stations_of(ms, antennas, role).codes
     if n_ant > 255:
         raise MeasurementSetError(f"{role} '{ms}' has {n_ant} antennas; the UVFITS BASELINE "

@@ -13,7 +13,11 @@
 * ``group_rows.py``: a (field, window) group read as calibrate reads a Measurement Set's
   (:class:`~hitops.io.msv4.group_rows.PartitionSource`, behind
   :func:`hitops.io.read.open_for_reading`); calibrate's writer of new data groups is
-  hitops/calibrate/output_msv4.py.
+  hitops/calibrate/output_msv4.py;
+* ``uvfits_rows.py``: a data group as the UVFITS writer's rows and setup
+  (:func:`hitops.io.uvfits.export_uvfits` on a store);
+* ``casa_view.py``: the store's subtables as an empty Measurement Set v2, from which CASA
+  lays out ``--caltable``'s table (hitops/io/caltable.py).
 
 zarr and xradio come with the ``msv4`` extra (``pip install 'hitops[msv4]'``); they are
 imported only when a processing set is opened.  docs/msv4.md says what is measured.
