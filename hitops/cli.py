@@ -92,8 +92,11 @@ def run_tool(tool: str, func, params: dict, debug: bool = False) -> int:
         func(**params)
         return 0
     except HitopsError as err:
-        log.error("%s", " ".join([_one_line(err)] + [_one_line(n) for n in
-                                                     getattr(err, "__notes__", [])]))
+        # the error, then what the run had done by then (a note added where it stopped),
+        # as clauses of one line
+        notes = [_one_line(n) for n in getattr(err, "__notes__", [])]
+        log.error("%s", "; ".join([_one_line(err).rstrip(".")] + notes) if notes
+                  else _one_line(err))
         if debug:
             traceback.print_exc()
         return err.exit_code

@@ -194,7 +194,9 @@ def test_one_channel_step_carries_the_count_read_from_the_v4_reference(one_chann
     (dict(calibrator_field="NOPE"), "--calibrator-field NOPE: no such field"),
     (dict(calibrator_field="CAL", calibrator_model_column="CAL_MODEL",
           ref_model_column="MODEL_DATA"), "--calibrator-model-column CAL_MODEL"),
-], ids=["no-such-field", "no-such-model"])
+    (dict(calibrator_field="CAL", ref_model_column="MODEL_DATA",
+          export_uvfits="never-written.uvfits"), "a UVFITS file holds one"),
+], ids=["no-such-field", "no-such-model", "export-of-two-fields"])
 def test_bad_calibrator_input_is_one_line_and_the_store_as_it_was(sfpr, tmp_path, options,
                                                                    expect):
     ref4, tgt4 = _copies([sfpr["ref4-fields"], sfpr["tgt4-fields"]], tmp_path)

@@ -212,6 +212,13 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
         raise InputError(f"--caltable {opts.output.caltable}: the sets hold {len(pairs)} field/"
                          "spectral-window groups and the G Jones table holds one; split them "
                          "(CASA split field=/spw=) and write one table per group")
+    fields = sorted({g.pair.tgt.field for g in run.groups})
+    if opts.output.export_uvfits and len(fields) > 1:
+        # checked here, before anything is written: the export itself runs after the commit
+        raise InputError(f"--export-uvfits {opts.output.export_uvfits}: the run calibrates "
+                         f"{len(fields)} fields of {target_ms} ({', '.join(fields)}) and a "
+                         "UVFITS file holds one; drop --export-uvfits and export each field "
+                         "from a set split by field (CASA split field=...)")
     return run
 
 
