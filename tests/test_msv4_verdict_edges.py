@@ -7,6 +7,8 @@ pair with 3% of both bands flagged:
 * the measured change of C(60 s) (``verdict.measure``: before = the target's DATA,
   after = the run's PWC_DATA, read from the store's ``base`` and ``pwc`` data groups)
   equals the v2 sets' to 1e-5 relative, series by series;
+* with a v4 reference and a v2 target (main's test has the other mix), the report's
+  verdict is the all-v2 run's, every number to 1e-5 relative;
 * a run the count tracker cuts into several chunks makes no verdict on either format,
   and says so in the same words (``{"skipped": "4 chunks"}``);
 * a store damaged where only the verdict reads (the reference's WEIGHT, its SIGMA) gives
@@ -20,7 +22,7 @@ processing set's groups in time then baseline order), float64 sums of float32
 values, far below 1e-5.
 
 The module skips itself on a tree without the processing-set verdict (its reader is
-``hitops.calibrate.set_rows.open_band_rows``, main 85b2e07).  Cost: about 8 s.
+``hitops.calibrate.set_rows.open_band_rows``, main 85b2e07).  Cost: about 9 s.
 """
 
 from __future__ import annotations
@@ -109,3 +111,30 @@ def test_a_store_damaged_where_the_verdict_reads_is_its_error(pair, tmp_path):
     assert set(report["verdict"]) == {"error"} and "\n" not in error
     assert ref4 in error and "WEIGHT" in error and "damaged" in error, error
     assert report["columns"] == {"pwc": "PWC_DATA"}     # the transfer wrote its group
+
+
+def _same(a, b, where: str = "verdict") -> None:
+    """Equal numbers to 1e-5 relative (NaN = NaN), all else exactly."""
+    if isinstance(a, dict):
+        assert set(a) == set(b), where
+        for k in a:
+            _same(a[k], b[k], f"{where}.{k}")
+    elif isinstance(a, list):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            _same(x, y, f"{where}[{i}]")
+    elif isinstance(a, float) and isinstance(b, float):
+        assert (math.isnan(a) and math.isnan(b)) or a == pytest.approx(b, rel=1e-5,
+                                                                        abs=1e-9), where
+    else:
+        assert a == b, where
+
+
+def test_v4_reference_v2_target_verdict_is_v2s(pair, tmp_path):
+    ref2, tgt2, ref4, _ = _copies(pair, tmp_path)
+    shutil.copytree(tgt2, tmp_path / "target-mixed.ms")
+    v2 = calibrate_flat(ref2, tgt2, method="pwc", chunk_rows=10 ** 6)["verdict"]
+    mixed = calibrate_flat(ref4, str(tmp_path / "target-mixed.ms"), method="pwc",
+                           chunk_rows=10 ** 6)["verdict"]
+    assert "error" not in mixed and len(mixed["baselines"]) == 12
+    _same(mixed, v2)
