@@ -1,5 +1,4 @@
-"""The verdict on MSv4 processing sets beyond the one-chunk run: what tests/test_msv4_verdict.py
-(main, 85b2e07) leaves out.
+"""The verdict on MSv4 processing sets beyond tests/test_msv4_verdict.py's comparisons.
 
 Truth: the same run on the Measurement Sets v2 that xradio converted.  On a noisy
 pair with 3% of both bands flagged:
@@ -21,8 +20,7 @@ only difference is the order in which rows are summed (a v2 set's storage order,
 processing set's groups in time then baseline order), float64 sums of float32
 values, far below 1e-5.
 
-The module skips itself on a tree without the processing-set verdict (its reader is
-``hitops.calibrate.set_rows.open_band_rows``, main 85b2e07).  Cost: about 9 s.
+Cost: about 9 s.
 """
 
 from __future__ import annotations
@@ -36,22 +34,16 @@ import pytest
 
 pytest.importorskip("xradio")
 
-from hitops.calibrate import calibrate_flat, verdict_sample  # noqa: E402
-from hitops.testing import PairSpec, Signal, Troposphere  # noqa: E402
+from hitops.calibrate import calibrate_flat  # noqa: E402
 from msv4_sets import convert  # noqa: E402
 from test_msv4_calibrate import _flag_some  # noqa: E402
-
-if not hasattr(verdict_sample, "open_band_rows"):
-    pytest.skip("the processing-set verdict (main 85b2e07) is not in this tree",
-                allow_module_level=True)
+from test_msv4_verdict import SPECS  # noqa: E402
 
 pytestmark = pytest.mark.filterwarnings("ignore:.*Zarr V3 specification",
                                         "ignore:Consolidated metadata is currently not part")
 
 #: tests/test_msv4_verdict.py's short pair (the session's pair_store builds it once)
-SPEC = PairSpec(n_ant=4, n_time=600, n_scans=2, seed=21,
-                signal=Signal(sigma_ref=0.05, sigma_target=0.08),
-                troposphere=Troposphere(phase_offset_rad=0.7))
+SPEC = SPECS["whole"]
 
 
 @pytest.fixture(scope="module")
