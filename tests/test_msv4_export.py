@@ -112,6 +112,37 @@ def test_the_v4_runs_export_equals_the_v2_runs(runs):
     assert "hitops: visibilities from data group pwc of tgt.ps.zarr" in history
 
 
+def _rows_by_name(ms: str, column: str):
+    """(keys, values, FLAG) of a set's rows in (TIME, station, station) order."""
+    from casacore import tables as pt
+
+    with pt.table(ms, ack=False) as t, pt.table(f"{ms}::ANTENNA", ack=False) as ant:
+        names = np.array(ant.getcol("NAME"))
+        time, a1, a2 = t.getcol("TIME"), names[t.getcol("ANTENNA1")], names[t.getcol("ANTENNA2")]
+        order = np.lexsort((a2, a1, time))
+        return (time[order], a1[order], a2[order]), t.getcol(column)[order], \
+            t.getcol("FLAG")[order]
+
+
+def test_the_v4_export_converted_back_is_the_v2_runs_column(runs, tmp_path):
+    """The road back to CASA and WSClean (docs/msv4.md, "Between the two worlds"): the v4
+    run's UVFITS, converted by hitops.convert, is a Measurement Set whose DATA and FLAG
+    are the v2 run's PWC_DATA and FLAG."""
+    from hitops.io.convert import convert_cab
+
+    back = tmp_path / "back.ms"
+    convert_cab(str(runs["v4"][2]), str(back))
+    keys4, data4, flag4 = _rows_by_name(str(back), "DATA")
+    keys2, data2, flag2 = _rows_by_name(runs["v2"][1], "PWC_DATA")
+    np.testing.assert_allclose(keys4[0], keys2[0], atol=1e-3)   # UVFITS dates: float
+    for a, b in zip(keys4[1:], keys2[1:]):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(flag4, flag2)
+    assert flag2.any() and not flag2.all()
+    ok = ~flag2
+    np.testing.assert_allclose(data4[ok], data2[ok], rtol=2e-7, atol=1e-6)
+
+
 def test_the_flags_are_the_output_groups_not_the_inputs(runs, tmp_path):
     """The pwc group's flags hold the reference band's gaps: the base group's flags (the
     input's FLAG) give other negative weights, so an export that took them would fail the
