@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import shutil
 from pathlib import Path
-from typing import Dict
+from typing import Dict, List, Sequence
 
 import numpy as np
 
@@ -51,4 +52,13 @@ def file_digests(root: Path, skip=()) -> Dict[str, str]:
         rel = path.relative_to(root)
         if path.is_file() and not any(part in skip for part in rel.parts):
             out[str(rel)] = hashlib.sha256(path.read_bytes()).hexdigest()
+    return out
+
+
+def copies_of(paths: Sequence, directory: Path) -> List[str]:
+    """Private copies of sets or stores in ``directory``, under their own names."""
+    out = []
+    for path in paths:
+        shutil.copytree(path, Path(directory) / Path(path).name)
+        out.append(str(Path(directory) / Path(path).name))
     return out

@@ -19,7 +19,6 @@ from __future__ import annotations
 import copy
 import json
 import logging
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +29,7 @@ pytest.importorskip("xradio")
 from hitops.calibrate import calibrate_flat  # noqa: E402
 from hitops.errors import HitopsError  # noqa: E402
 from hitops.testing.phaseref_scene import PhaserefSpec, make_phaseref_pair  # noqa: E402
-from msv4_sets import file_digests  # noqa: E402
+from msv4_sets import copies_of, file_digests  # noqa: E402
 from test_msv4_calibrate import (_flag_some, _input_digests,  # noqa: E402
                                  assert_group_equals_column)
 
@@ -63,13 +62,6 @@ def sfpr(tmp_path_factory):
     return out
 
 
-def _copies(paths, tmp_path: Path):
-    out = []
-    for path in paths:
-        shutil.copytree(path, tmp_path / Path(path).name)
-        out.append(str(tmp_path / Path(path).name))
-    return out
-
 
 def _step_entry(report) -> dict:
     """The report's phase referencing entry, as the JSON file holds it."""
@@ -88,7 +80,7 @@ def _run_both(ref2, tgt2, ref, tgt4, **options):
                                                ("fields", "v2")])
 def test_calibrator_step_on_v4_writes_what_the_v2_step_writes(sfpr, tmp_path, scheme,
                                                               reference):
-    ref2, tgt2, ref4, tgt4 = _copies([sfpr["ref2"], sfpr["tgt2"], sfpr[f"ref4-{scheme}"],
+    ref2, tgt2, ref4, tgt4 = copies_of([sfpr["ref2"], sfpr["tgt2"], sfpr[f"ref4-{scheme}"],
                                       sfpr[f"tgt4-{scheme}"]], tmp_path)
     before, ref_before = _input_digests(tgt4), file_digests(Path(ref4))
     r2, r4 = _run_both(ref2, tgt2, ref4 if reference == "v4" else ref2, tgt4)
@@ -111,7 +103,7 @@ def test_calibrator_step_after_the_workers_wrote_the_chunks(sfpr, tmp_path):
     """With a cluster the workers write the transfer's chunks; the step then reads them
     back on the client from the same staged arrays."""
     distributed = pytest.importorskip("distributed")
-    ref2, tgt2, ref4, tgt4 = _copies([sfpr["ref2"], sfpr["tgt2"], sfpr["ref4-fields"],
+    ref2, tgt2, ref4, tgt4 = copies_of([sfpr["ref2"], sfpr["tgt2"], sfpr["ref4-fields"],
                                       sfpr["tgt4-fields"]], tmp_path)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   dashboard_address=None) as cluster:
@@ -135,7 +127,7 @@ def test_an_antenna_unsolved_on_the_calibrator_is_flagged_in_every_group(sfpr, t
     sum and flag with the flags the run staged, not the input's."""
     from casacore import tables as pt
 
-    ref2, tgt2 = _copies([sfpr["ref2"], sfpr["tgt2"]], tmp_path)
+    ref2, tgt2 = copies_of([sfpr["ref2"], sfpr["tgt2"]], tmp_path)
     for ms, station, field, scans in ((tgt2, "GL", "CAL", None), (ref2, "PB", "CAL", 1)):
         with pt.table(ms, readonly=False, ack=False) as t:
             ant = list(pt.table(f"{ms}::ANTENNA", ack=False).getcol("NAME")).index(station)
@@ -179,7 +171,7 @@ def one_channel(tmp_path_factory):
 
 
 def test_one_channel_step_carries_the_count_read_from_the_v4_reference(one_channel, tmp_path):
-    ref2, tgt2, ref4, tgt4 = _copies(one_channel, tmp_path)
+    ref2, tgt2, ref4, tgt4 = copies_of(one_channel, tmp_path)
     flags = dict(method="pwc", no_verdict=True, calibrator_field="3C273",
                  ref_model_column="MODEL_DATA", chunk_rows=300)
     r2 = calibrate_flat(ref2, tgt2, **flags)
@@ -199,7 +191,7 @@ def test_one_channel_step_carries_the_count_read_from_the_v4_reference(one_chann
 ], ids=["no-such-field", "no-such-model", "export-of-two-fields"])
 def test_bad_calibrator_input_is_one_line_and_the_store_as_it_was(sfpr, tmp_path, options,
                                                                    expect):
-    ref4, tgt4 = _copies([sfpr["ref4-fields"], sfpr["tgt4-fields"]], tmp_path)
+    ref4, tgt4 = copies_of([sfpr["ref4-fields"], sfpr["tgt4-fields"]], tmp_path)
     before = file_digests(Path(tgt4))
     with pytest.raises(HitopsError) as err:    # the CLI's one line: tests/test_cli*.py
         calibrate_flat(ref4, tgt4, no_verdict=True, **options)

@@ -25,7 +25,6 @@ pytest.importorskip("xradio")
 distributed = pytest.importorskip("distributed")
 
 from hitops.calibrate import calibrate_flat  # noqa: E402
-from hitops.calibrate.output_msv4 import DataGroupTransaction  # noqa: E402
 from msv4_sets import file_digests  # noqa: E402
 from hitops.calibrate import worker_chunks  # noqa: E402
 from hitops.errors import ProcessingSetError  # noqa: E402

@@ -12,8 +12,6 @@ must be the v2 run's; with the v2 reference and the v4 target too.  Cost: about 
 from __future__ import annotations
 
 import math
-import shutil
-from pathlib import Path
 
 import pytest
 
@@ -21,7 +19,7 @@ pytest.importorskip("xradio")
 
 from hitops.calibrate import calibrate_flat  # noqa: E402
 from hitops.testing import PairSpec, Signal, Storage, Troposphere  # noqa: E402
-from msv4_sets import convert  # noqa: E402
+from msv4_sets import convert, copies_of  # noqa: E402
 from test_msv4_calibrate import _flag_some  # noqa: E402
 
 pytestmark = pytest.mark.filterwarnings("ignore:.*Zarr V3 specification",
@@ -50,24 +48,17 @@ def pairs(pair_store, tmp_path_factory):
     return out
 
 
-def _copies(paths, tmp_path: Path):
-    out = []
-    for path in paths:
-        shutil.copytree(path, tmp_path / Path(path).name)
-        out.append(str(tmp_path / Path(path).name))
-    return out
 
-
-def _same(a, b, where: str = "verdict") -> None:
+def assert_same_numbers(a, b, where: str = "verdict") -> None:
     """Equal numbers to float32 rounding of the visibilities (NaN = NaN), all else exactly."""
     if isinstance(a, dict):
         assert set(a) == set(b), where
         for k in a:
-            _same(a[k], b[k], f"{where}.{k}")
+            assert_same_numbers(a[k], b[k], f"{where}.{k}")
     elif isinstance(a, list):
         assert len(a) == len(b), where
         for i, (x, y) in enumerate(zip(a, b)):
-            _same(x, y, f"{where}[{i}]")
+            assert_same_numbers(x, y, f"{where}[{i}]")
     elif isinstance(a, float) and isinstance(b, float):
         assert (math.isnan(a) and math.isnan(b)) or a == pytest.approx(b, rel=1e-5,
                                                                         abs=1e-9), where
@@ -78,7 +69,7 @@ def _same(a, b, where: str = "verdict") -> None:
 @pytest.mark.parametrize("name, reference", [("whole", "v4"), ("sampled", "v4"),
                                              ("sampled", "v2")])
 def test_v4_verdict_is_the_v2_verdict(pairs, tmp_path, name, reference):
-    ref2, tgt2, ref4, tgt4 = _copies(pairs[name], tmp_path)
+    ref2, tgt2, ref4, tgt4 = copies_of(pairs[name], tmp_path)
     r2 = calibrate_flat(ref2, tgt2, method="pwc", chunk_rows=10 ** 6)
     r4 = calibrate_flat(ref4 if reference == "v4" else ref2, tgt4, method="pwc",
                         chunk_rows=10 ** 6)
@@ -87,4 +78,4 @@ def test_v4_verdict_is_the_v2_verdict(pairs, tmp_path, name, reference):
     assert v4["sampled"]["times_read"] < v4["sampled"]["times"] if name == "sampled" else \
         v4["sampled"]["times_read"] == v4["sampled"]["times"]
     assert any(math.isfinite(e["predicted_change"]) for e in v4["baselines"])
-    _same(v4, v2)
+    assert_same_numbers(v4, v2)

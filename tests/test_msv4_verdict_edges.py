@@ -35,9 +35,9 @@ import pytest
 pytest.importorskip("xradio")
 
 from hitops.calibrate import calibrate_flat  # noqa: E402
-from msv4_sets import convert  # noqa: E402
+from msv4_sets import convert, copies_of  # noqa: E402
 from test_msv4_calibrate import _flag_some  # noqa: E402
-from test_msv4_verdict import SPECS  # noqa: E402
+from test_msv4_verdict import SPECS, assert_same_numbers  # noqa: E402
 
 pytestmark = pytest.mark.filterwarnings("ignore:.*Zarr V3 specification",
                                         "ignore:Consolidated metadata is currently not part")
@@ -57,18 +57,11 @@ def pair(pair_store, tmp_path_factory):
             str(convert(built.target_ms, root / "tgt.ps.zarr")))
 
 
-def _copies(paths, tmp_path: Path):
-    out = []
-    for path in paths:
-        shutil.copytree(path, tmp_path / Path(path).name)
-        out.append(str(tmp_path / Path(path).name))
-    return out
-
 
 def test_measured_change_on_the_data_groups_is_v2s(pair, tmp_path):
     from hitops.calibrate.verdict import measure, predict
 
-    ref2, tgt2, ref4, tgt4 = _copies(pair, tmp_path)
+    ref2, tgt2, ref4, tgt4 = copies_of(pair, tmp_path)
     ratio = calibrate_flat(ref2, tgt2, method="pwc", chunk_rows=10 ** 6)["verdict"]["ratio"]
     calibrate_flat(ref4, tgt4, method="pwc", chunk_rows=10 ** 6)
     measured = {}
@@ -84,7 +77,7 @@ def test_measured_change_on_the_data_groups_is_v2s(pair, tmp_path):
 
 
 def test_several_chunks_skip_the_verdict_as_on_v2(pair, tmp_path):
-    ref2, tgt2, ref4, tgt4 = _copies(pair, tmp_path)
+    ref2, tgt2, ref4, tgt4 = copies_of(pair, tmp_path)
     v2 = calibrate_flat(ref2, tgt2, method="pwc", tracker="count", chunk_rows=1000)
     v4 = calibrate_flat(ref4, tgt4, method="pwc", tracker="count", chunk_rows=1000)
     assert v2["verdict"] == {"skipped": "4 chunks"}     # 3000 rows per band
@@ -92,7 +85,7 @@ def test_several_chunks_skip_the_verdict_as_on_v2(pair, tmp_path):
 
 
 def test_a_store_damaged_where_the_verdict_reads_is_its_error(pair, tmp_path):
-    _, _, ref4, tgt4 = _copies(pair, tmp_path)
+    _, _, ref4, tgt4 = copies_of(pair, tmp_path)
     chunks = [p for p in glob.glob(f"{ref4}/*/WEIGHT/c/**", recursive=True)
               if Path(p).is_file()]
     assert chunks
@@ -105,28 +98,11 @@ def test_a_store_damaged_where_the_verdict_reads_is_its_error(pair, tmp_path):
     assert report["columns"] == {"pwc": "PWC_DATA"}     # the transfer wrote its group
 
 
-def _same(a, b, where: str = "verdict") -> None:
-    """Equal numbers to 1e-5 relative (NaN = NaN), all else exactly."""
-    if isinstance(a, dict):
-        assert set(a) == set(b), where
-        for k in a:
-            _same(a[k], b[k], f"{where}.{k}")
-    elif isinstance(a, list):
-        assert len(a) == len(b), where
-        for i, (x, y) in enumerate(zip(a, b)):
-            _same(x, y, f"{where}[{i}]")
-    elif isinstance(a, float) and isinstance(b, float):
-        assert (math.isnan(a) and math.isnan(b)) or a == pytest.approx(b, rel=1e-5,
-                                                                        abs=1e-9), where
-    else:
-        assert a == b, where
-
-
 def test_v4_reference_v2_target_verdict_is_v2s(pair, tmp_path):
-    ref2, tgt2, ref4, _ = _copies(pair, tmp_path)
+    ref2, tgt2, ref4, _ = copies_of(pair, tmp_path)
     shutil.copytree(tgt2, tmp_path / "target-mixed.ms")
     v2 = calibrate_flat(ref2, tgt2, method="pwc", chunk_rows=10 ** 6)["verdict"]
     mixed = calibrate_flat(ref4, str(tmp_path / "target-mixed.ms"), method="pwc",
                            chunk_rows=10 ** 6)["verdict"]
     assert "error" not in mixed and len(mixed["baselines"]) == 12
-    _same(mixed, v2)
+    assert_same_numbers(mixed, v2)
