@@ -99,6 +99,20 @@ def test_calibrator_step_on_v4_writes_what_the_v2_step_writes(sfpr, tmp_path, sc
     assert file_digests(Path(ref4)) == ref_before
 
 
+def test_a_rerun_with_overwrite_writes_the_same_groups(sfpr, tmp_path):
+    """A second run over the first's groups (--overwrite: they are unregistered, then
+    staged afresh) steps from its own transfer, not the first run's output."""
+    ref2, tgt2, ref4, tgt4 = copies_of([sfpr["ref2"], sfpr["tgt2"], sfpr["ref4-fields"],
+                                        sfpr["tgt4-fields"]], tmp_path)
+    r2, first = _run_both(ref2, tgt2, ref4, tgt4)
+    again = calibrate_flat(ref4, tgt4, method=",".join(METHODS), no_verdict=True,
+                           calibrator_field="CAL", ref_model_column="MODEL_DATA",
+                           chunk_rows=200, overwrite=True)
+    assert _step_entry(again) == _step_entry(first) == _step_entry(r2)
+    for method in METHODS:
+        assert_group_equals_column(tgt4, method, tgt2, f"{method.upper()}_DATA")
+
+
 def test_calibrator_step_after_the_workers_wrote_the_chunks(sfpr, tmp_path):
     """With a cluster the workers write the transfer's chunks; the step then reads them
     back on the client from the same staged arrays."""
