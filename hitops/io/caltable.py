@@ -49,16 +49,11 @@ RECEPTOR = {"RR": 0, "LL": 1, "XX": 0, "YY": 1}
 
 def scan_of_times(ms: str, time: np.ndarray) -> np.ndarray:
     """SCAN_NUMBER of the set at each solution time (the nearest row's); the set may be an
-    MSv4 processing set (its rows as hitops/io/msv4/set_columns.py gives them)."""
-    if is_processing_set(ms):
-        from .msv4.set_columns import read_set_columns
+    MSv4 processing set (:func:`hitops.io.read.read_row_columns` reads either)."""
+    from .read import read_row_columns
 
-        rows = read_set_columns(ms, ["TIME", "SCAN_NUMBER"])
-        ms_time, ms_scan = rows["TIME"], rows["SCAN_NUMBER"]
-    else:
-        with tables.main_table(ms) as t:
-            ms_time = t.getcol("TIME")
-            ms_scan = t.getcol("SCAN_NUMBER")
+    rows = read_row_columns(ms, ["TIME", "SCAN_NUMBER"])
+    ms_time, ms_scan = rows["TIME"], rows["SCAN_NUMBER"]
     order = np.argsort(ms_time, kind="stable")
     ms_time, ms_scan = ms_time[order], ms_scan[order]
     if ms_time.size == 0:
