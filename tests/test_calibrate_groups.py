@@ -209,3 +209,31 @@ def test_one_group_of_a_set_with_two_field_rows_in_several_chunks(tmp_path, new_
     moved = calibrate_flat(ref, tgt, method="pwc", chunk_rows=1000)
     assert plain["chunks"] == moved["chunks"] > 2
     np.testing.assert_array_equal(col(tgt, "PWC_DATA"), col(truth.target_ms, "PWC_DATA"))
+
+
+def test_export_of_a_set_with_a_field_left_out_is_refused_before_anything_is_written(
+        merged, tmp_path):
+    """The target set holds fields A and B, the reference band A only: the run would
+    calibrate A and leave B out, but --export-uvfits writes the whole target set, and a
+    UVFITS file holds one field.  Refused before the commit (it used to fail after the
+    columns were written), naming both fields and the one calibrated."""
+    from hitops.errors import InputError
+
+    truths, _, _, _ = merged
+    ref, tgt = str(tmp_path / "ref-A.ms"), str(tmp_path / "target-AB.ms")
+    _merge([str(t.ref_ms) for t in truths], ref, [0])            # field A, low window
+    _merge([str(t.target_ms) for t in truths], tgt, [0, 2])      # fields A and B, low window
+    before = sorted(pt.table(tgt, ack=False).colnames())
+    out = tmp_path / "never.uvfits"
+    with pytest.raises(InputError, match=r"--export-uvfits .*never\.uvfits: .*target-AB\.ms "
+                                         r"holds 2 fields \(A, B\), of which the run calibrates "
+                                         r"A only, and a UVFITS file holds one field"):
+        calibrate_flat(ref, tgt, method="pwc", export_uvfits=str(out), no_verdict=True)
+    assert sorted(pt.table(tgt, ack=False).colnames()) == before and not out.exists()
+    # without the export the same pair runs: field B is left out, A calibrated
+    calibrate_flat(ref, tgt, method="pwc", no_verdict=True)
+    report = json.loads((tmp_path / "target-AB.ms.hitops-calibrate.json").read_text())
+    with pt.table(tgt, ack=False) as t:
+        n_field_a = int(np.sum(t.getcol("FIELD_ID") == 0))
+        assert "PWC_DATA" in t.colnames() and 0 < n_field_a < t.nrows()
+    assert report["rows"]["matched"] == n_field_a

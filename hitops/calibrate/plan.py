@@ -212,14 +212,32 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
         raise InputError(f"--caltable {opts.output.caltable}: the sets hold {len(pairs)} field/"
                          "spectral-window groups and the G Jones table holds one; split them "
                          "(CASA split field=/spw=) and write one table per group")
-    fields = sorted({g.pair.tgt.field for g in run.groups})
-    if opts.output.export_uvfits and len(fields) > 1:
-        # checked here, before anything is written: the export itself runs after the commit
-        raise InputError(f"--export-uvfits {opts.output.export_uvfits}: the run calibrates "
-                         f"{len(fields)} fields of {target_ms} ({', '.join(fields)}) and a "
-                         "UVFITS file holds one; drop --export-uvfits and export each field "
-                         "from a set split by field (CASA split field=...)")
+    if opts.output.export_uvfits:
+        _check_export_fields(opts.output.export_uvfits, target_ms, tgt_meta, tgt_groups, run)
     return run
+
+
+def _check_export_fields(export: str, target_ms: str, tgt_meta, tgt_groups: Dict,
+                         run: RunPlan) -> None:
+    """--export-uvfits writes the whole target set, and a UVFITS file holds one field:
+    checked here, before anything is written, since the export runs after the commit."""
+    names = tgt_meta.fields.names
+    held = sorted({names[field_id] if field_id < len(names) else str(field_id)
+                   for field_id, _ in tgt_groups})
+    if len(held) <= 1:
+        return
+    calibrated = sorted({g.pair.tgt.field for g in run.groups})
+    if len(calibrated) > 1:
+        what = (f"the run calibrates {len(calibrated)} fields of {target_ms} "
+                f"({', '.join(calibrated)})")
+    else:
+        # a field without a partner in the reference band is left out of the run, but it
+        # is still in the set the export would write
+        what = (f"{target_ms} holds {len(held)} fields ({', '.join(held)}), of which the run "
+                f"calibrates {calibrated[0]} only")
+    raise InputError(f"--export-uvfits {export}: {what}, and a UVFITS file holds one field; "
+                     "drop --export-uvfits and export each field from a set split by field "
+                     "(CASA split field=...)")
 
 
 def _band(ms: str, datasets: Dict, key, n_ant: int, time_ordered: bool,
