@@ -44,8 +44,12 @@ numba-cache: ## create the numba kernel cache directory (.venv/numba-cache)
 run: setup ## set up, then run the demo recipe quietly: one line per step, then the result table (out/demo/; ARGS='-v seed=11')
 	@$(PY) -m hitops.run recipes/fpt-demo.yml $(ARGS)
 
-test: setup ## set up, then run all the tests
-	$(PY) -m pytest -q --durations=20
+# test files spread over this many processes (pytest-xdist; 0: one process). A file's
+# tests stay together on one worker (--dist loadfile): its module fixtures are built once
+TEST_WORKERS ?= 2
+
+test: setup ## set up, then run all the tests, files spread over TEST_WORKERS processes (default 2; 0: one)
+	$(PY) -m pytest -q --durations=20 -n $(TEST_WORKERS) --dist loadfile
 
 bench: setup ## set up, then run every benchmark (each rewrites its section of docs/performance.md)
 	$(PY) -m benchmarks.run_all
