@@ -44,7 +44,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-
+from typing import Optional
 
 from ._report import ROOT, machine_line, replace_section, run_process
 
@@ -198,20 +198,22 @@ def _partitions(ps: Path) -> list:
     return sorted(p.name for p in ps.iterdir() if (p / "zarr.json").is_file())
 
 
-def _run_floor(ref_ps: Path, tgt_ps: Path, n_methods: int, repeats: int) -> dict:
+def _run_floor(ref_ps: Optional[Path], tgt_ps: Path, n_methods: int, repeats: int) -> dict:
     """The zarr floor of a calibration's variables, in this (warm) process: every
-    partition of both bands read, the outputs written (one VISIBILITY and FLAG per method
-    and target partition, whole, in the store's chunks)."""
+    partition of both bands read (of the target alone when ``ref_ps`` is None: the
+    ``--reference-table`` path reads no reference visibilities), the outputs written (one
+    VISIBILITY and FLAG per method and target partition, whole, in the store's chunks)."""
     import zarr
 
     from hitops.io.msv4.store import quiet_zarr
 
+    bands = (tgt_ps,) if ref_ps is None else (ref_ps, tgt_ps)
     with quiet_zarr(), _floor_arrays_removed(tgt_ps):
         groups = [zarr.open_group(str(ps), path=name, mode="r+", use_consolidated=False)
-                  for ps in (ref_ps, tgt_ps) for name in _partitions(ps)]
+                  for ps in bands for name in _partitions(ps)]
         read_s = _timed(lambda: [g[v][...] for g in groups for v in
                                  ("EFFECTIVE_INTEGRATION_TIME", "VISIBILITY", "FLAG")], repeats)
-        targets = groups[len(_partitions(ref_ps)):]
+        targets = groups[len(groups) - len(_partitions(tgt_ps)):]
         values = [(g, g["VISIBILITY"][...], g["FLAG"][...]) for g in targets]
         runs = iter(range(1000))
 
@@ -241,7 +243,7 @@ ref, tgt, n_methods, tag = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3]
 def partitions(ps):
     return sorted(p.name for p in ps.iterdir() if (p / "zarr.json").is_file())
 outputs = []
-for ps in (ref, tgt):
+for ps in ((tgt,) if str(ref) == "-" else (ref, tgt)):
     for name in partitions(ps):
         group = zarr.open_group(str(ps), path=name, mode="r+", use_consolidated=False)
         arrays = {v: group[v][...] for v in ("EFFECTIVE_INTEGRATION_TIME", "VISIBILITY", "FLAG")}
@@ -257,13 +259,16 @@ for group, arrays in outputs:
 """
 
 
-def _run_floor_process(ref_ps: Path, tgt_ps: Path, n_methods: int, repeats: int) -> dict:
-    """The floor as a process of its own (:data:`_FLOOR_PROCESS`): median wall and the
-    largest peak RSS of ``repeats`` runs; the arrays it wrote are removed after each."""
+def _run_floor_process(ref_ps: Optional[Path], tgt_ps: Path, n_methods: int,
+                       repeats: int) -> dict:
+    """The floor as a process of its own (:data:`_FLOOR_PROCESS`; the target alone when
+    ``ref_ps`` is None): median wall and the largest peak RSS of ``repeats`` runs; the
+    arrays it wrote are removed after each."""
     runs = []
     for k in range(repeats):
         with _floor_arrays_removed(tgt_ps):
-            runs.append(run_process([sys.executable, "-c", _FLOOR_PROCESS, ref_ps, tgt_ps,
+            runs.append(run_process([sys.executable, "-c", _FLOOR_PROCESS,
+                                     "-" if ref_ps is None else ref_ps, tgt_ps,
                                      n_methods, f"P{k}"]))
     return {"wall": statistics.median(r["wall_s"] for r in runs),
             "walls": [r["wall_s"] for r in runs], "rss": max(r["peak_rss_mb"] for r in runs)}

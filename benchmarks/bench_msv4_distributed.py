@@ -25,9 +25,16 @@ inside this warm process (no start, no imports; benchmarks/bench_msv4.py).
 with N channels per window, ``--integration`` and ``--duration`` setting its rows; a
 section of its own.
 
+``--reference-table``: the table path on the wideband pair.  Its 86 GHz set stays a
+Measurement Set v2 and is solved by CASA fringefit (``--solint``, the wideband
+recipe's reference antennas); ``hitops calibrate REF.ms TGT.ps --reference-table
+REF.fringe --method pwc,cfpt``.  On a cluster each chunk is one task that reads,
+corrects and writes it (hitops/calibrate/table_workers.py); the floor reads the target
+alone (no reference visibilities are read).
+
 Run: ``python -m benchmarks.bench_msv4_distributed [--n-time N] [--repeats N]
-[--n-chan N --integration S --duration S] [--workdir DIR]``; writes its section of
-docs/performance.md.
+[--n-chan N --integration S --duration S] [--reference-table --solint S]
+[--workdir DIR]``; writes its section of docs/performance.md.
 """
 
 from __future__ import annotations
@@ -58,8 +65,10 @@ def _worker_peak_mb(client) -> list:
     return sorted(client.run(peak).values())
 
 
-def _runs(ref: Path, tgt: Path, chunk_rows: int, repeats: int, n_workers: int) -> dict:
-    """``repeats`` runs, with a fresh LocalCluster of ``n_workers`` processes (0: none)."""
+def _runs(ref: Path, tgt: Path, chunk_rows: int, repeats: int, n_workers: int,
+          methods: str = METHODS, table: Optional[Path] = None) -> dict:
+    """``repeats`` runs, with a fresh LocalCluster of ``n_workers`` processes (0: none);
+    ``table``: from that reference table (the table path)."""
     hitops = Path(sys.executable).with_name("hitops")
     load = os.getloadavg()[0]
     cluster = client = None
@@ -73,9 +82,9 @@ def _runs(ref: Path, tgt: Path, chunk_rows: int, repeats: int, n_workers: int) -
     try:
         walls, rss = [], []
         for k in range(repeats):
-            r = run_process([hitops, "calibrate", ref, tgt, "--method", METHODS,
+            r = run_process([hitops, "calibrate", ref, tgt, "--method", methods,
                              "--chunk-rows", str(chunk_rows), "--no-verdict", "--overwrite"]
-                            + extra)
+                            + (["--reference-table", table] if table else []) + extra)
             walls.append(r["wall_s"])
             rss.append(r["peak_rss_mb"])
         workers = _worker_peak_mb(client) if client else []
@@ -115,10 +124,12 @@ def _one_channel_pair(work: Path, n_time: int, chunk_rows: int):
                             f"channel), converted in time chunks of {step} steps")
 
 
-def _wideband_pair(work: Path, wide: Wideband, chunk_rows: int):
+def _wideband_pair(work: Path, wide: Wideband, chunk_rows: int, solint: str = ""):
     """(ref, target processing set, its description): the wideband scene simulated as
-    MSv2 sets and converted as the one-channel pair is (time chunks of ``chunk_rows``)."""
-    from hitops.io.msv4.group_rows import row_count
+    MSv2 sets and converted as the one-channel pair is (time chunks of ``chunk_rows``).
+    ``solint``: the reference band is left a v2 set and its fringefit table made
+    (``REF.fringe`` beside it): (ref v2, target processing set, description)."""
+    from hitops.io.read import row_count
     from hitops.simulate import simulate
     from hitops.simulate.scene import load_scene_mapping
 
@@ -130,7 +141,13 @@ def _wideband_pair(work: Path, wide: Wideband, chunk_rows: int):
     step = max(1, chunk_rows // (n_station * (n_station - 1) // 2))
     sets = simulate(scene, work / "sim", overwrite=True)
     ref_ps, tgt_ps = work / "ref.ps.zarr", work / "tgt.ps.zarr"
-    _convert(sets["86"], ref_ps, "arcae", step)
+    if solint:
+        from hitops.casa.tasks import fringefit
+        ref_ps = Path(sets["86"])
+        fringefit(str(ref_ps), str(ref_ps.with_suffix(".fringe")), solint=solint,
+                  refant="PV,PB,AP,GL,KP", minsnr=3.0, overwrite=True)
+    else:
+        _convert(sets["86"], ref_ps, "arcae", step)
     _convert(sets["230"], tgt_ps, "arcae", step)
     rows = [row_count(str(ps)) for ps in (ref_ps, tgt_ps)]
     return ref_ps, tgt_ps, (
@@ -141,30 +158,39 @@ def _wideband_pair(work: Path, wide: Wideband, chunk_rows: int):
 
 
 def bench(work: Path, n_time: int, chunk_rows: int, repeats: int,
-          wideband: Optional[Wideband] = None) -> str:
+          wideband: Optional[Wideband] = None, solint: str = "") -> str:
+    """``solint``: the table path (``--reference-table``) on the wideband pair."""
     if wideband is None:
         ref_ps, tgt_ps, pair_text = _one_channel_pair(work, n_time, chunk_rows)
     else:
-        ref_ps, tgt_ps, pair_text = _wideband_pair(work, wideband, chunk_rows)
-    n_methods = len(METHODS.split(","))
-    floor = _run_floor(ref_ps, tgt_ps, n_methods, repeats)
-    floor_process = _run_floor_process(ref_ps, tgt_ps, n_methods, repeats)
+        ref_ps, tgt_ps, pair_text = _wideband_pair(work, wideband, chunk_rows, solint)
+    table = ref_ps.with_suffix(".fringe") if solint else None
+    methods = "pwc,cfpt" if table else METHODS
+    n_methods = len(methods.split(","))
+    read_ref = None if table else ref_ps      # the table path reads no reference band
+    floor = _run_floor(read_ref, tgt_ps, n_methods, repeats)
+    floor_process = _run_floor_process(read_ref, tgt_ps, n_methods, repeats)
     configs = {"one process (threads)": 0, "LocalCluster, 1 worker process": 1,
                "LocalCluster, 2 worker processes": 2}
-    results = {name: _runs(ref_ps, tgt_ps, chunk_rows, repeats, n) for name, n in configs.items()}
+    results = {name: _runs(ref_ps, tgt_ps, chunk_rows, repeats, n, methods, table)
+               for name, n in configs.items()}
     floor_s = floor_process["wall"]
+    command = (f"`hitops calibrate REF.ms TGT.ps.zarr --reference-table REF.fringe "
+               f"(fringefit, solint {solint}) --method {methods}" if table else
+               f"`hitops calibrate --method {methods}")
+    read = "the target's" if table else "both bands'"
     lines = [
         f"Measured {time.strftime('%Y-%m-%d %H:%M')} on {machine_line()} (shared with other "
         f"helpers' work: load average given per row); {pair_text}; "
-        f"`hitops calibrate --method {METHODS} --chunk-rows {chunk_rows} --no-verdict "
+        f"{command} --chunk-rows {chunk_rows} --no-verdict "
         f"--overwrite`, each run a process of its own, median of {repeats}.  x floor: "
         "against the floor as a process of its own (python started, numpy and zarr "
-        "imported, both bands read, the groups written), which a run pays too.",
+        f"imported, {read} variables read, the groups written), which a run pays too.",
         "",
         "| configuration | wall s (median; all) | x floor (process) | client peak RSS MB | "
         "worker peak RSS MB | load before |",
         "|---|---|---|---|---|---|",
-        f"| zarr floor, a process of its own: python + numpy + zarr imports, both bands' "
+        f"| zarr floor, a process of its own: python + numpy + zarr imports, {read} "
         f"EFFECTIVE_INTEGRATION_TIME, VISIBILITY, FLAG read, one VISIBILITY + FLAG per "
         f"method written ({n_methods} groups) | {floor_s:.2f} "
         f"({', '.join(f'{w:.2f}' for w in floor_process['walls'])}) | 1.00 | "
@@ -202,19 +228,27 @@ def main(argv=None) -> None:
                         help="wideband pair: seconds per integration (the scene's: 2)")
     parser.add_argument("--duration", type=float, default=3600.0,
                         help="wideband pair: seconds observed (the scene's: 3600)")
+    parser.add_argument("--reference-table", action="store_true",
+                        help="the table path on the wideband pair (--n-chan 16 unless given): "
+                             "its 86 GHz set solved by CASA fringefit (--solint)")
+    parser.add_argument("--solint", default="20s",
+                        help="--reference-table: fringefit's solution interval")
     args = parser.parse_args(argv)
+    if args.reference_table and args.n_chan == 1:
+        args.n_chan = 16
     work = Path(args.workdir or tempfile.mkdtemp(prefix="bench-msv4-dist-"))
     work.mkdir(parents=True, exist_ok=True)
     wideband = None
     if args.n_chan > 1:
         wideband = Wideband(args.n_chan, args.integration, args.duration)
-        key = (f"msv4-distributed-wideband-{args.n_chan}ch-{args.integration:g}s-"
-               f"{args.duration:g}s")
+        key = (f"msv4-distributed-{'table' if args.reference_table else 'wideband'}-"
+               f"{args.n_chan}ch-{args.integration:g}s-{args.duration:g}s")
     else:
         # another size: a section of its own after the default one's
         key = "msv4-distributed" if args.n_time == 35_715 else \
             f"msv4-distributed-{args.n_time}"
-    text = bench(work, args.n_time, args.chunk_rows, args.repeats, wideband)
+    text = bench(work, args.n_time, args.chunk_rows, args.repeats, wideband,
+                 args.solint if args.reference_table else "")
     replace_section(key, text)
     print(text)
     if args.workdir is None:

@@ -29,7 +29,7 @@ TRIGGERS = {
     "--ref-model-column": {"ref_model_column": "MODEL_DATA"},
     "--ratio": {"ratio": 2.5},
     "--average-channels": {"average_channels": True},
-    "--scheduler": {"scheduler": "tcp://x:8786"},
+    "--scheduler on a Measurement Set v2 target": {"scheduler": "tcp://x:8786"},
     "--tracker other than count": {"tracker": "smooth"},
     "the n0 step": {"offset_model": "point"},
     "--calibrator-model-column without --calibrator-field": {"calibrator_model_column": "MODEL_DATA"},

@@ -37,17 +37,17 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Dict, List, Optional
 
-import numpy as np
-
 from ..io.metadata import SetMetadata, read_metadata
 from ..io.msv4.store import is_processing_set
-from ..io.table_rows import MainTable
+from ..logs import Progress
 from ..solutions.api import (PreparedTransfer, TransferReport, pair_table, transfer_paired,
                              transfer_report, write_target_table)
 from .chunk_io import ChunkIO
-from .table_source import TargetLayout, correct_chunk, target_layout, window_rows
+from .table_chunks import (SampleCounts, TableRun, TargetChunk, chunk_sums, correct_and_flag,
+                           merge_sums, n0_column, read_chunk)
+from .table_source import target_layout
 from .table_store import StoreRows
-from .inputs import CalibrateOptions, Columns, check_inputs
+from .inputs import CalibrateOptions, check_inputs
 from .output import OutputTransaction
 from .output_msv4 import DataGroupTransaction, data_groups_entry
 from .files import PreparedInputs, record_conversions_and_export
@@ -59,104 +59,41 @@ log = logging.getLogger("hitops.calibrate")
 
 #: what each method makes of the table's solution phases
 WRAP_COUNTING = {"pwc": True, "cfpt": False}
-#: the main-table columns every chunk reads besides the data, the flags and the n0 column
-ROW_COLUMNS = ("TIME", "ANTENNA1", "ANTENNA2", "DATA_DESC_ID", "FIELD_ID", "FLAG_ROW")
-
-
-@dataclass(frozen=True)
-class TableRun:
-    """A ``--reference-table`` run, checked and planned; nothing written yet."""
-
-    opts: CalibrateOptions
-    methods: List[str]
-    target_ms: str
-    outputs: Dict[str, str]         # method -> column
-    columns: Columns
-    tgt_meta: SetMetadata           # the target's subtables, read once
-    layout: TargetLayout
-    n_rows: int                     # rows of the target set
-    chunk_rows: int                 # rows per chunk: --chunk-rows, else from --memory-budget
-    #: a processing set's groups and chunks (hitops/calibrate/table_store.py); None: MSv2
-    store: Optional[StoreRows] = None
-
-    @property
-    def n_chunks(self) -> int:
-        if self.store is not None:
-            return self.store.n_chunks
-        return -(-self.n_rows // self.chunk_rows)
-
-
-@dataclass(frozen=True)
-class TargetChunk:
-    """Rows [start, start + n) of the target set as read: ``columns`` holds ROW_COLUMNS by
-    name, ``data`` (the target column), ``flag`` (the input flags) and ``offset`` (the n0
-    step's column) when it is read."""
-
-    start: int
-    columns: Dict[str, np.ndarray]
-
-    @property
-    def rows(self) -> np.ndarray:
-        return np.arange(self.start, self.start + self.columns["data"].shape[0])
-
-
-def _read_chunk(run: TableRun, k: int, offset_column: Optional[str]) -> TargetChunk:
-    """Chunk ``k`` of the target set, in storage order (python-casacore, hitops/io)."""
-    names = {"data": run.columns.target_data, "flag": run.columns.flag}
-    if offset_column:
-        names["offset"] = offset_column
-    wanted = list(dict.fromkeys(list(ROW_COLUMNS) + list(names.values())))
-    if run.store is not None:   # a processing set: chunk k's rows of the group holding it
-        return TargetChunk(run.store.bounds[k], _named(run.store.read(wanted, k), names))
-    start = k * run.chunk_rows
-    stop = min(start + run.chunk_rows, run.n_rows)
-    with MainTable(run.target_ms) as table:
-        read = table.read(wanted, start, stop)
-    return TargetChunk(start, _named(read, names))
-
-
-def _named(read: Dict[str, np.ndarray], names: Dict[str, str]) -> Dict[str, np.ndarray]:
-    """The row columns by name, the data, flag and offset columns by their role."""
-    cols = {name: read[name] for name in ROW_COLUMNS}
-    cols.update({key: read[column] for key, column in names.items()})
-    return cols
 
 
 def each_chunk(run: TableRun, work: Callable[[TargetChunk, ChunkIO], None],
-               offset_column: Optional[str] = None) -> None:
+               offset_column: Optional[str] = None, what: str = "writing pass") -> None:
     """``work(chunk, io)`` on every chunk of the target set in order; chunk k+1 is read on
-    :class:`ChunkIO`'s thread while chunk k is worked on (``io.write`` queues a write there)."""
-    with ChunkIO(lambda k: _read_chunk(run, k, offset_column), run.n_chunks) as io:
+    :class:`ChunkIO`'s thread while chunk k is worked on (``io.write`` queues a write there).
+    The pass's progress is logged (at most every 5 s) when it has several chunks."""
+    progress = (Progress(f"calibrate --reference-table {what}: chunks", run.n_chunks,
+                         logger=log) if run.n_chunks > 1 else None)
+    with ChunkIO(lambda k: read_chunk(run, k, offset_column), run.n_chunks) as io:
         for k in range(run.n_chunks):
             chunk = io.chunk(k)
             io.read_ahead(k + 1)
             work(chunk, io)
+            if progress is not None:
+                progress.update()
 
 
-def offset_step(run: TableRun, prepared: PreparedTransfer):
+def offset_step(run: TableRun, prepared: PreparedTransfer, client=None):
     """The n0 step (hitops/calibrate/n0/table.py): a first pass over the target set,
-    one lattice solve per field and receptor; the transfer with the integers taken out."""
-    from .n0.table import accumulate, apply_offsets, solve, solve_windows
+    one lattice solve per field and receptor; the transfer with the integers taken out.
+    Each chunk's sums are made on their own and added in chunk order, on this process or,
+    with ``client``, on the cluster's workers (hitops/calibrate/table_workers.py): the
+    same additions in the same order either way."""
+    from .n0.table import apply_offsets, solve
 
-    columns, layout = run.columns, run.layout
-    offset_column = None if columns.offset_is_model and not columns.model else columns.offset
-    solve_on = set(solve_windows(prepared).values())
-    sums: Dict = {}
-
-    def add(chunk: TargetChunk, io: ChunkIO) -> None:
-        cols = chunk.columns
-        result = correct_chunk({"pwc": prepared}, layout, cols)
-        bad = cols["flag"] | cols["FLAG_ROW"][:, None, None] | result.uncalibrated[:, None, :]
-        for j, _, receptors, rows in window_rows(prepared, layout, cols["DATA_DESC_ID"],
-                                                  cols["FIELD_ID"]):
-            if j in solve_on:
-                model = np.angle(cols["offset"][rows]) if offset_column else 0.0
-                accumulate(sums, prepared, j, rows, cols, result.columns["pwc"][rows], ~bad[rows],
-                           model, receptors)
-
-    each_chunk(run, add, offset_column)
+    if client is not None:
+        from .table_workers import sums_on_workers
+        sums = sums_on_workers(client, run, prepared)
+    else:
+        sums: Dict = {}
+        each_chunk(run, lambda chunk, io: merge_sums(sums, chunk_sums(run, prepared, chunk)),
+                   n0_column(run), "first pass (n0 step)")
     offsets = solve(prepared, sums, run.opts.n0.max_offset_wraps,
-                    list(run.tgt_meta.antennas.names), layout.chan_freq)
+                    list(run.tgt_meta.antennas.names), run.layout.chan_freq)
     for entry in offsets.solves:
         moved = {name: k for name, k in entry["k"].items() if k}
         log.info("n0 step (field %d, receptor %d, %s, mean cos mismatch %.3f): %s",
@@ -165,35 +102,22 @@ def offset_step(run: TableRun, prepared: PreparedTransfer):
     return apply_offsets(prepared, offsets), offsets
 
 
-@dataclass
-class SampleCounts:
-    """Target samples (row x channel x correlation) of the run: the report's ``samples``."""
-
-    n_samples: int = 0
-    flagged_before: int = 0
-    not_calibrated: int = 0
-
-    def add(self, before: np.ndarray, new_flag: np.ndarray) -> None:
-        self.n_samples += int(before.size)
-        self.flagged_before += int(before.sum())
-        self.not_calibrated += int((new_flag & ~before).sum())
-
-
 def write_outputs(run: TableRun, tx: OutputTransaction,
-                  transfers: Dict[str, PreparedTransfer]) -> SampleCounts:
-    """Every chunk of the target set corrected and staged (on the I/O thread); the counts."""
+                  transfers: Dict[str, PreparedTransfer], client=None) -> SampleCounts:
+    """Every chunk of the target set corrected and staged (on the I/O thread, or with
+    ``client`` by the cluster's workers: hitops/calibrate/table_workers.py); the counts."""
+    if client is not None:
+        from .table_workers import write_on_workers
+        return write_on_workers(client, run, tx, transfers)
     counts = SampleCounts()
     # FLAG as read is FLAG now (it changes only at the commit): no second read to compare
     flag_is_read = run.columns.flag == "FLAG"
 
     def correct(chunk: TargetChunk, io: ChunkIO) -> None:
-        cols = chunk.columns
-        result = correct_chunk(transfers, run.layout, cols)
-        before = cols["flag"] | cols["FLAG_ROW"][:, None, None]
-        new_flag = before | result.uncalibrated[:, None, :]
-        io.write(tx.write_outputs, chunk.rows, result.columns, new_flag, None,
-                 cols["flag"] if flag_is_read else None)
-        counts.add(before, new_flag)
+        done = correct_and_flag(run, transfers, chunk)
+        io.write(tx.write_outputs, chunk.rows, done.outputs, done.new_flag, None,
+                 chunk.columns["flag"] if flag_is_read else None)
+        counts.add(done.before, done.new_flag)
 
     each_chunk(run, correct)
     return counts
@@ -264,8 +188,23 @@ def calibrate_from_table(start) -> Dict:
     """Stages 2 (the columns) to 6 of the table mode (``--reference-table``; its options
     refused in hitops/calibrate/modes.py): checks, transfer, column, table, report (the run
     skeleton, hitops/calibrate/skeleton.py, with the table as its source).  ``start``: the
-    run's :class:`hitops.calibrate.api.RunStart`."""
-    return run_source(TableSource.of(start))
+    run's :class:`hitops.calibrate.api.RunStart`.  With ``--scheduler`` (a processing set
+    target: modes.py refuses it on a v2 one) the cluster's workers read, correct and write
+    the chunks."""
+    run = plan_table_run(start.opts, start.methods, start.ref_ms, start.target_ms)
+    # every check of the table (type, set, stations, solution interval) before anything
+    # is written or a cluster is reached
+    paired = pair_table(start.opts.input.reference_table, start.ref_ms, start.target_ms,
+                        antenna_map=start.opts.input.antenna_map, target_meta=run.tgt_meta)
+    client = closer = None
+    if start.opts.run.scheduler:
+        from ..cluster import dask_client
+        client, closer = dask_client(start.opts.run.scheduler)
+    try:
+        return run_source(TableSource.of(start, run, paired, client))
+    finally:
+        if closer is not None:
+            closer.close()
 
 
 @dataclass(frozen=True)
@@ -279,21 +218,18 @@ class TableSource:
     offsets: object             # n0/table.TableOffsets, None without the n0 step
     started: float
     prepared: PreparedInputs
+    client: object = None       # a dask.distributed Client (--scheduler), else None
 
     @classmethod
-    def of(cls, start) -> "TableSource":
-        """The table source of a run's :class:`hitops.calibrate.api.RunStart`."""
-        opts, methods, ref_ms = start.opts, start.methods, start.ref_ms
-        run = plan_table_run(opts, methods, ref_ms, start.target_ms)
-        # every check of the table (type, set, stations, solution interval) before anything
-        # is written
-        paired = pair_table(opts.input.reference_table, ref_ms, start.target_ms,
-                            antenna_map=opts.input.antenna_map, target_meta=run.tgt_meta)
-        transfers = {m: transfer_paired(paired, wrap_counting=WRAP_COUNTING[m]) for m in methods}
+    def of(cls, start, run: TableRun, paired, client=None) -> "TableSource":
+        """The table source of a run's :class:`hitops.calibrate.api.RunStart`, its
+        :class:`TableRun` and the table paired with the sets (``pair_table``)."""
+        transfers = {m: transfer_paired(paired, wrap_counting=WRAP_COUNTING[m])
+                     for m in start.methods}
         offsets = None
         if run.columns.offset and "pwc" in transfers:   # --offset-model / --offset-reference-column
-            transfers["pwc"], offsets = offset_step(run, transfers["pwc"])
-        return cls(run, ref_ms, transfers, offsets, start.started, start.prepared)
+            transfers["pwc"], offsets = offset_step(run, transfers["pwc"], client)
+        return cls(run, start.ref_ms, transfers, offsets, start.started, start.prepared, client)
 
     def open_transaction(self) -> OutputTransaction:
         run = self.run
@@ -309,7 +245,7 @@ class TableSource:
         return tx
 
     def stage(self, tx: OutputTransaction) -> SampleCounts:
-        return write_outputs(self.run, tx, self.transfers)
+        return write_outputs(self.run, tx, self.transfers, self.client)
 
     def after_commit(self) -> str:
         return "the report and --caltable" if self.run.opts.output.caltable else "the report"

@@ -116,8 +116,14 @@ REFUSED: Dict[Mode, Tuple[Refused, ...]] = {
                 lambda o, m: _replaced_by_table("--ratio", o)),
         Refused("--average-channels", lambda o, m: bool(o.input.average_channels),
                 lambda o, m: _replaced_by_table("--average-channels", o)),
-        Refused("--scheduler", lambda o, m: bool(o.run.scheduler),
-                lambda o, m: _replaced_by_table("--scheduler", o)),
+        Refused("--scheduler on a Measurement Set v2 target",
+                lambda o, m: bool(o.run.scheduler) and not _is_store(o.target_ms),
+                lambda o, m: f"--scheduler {o.run.scheduler} with {_table(o)} and the "
+                             f"Measurement Set v2 target {o.target_ms}: the table path "
+                             "corrects a casacore table on this process's threads (it is not "
+                             "written from several processes); drop --scheduler, or convert "
+                             "the target to an MSv4 processing set, whose chunks the workers "
+                             "correct and write (docs/msv4.md)"),
         Refused("--tracker other than count", lambda o, m: o.tracking.tracker != "count",
                 lambda o, m: _replaced_by_table(f"--tracker {o.tracking.tracker}", o)),
     ),
@@ -143,6 +149,11 @@ def _on_processing_set(option: str, why: str) -> Refused:
 def _option_value(opts, option: str):
     section, name = _PROCESSING_SET_OPTIONS[option]
     return getattr(getattr(opts, section), name)
+
+
+def _is_store(path) -> bool:
+    from ..io.msv4.store import is_processing_set   # reads zarr.json alone
+    return is_processing_set(str(path))
 
 
 def _processing_set_of(opts) -> str:

@@ -17,7 +17,7 @@ names map to group names as hitops/io/msv4/columns.py says (PWC_DATA -> ``pwc``)
 from __future__ import annotations
 
 import logging
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -142,6 +142,13 @@ class DataGroupTransaction:
         state = dict(vars(self))
         state["rows_written"] = state["flags_staged"] = None
         return state
+
+    def zarr_chunks(self, partition: str, first_step: int, last_step: int) -> List[Tuple[str, int]]:
+        """(partition, time chunk index) of the staged arrays' chunks that time steps
+        ``first_step``..``last_step`` of ``partition`` fall in: two writes sharing one must
+        not run at once (zarr reads, changes and writes a chunk back whole)."""
+        step = next(int(w.time_chunk) for (p, _), w in self.writers.items() if p == partition)
+        return [(partition, c) for c in range(first_step // step, last_step // step + 1)]
 
     def mark_written(self, source: PartitionSource) -> None:
         """Every row of ``source`` written (by the chunk tasks of a cluster's workers, which

@@ -50,6 +50,17 @@ class StoreRows:
     def read(self, columns: Sequence[str], k: int) -> Dict[str, np.ndarray]:
         """``columns`` (MSv2 names, hitops/io/msv4/columns.py) of chunk ``k``'s rows."""
         start, stop = self.bounds[k], self.bounds[k + 1]
-        source = next(s for s in self.sources if s.row_base <= start < s.row_base + s.n_rows)
+        source = self._source_of(start)
         with source.open() as table:
             return table.read(list(columns), start - source.row_base, stop - source.row_base)
+
+    def step_span(self, k: int) -> Tuple[str, int, int]:
+        """(partition, first time step, last time step) that chunk ``k``'s rows lie in."""
+        start, stop = self.bounds[k], self.bounds[k + 1]
+        source = self._source_of(start)
+        first, last = np.searchsorted(source.step_start, [start - source.row_base,
+                                                          stop - 1 - source.row_base], "right") - 1
+        return source.partition, int(source.steps[first]), int(source.steps[last])
+
+    def _source_of(self, row: int) -> PartitionSource:
+        return next(s for s in self.sources if s.row_base <= row < s.row_base + s.n_rows)

@@ -237,8 +237,13 @@ def _finish(pipeline: GroupPipeline, chunk: ChunkFutures, write: bool, tracker) 
 
 def _stop(client, token: str, flight: Deque[ChunkFutures]) -> None:
     """Cancel the run's tasks and wait until none of them runs on a worker any more."""
-    futures: List[object] = [f for c in flight for f in (c.read, c.advance, c.state, c.last,
-                                                        c.records) if f is not None]
+    stop_tasks(client, token, [f for c in flight for f in (c.read, c.advance, c.state, c.last,
+                                                           c.records) if f is not None])
+
+
+def stop_tasks(client, token: str, futures: List[object]) -> None:
+    """Cancel ``futures`` and wait until no task whose key holds ``token`` runs, or may
+    still start, on a worker (also hitops/calibrate/table_workers.py's)."""
     try:
         client.cancel(futures, force=True)
         deadline = time.monotonic() + STOP_WAIT_S
