@@ -32,7 +32,7 @@ import time
 import uuid
 from collections import deque
 from dataclasses import dataclass
-from typing import Callable, Deque, Dict, Tuple
+from typing import Callable, Deque, Dict, Optional, Tuple
 
 from ..logs import Progress
 from ..solutions.api import PreparedTransfer
@@ -51,7 +51,7 @@ class TableJob:
 
     run: TableRun
     transfers: Dict[str, PreparedTransfer]
-    tx: DataGroupTransaction = None
+    tx: Optional[DataGroupTransaction] = None     # None: the n0 step's first pass
 
 
 @dataclass(frozen=True)
@@ -90,6 +90,9 @@ def write_on_workers(client, run: TableRun, tx: DataGroupTransaction,
     """The writing pass on the cluster: every chunk corrected and written by a worker;
     the run's sample counts."""
     counts = SampleCounts()
+    # the last write into each zarr chunk, kept for the whole pass: a partition holding
+    # several fields comes back to its first zarr chunks with the next field's chunks
+    # (each future holds a few bytes on its worker)
     last_write: Dict[Tuple[str, int], object] = {}
 
     def submit(submit_one: Callable, k: int):
