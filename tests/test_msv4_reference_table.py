@@ -185,3 +185,34 @@ def test_scheduler_with_a_table_and_a_v2_target_is_refused_in_one_line(solved_st
                                          r"target .*: .* drop --scheduler, or convert the "
                                          r"target to an MSv4 processing set"):
         calibrate_flat(ref2, tgt2, reference_table=table, scheduler="tcp://127.0.0.1:1")
+
+
+def test_cluster_table_run_interrupted_registers_no_group(solved_store, cluster, tmp_path,
+                                                         monkeypatch):
+    """An interrupt on the client while the workers write (at the second chunk it takes
+    back): the run's tasks are cancelled and waited for before the staged arrays are
+    removed, so no write lands after the rollback and every file is as it was."""
+    from hitops.calibrate import table_workers
+
+    ref2, _, tgt4, table = solved_store
+    target = tmp_path / "target.ps.zarr"
+    shutil.copytree(tgt4, target)
+    before = file_digests(target)
+    taken = []
+
+    class StopAtSecond(table_workers.Progress):
+        def update(self, n: int = 1) -> None:
+            taken.append(n)
+            if len(taken) == 2:
+                raise KeyboardInterrupt
+            super().update(n)
+
+    monkeypatch.setattr(table_workers, "Progress", StopAtSecond)
+    with pytest.raises(KeyboardInterrupt):
+        calibrate_flat(ref2, str(target), reference_table=table, method="pwc,cfpt",
+                       no_verdict=True, chunk_rows=100, scheduler=cluster.scheduler_address)
+    assert len(taken) == 2
+    for each in target.iterdir():
+        if (each / "zarr.json").exists():
+            assert not {"pwc", "cfpt"} & set(_groups(each))
+    assert file_digests(target) == before
