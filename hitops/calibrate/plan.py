@@ -121,18 +121,19 @@ def chunk_bounds(per_time: np.ndarray, chunk_rows: int) -> List[int]:
 
 def rows_from_budget(budget: int, ref_ms: str, target_ms: str, columns: Columns,
                      n_methods: int, time_ordered: bool, strict: bool,
-                     local: bool = False) -> int:
+                     local: bool = False, stores: Optional[Dict[str, Dict]] = None) -> int:
     """Rows per time chunk that keep the run within ``budget`` bytes (hitops/calibrate/memory.py).
 
     ``time_ordered``: both sets are stored in time order; ``strict``: the budget was
     given (not the default), so a budget too small is an error; ``local``: no cluster,
     the sets are read without dask-ms (hitops/io/read.py, open_for_reading), and neither
-    set mixes fields or windows (those are still read through dask-ms's datasets).
+    set mixes fields or windows (those are still read through dask-ms's datasets);
+    ``stores``: the processing-set bands' groups, opened already (:func:`_open_stores`).
     """
     from .memory import min_chunk_rows, rows_for_budget
     n_rows, n_corr, n_chan = 0, 1, 1
     for ms, column in ((ref_ms, columns.ref_data), (target_ms, columns.target_data)):
-        rows, shape = msio.column_extent(ms, column)
+        rows, shape = _column_extent(ms, column, stores or {})
         n_rows += rows
         if rows:
             n_chan, n_corr = max(n_chan, int(shape[0])), max(n_corr, int(shape[-1]))
@@ -149,6 +150,27 @@ def rows_from_budget(budget: int, ref_ms: str, target_ms: str, columns: Columns,
     return rows
 
 
+def _open_stores(read_columns: Dict[str, List[str]]) -> Dict[str, Dict]:
+    """Each processing-set band's groups (store -> {(FIELD_ID, DATA_DESC_ID):
+    PartitionSource}), opened once for the plan: opening one reads its presence array
+    (80 MB per band at 10^7 rows), which the chunk size, the row counts and the run all
+    take from.  A Measurement Set v2 is opened once the chunk size is known (how depends
+    on it)."""
+    from ..io.msv4.group_rows import open_partition_groups
+    from ..io.msv4.store import is_processing_set
+
+    return {ms: open_partition_groups(ms, cols) for ms, cols in read_columns.items()
+            if is_processing_set(ms)}
+
+
+def _column_extent(ms: str, column: str, stores: Dict[str, Dict]) -> Tuple[int, tuple]:
+    """(rows, cell shape of ``column``) of a band, from its opened groups when it has them."""
+    if ms not in stores:
+        return msio.column_extent(ms, column)
+    groups = list(stores[ms].values())
+    return sum(g.n_rows for g in groups), groups[0].cell_shape(column) if groups else ()
+
+
 def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, str], ref_ms: str,
                target_ms: str, columns: Columns, timings: Dict[str, float]) -> RunPlan:
     """Open both bands, pair their groups and plan each pair (nothing written yet)."""
@@ -161,6 +183,9 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
     ref_meta, tgt_meta = read_metadata(ref_ms), read_metadata(target_ms)
     # a table stored in time order is read in that order; any other is sorted by dask-ms
     ordered = {ms: msio.is_time_ordered(ms) for ms in (ref_ms, target_ms)}
+    read_columns = {ref_ms: list(dict.fromkeys(INDEX_COLUMNS + columns.ref + columns.snr)),
+                    target_ms: list(dict.fromkeys(INDEX_COLUMNS + columns.tgt))}
+    stores = _open_stores(read_columns)
     chunk_rows = int(opts.run.chunk_rows)
     if chunk_rows == 0:
         explicit = str(opts.run.memory_budget or "auto").strip().lower() != "auto"
@@ -169,24 +194,25 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
                                       # sets of several fields or windows are still read
                                       # through dask-ms's datasets
                                       local=not (opts.run.scheduler or ref_meta.has_groups()
-                                                 or tgt_meta.has_groups()))
+                                                 or tgt_meta.has_groups()),
+                                      stores=stores)
     # dask row chunks of chunk_rows rows: the metadata blocks of the first pass are
     # slices of these datasets (no dataset per block); a field/spectral-window group is a
     # dataset of its own, so FIELD_ID and DATA_DESC_ID are not read per row
     io_rows = min(chunk_rows, 1 << 21)
     # sets read whole in one chunk need no time order either: dask-ms's sort (~0.45 s per
     # 10^6 rows) and writing rows out of storage order are skipped
-    n_rows = {ms: msio.row_count(ms) for ms in (ref_ms, target_ms)}
+    n_rows = {ms: _column_extent(ms, column, stores)[0] if ms in stores else msio.row_count(ms)
+              for ms, column in ((ref_ms, columns.ref_data), (target_ms, columns.target_data))}
     one_chunk = sum(n_rows.values()) <= 2 * chunk_rows and max(n_rows.values()) <= chunk_rows
     in_time_order = {ms: not (one_chunk and not ordered[ms]) for ms in ordered}
     # one chunk on this process: a set of one group is read by python-casacore directly
     direct = one_chunk and not opts.run.scheduler
-    ref_groups = msio.open_for_reading(ref_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.ref + columns.snr)),
-                                       io_rows, ordered[ref_ms] or one_chunk, direct,
-                                       local=not opts.run.scheduler, mixed=ref_meta.has_groups())
-    tgt_groups = msio.open_for_reading(target_ms, list(dict.fromkeys(INDEX_COLUMNS + columns.tgt)),
-                                       io_rows, ordered[target_ms] or one_chunk, direct,
-                                       local=not opts.run.scheduler, mixed=tgt_meta.has_groups())
+    ref_groups, tgt_groups = (
+        stores[ms] if ms in stores else
+        msio.open_for_reading(ms, read_columns[ms], io_rows, ordered[ms] or one_chunk, direct,
+                              local=not opts.run.scheduler, mixed=meta.has_groups())
+        for ms, meta in ((ref_ms, ref_meta), (target_ms, tgt_meta)))
     timings["open"] = time.perf_counter() - stage
     ref_role, tgt_role = "reference-band Measurement Set", "target-band Measurement Set"
     ref_stations = stations_of(ref_ms, ref_meta.antennas, ref_role)
