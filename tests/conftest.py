@@ -21,6 +21,8 @@ costs a small part of that, and simulating a scene far more.  So:
 * ``eht_imported``: the EHT's public M87 pair (tests/data/eht2017-m87) through
   CASA importuvfits, once for the suite (tests/test_realdata.py and
   tests/test_verdict.py both start from it); read it, or copy it to write.
+* ``cluster``: a dask LocalCluster of 2 single-threaded worker processes, one per test
+  module that asks for it (``--scheduler cluster.scheduler_address``).
 """
 
 from __future__ import annotations
@@ -191,3 +193,13 @@ def new_demo(short_demo, tmp_path):
     for item in short_demo.iterdir():
         shutil.copytree(item, tmp_path / item.name)
     return tmp_path / "sim-86.ms", tmp_path / "sim-230.ms"
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A LocalCluster of 2 single-threaded worker processes for the module's tests."""
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as local:
+        yield local
+

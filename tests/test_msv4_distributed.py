@@ -36,13 +36,6 @@ pytestmark = pytest.mark.filterwarnings("ignore:.*Zarr V3 specification",
                                         "ignore:Consolidated metadata is currently not part")
 
 
-@pytest.fixture(scope="module")
-def cluster():
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as local:
-        yield local
-
-
 def _groups(ps: str):
     return json.loads((Path(ps) / "target_0" / "zarr.json").read_text())["attributes"][
         "data_groups"]

@@ -80,15 +80,8 @@ def _groups(partition: Path):
     return json.loads((partition / "zarr.json").read_text())["attributes"]["data_groups"]
 
 
-# ---- --scheduler: the workers read, correct and write the chunks (table_workers.py)
-@pytest.fixture(scope="module")
-def cluster():
-    distributed = pytest.importorskip("distributed")
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as local:
-        yield local
-
-
+# ---- --scheduler: the workers read, correct and write the chunks (table_workers.py;
+# ``cluster``: tests/conftest.py)
 @pytest.fixture(scope="module")
 def sparse_store(solved_store, tmp_path_factory):
     """The target with one baseline's rows removed over the first half of the track before
