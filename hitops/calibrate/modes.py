@@ -157,8 +157,7 @@ def _is_store(path) -> bool:
 
 
 def _processing_set_of(opts) -> str:
-    from ..io.msv4.store import is_processing_set   # reads zarr.json alone
-    return next((str(p) for p in (opts.target_ms, opts.ref_ms) if is_processing_set(p)), "")
+    return next((str(p) for p in (opts.target_ms, opts.ref_ms) if _is_store(p)), "")
 
 
 #: where each option refused on processing sets lives in the option sections

@@ -168,7 +168,14 @@ def _column_extent(ms: str, column: str, stores: Dict[str, Dict]) -> Tuple[int, 
     if ms not in stores:
         return msio.column_extent(ms, column)
     groups = list(stores[ms].values())
-    return sum(g.n_rows for g in groups), groups[0].cell_shape(column) if groups else ()
+    return _row_count(ms, stores), groups[0].cell_shape(column) if groups else ()
+
+
+def _row_count(ms: str, stores: Dict[str, Dict]) -> int:
+    """Rows of a band, from its opened groups when it has them."""
+    if ms not in stores:
+        return msio.row_count(ms)
+    return sum(g.n_rows for g in stores[ms].values())
 
 
 def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, str], ref_ms: str,
@@ -202,8 +209,7 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
     io_rows = min(chunk_rows, 1 << 21)
     # sets read whole in one chunk need no time order either: dask-ms's sort (~0.45 s per
     # 10^6 rows) and writing rows out of storage order are skipped
-    n_rows = {ms: _column_extent(ms, column, stores)[0] if ms in stores else msio.row_count(ms)
-              for ms, column in ((ref_ms, columns.ref_data), (target_ms, columns.target_data))}
+    n_rows = {ms: _row_count(ms, stores) for ms in (ref_ms, target_ms)}
     one_chunk = sum(n_rows.values()) <= 2 * chunk_rows and max(n_rows.values()) <= chunk_rows
     in_time_order = {ms: not (one_chunk and not ordered[ms]) for ms in ordered}
     # one chunk on this process: a set of one group is read by python-casacore directly

@@ -126,13 +126,12 @@ def reference_sources(run) -> list:
 def open_band_rows(ms: str, columns: Sequence[str]) -> Iterator:
     """Every row of band ``ms``: a processing set's groups (their FLAG that of the data
     group of ``columns``' first data column), a Measurement Set's main table."""
-    if is_processing_set(ms):
-        from ..io.msv4.group_rows import open_partition_groups
+    from ..io.msv4.group_rows import open_partition_groups
 
-        yield ProcessingSetRows(open_partition_groups(ms, list(columns)).values())
-        return
-    with tables.main_table(ms) as table:
-        yield MainTableRows(table)
+    sources = (open_partition_groups(ms, list(columns)).values() if is_processing_set(ms)
+               else ())
+    with open_set_rows(ms, sources) as rows:
+        yield rows
 
 
 @contextmanager

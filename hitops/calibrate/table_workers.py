@@ -36,8 +36,8 @@ from typing import Callable, Deque, Dict, Optional, Tuple
 
 from ..logs import Progress
 from ..solutions.api import PreparedTransfer
-from .table_chunks import (SampleCounts, TableRun, TargetChunk, chunk_sums, correct_and_flag,
-                           merge_sums, n0_column, read_chunk)
+from .table_chunks import (SampleCounts, TableRun, chunk_sums, correct_and_flag, merge_sums,
+                           n0_column, read_chunk)
 from .output_msv4 import DataGroupTransaction
 from .worker_chunks import in_flight, stop_tasks
 
@@ -63,15 +63,11 @@ class ChunkWritten:
 
 
 # ---- the tasks (run on the workers)
-def _chunk(job: TableJob, k: int, offset_column=None) -> TargetChunk:
-    return read_chunk(job.run, k, offset_column)
-
-
 def write_task(job: TableJob, k: int, *after) -> ChunkWritten:
     """Chunk ``k`` read, corrected and written into its cells of the staged groups.
     ``after``: the earlier writes into its zarr chunks (only waited for)."""
     start = time.perf_counter()
-    chunk = _chunk(job, k)
+    chunk = read_chunk(job.run, k, None)
     done = correct_and_flag(job.run, job.transfers, chunk)
     job.tx.write_outputs(chunk.rows, done.outputs, done.new_flag)
     counts = SampleCounts()
@@ -81,7 +77,7 @@ def write_task(job: TableJob, k: int, *after) -> ChunkWritten:
 
 def sums_task(job: TableJob, k: int) -> Dict:
     """Chunk ``k``'s sums for the n0 step (the counted transfer, ``pwc``)."""
-    return chunk_sums(job.run, job.transfers["pwc"], _chunk(job, k, n0_column(job.run)))
+    return chunk_sums(job.run, job.transfers["pwc"], read_chunk(job.run, k, n0_column(job.run)))
 
 
 # ---- the client's side
