@@ -21,6 +21,9 @@ costs a small part of that, and simulating a scene far more.  So:
 * ``eht_imported``: the EHT's public M87 pair (tests/data/eht2017-m87) through
   CASA importuvfits, once for the suite (tests/test_realdata.py and
   tests/test_verdict.py both start from it); read it, or copy it to write.
+* the code under test writes its temporary files (dask's scratch space, the command
+  line's traceback files) under the session's base directory, not the machine's /tmp:
+  ``TMPDIR`` points there for the whole session (``_session_tmpdir``).
 * ``cluster``: a dask LocalCluster of 2 single-threaded worker processes, one per test
   module that asks for it (``--scheduler cluster.scheduler_address``).
 """
@@ -31,6 +34,7 @@ import dataclasses
 import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 from typing import Dict, Optional
 
@@ -72,12 +76,29 @@ class PairStore:
         return dataclasses.replace(source, **paths, **arrays)
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _session_tmpdir(tmp_path_factory):
+    """TMPDIR for the session: under pytest's base directory, which a passing run removes.
+
+    Tools under test and the processes they start (dask workers, CASA) leave files in the
+    temporary directory (a traceback file by design, dask's scratch space); they belong to
+    the test run, not to the machine's /tmp.
+    """
+    path = tmp_path_factory.mktemp("tmpdir", numbered=False)
+    patch = pytest.MonkeyPatch()
+    patch.setenv("TMPDIR", str(path))
+    # tempfile caches the directory it found first; None makes it look again
+    patch.setattr(tempfile, "tempdir", None)
+    yield path
+    patch.undo()
+
+
 @pytest.fixture(scope="session")
 def pair_store(tmp_path_factory):
     root = tmp_path_factory.mktemp("pairs")
     yield PairStore(root)
     # the builds (about 1 GB over the suite: casacore allocates whole tiles) go with the
-    # session; the tests' own copies stay in their tmp_path as pytest keeps them
+    # session; the tests' own copies go with each passing test (tmp_path_retention_policy)
     shutil.rmtree(root, ignore_errors=True)
 
 
