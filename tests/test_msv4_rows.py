@@ -316,3 +316,40 @@ def test_time_ordered_blocks_merge_as_the_sort_merges():
         np.testing.assert_array_equal(got, expected)
         np.testing.assert_array_equal(got_counts, expected_counts)
         assert got_counts.dtype == np.int64
+
+
+@pytest.mark.parametrize("which", ["eht", "simulator"])
+def test_grid_index_is_the_row_pass_index(which, eht_sets, simulator_sets, monkeypatch):
+    """A processing-set group read in several blocks is indexed from its partition's grid
+    (hitops/calibrate/band_index.py ``_index_from_grid``): every summary and each row's
+    pair key equal, value and type, what the row pass over TIME, ANTENNA1/2, SCAN_NUMBER
+    and INTERVAL finds.  The EHT set lacks rows on some baselines and times; the simulator's
+    has two windows and two fields sharing a partition, and flagged-out cells: a grid
+    counted as full, or steps of the other field taken, would fail here."""
+    from hitops.calibrate import band_index
+    from hitops.calibrate.band_index import INDEX_COLUMNS, BandSource, index_bands
+    from hitops.io.msv4.group_rows import open_partition_groups
+
+    _, ps = eht_sets if which == "eht" else simulator_sets
+    n_ant = len(read_layout(open_store(ps)).antennas.v4_names)
+    groups = open_partition_groups(str(ps), ["DATA"])
+    sources = [BandSource(ms=str(ps), ds=g, n_row=g.n_rows, n_ant=n_ant, key=key)
+               for key, g in sorted(groups.items())]
+    # several blocks per group, cutting time steps (a prime: no baseline count divides it)
+    block_rows = 23
+    assert min(s.n_row for s in sources) > 3 * block_rows
+    taken = []
+    from_grid = band_index._index_from_grid
+    monkeypatch.setattr(band_index, "_index_from_grid",
+                        lambda band, rows: taken.append(from_grid(band, rows)) or taken[-1])
+    fast = index_bands(sources, [INDEX_COLUMNS] * len(sources), block_rows)
+    assert taken == [True] * len(sources)
+    monkeypatch.setattr(band_index, "_index_from_grid", lambda band, rows: False)
+    slow = index_bands(sources, [INDEX_COLUMNS] * len(sources), block_rows)
+    for got, expected in zip(fast, slow):
+        for name, value in vars(expected).items():
+            if isinstance(value, np.ndarray):
+                np.testing.assert_array_equal(getattr(got, name), value, err_msg=name)
+                assert getattr(got, name).dtype == value.dtype, name
+            else:
+                assert getattr(got, name) == value, name

@@ -164,7 +164,9 @@ def index_bands(sources: List[BandSource], columns: List[List[str]], block_rows:
     antenna pair (``pair_key``: 2 bytes per row up to 256 stations) and the scan
     at each time (``time_scan``): with the rows' times, which follow from their
     positions, that is all the checks of every chunk need, so they read nothing
-    again (:meth:`hitops.calibrate.chunks.GroupMatch.check`).
+    again (:meth:`hitops.calibrate.chunks.GroupMatch.check`).  A processing set's group
+    in several blocks reads no column: its partition's grid gives all of this
+    (:func:`_index_from_grid`).
     """
     passes = [_Pass(source, block_rows) for source in sources]
     n_blocks = max(-(-s.n_row // block_rows) for s in sources)
@@ -175,6 +177,11 @@ def index_bands(sources: List[BandSource], columns: List[List[str]], block_rows:
     for band, cols, storage in zip(passes, columns, by_storage):
         if storage:
             _index_in_storage_order(band, cols, block_rows)
+    # a processing set's group in several blocks: its summaries follow from the grid
+    # counted when it was opened, and only the rows' antennas are made (no column read)
+    by_grid = [not storage and _index_from_grid(band, block_rows)
+               for band, storage in zip(passes, by_storage)]
+    by_storage = [storage or grid for storage, grid in zip(by_storage, by_grid)]
     with contextlib.ExitStack() as stack:
         tables = [_storage_order_table(source, stack) for source in sources]
         for k in range(n_blocks):
@@ -241,6 +248,42 @@ def _index_in_storage_order(band: "_Pass", columns: List[str], block_rows: int) 
         raise TimeChangedError(src.ms)
     band.pair_key = pair_key
     band.time_scans = [(band.unique, time_scan)]
+
+
+def _index_from_grid(band: "_Pass", block_rows: int) -> bool:
+    """Index a processing set's group (:class:`hitops.io.msv4.group_rows.PartitionSource`)
+    read in several blocks from its time steps; False (nothing done) for any other band.
+
+    Its rows are the grid's present cells in time then baseline order, so the row pass's
+    summaries are the steps' own: distinct times are the steps holding rows, rows per time
+    their counts, the scan at each time the step's, INTERVAL the partition's integration
+    time, FLAG_ROW nowhere set.  Each row's pair key comes from its cell's baseline.  At
+    10^7 rows a band this took the index pass from 1.3 s to 0.2 s (docs/performance.md).
+    A group whose step times are not finite and ascending takes the row pass, whose
+    checks say what is wrong.
+    """
+    src = band.source
+    if band.pair_key is None or not hasattr(src.ds, "time_steps"):
+        return False
+    steps = src.ds.time_steps()
+    held = steps.n_rows > 0
+    times, counts = steps.time[held], steps.n_rows[held].astype(np.int64)
+    if int(counts.sum()) != src.n_row or not np.all(np.isfinite(times)) or \
+            np.any(times[1:] <= times[:-1]):
+        return False
+    band.unique, band.counts = times, counts
+    scans = steps.scan_number[held]
+    band.time_scans = [(times, scans)]
+    band.scans = [distinct_ints(scans)]
+    if np.isfinite(steps.interval) and steps.interval > 0:
+        band.min_interval = float(steps.interval)
+    for a in range(0, src.n_row, block_rows):
+        b = min(src.n_row, a + block_rows)
+        ant1, ant2 = src.ds.antennas(a, b)
+        key = ant1.astype(np.int64) * src.n_ant + ant2
+        band.pair_present |= np.bincount(key, minlength=band.pair_present.size) > 0
+        band.pair_key[a:b] = key
+    return True
 
 
 def _storage_order_table(source: BandSource, stack: contextlib.ExitStack):

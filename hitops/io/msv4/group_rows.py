@@ -32,6 +32,16 @@ COUNT_BLOCK_CELLS = 1 << 22
 
 
 @dataclass(frozen=True, eq=False)
+class GroupSteps:
+    """A group's rows counted per time step of its partition, from the grid alone."""
+
+    time: np.ndarray            # (n_step,) float64: TIME (MSv2 seconds) of the group's steps
+    n_rows: np.ndarray          # (n_step,) int64: rows (cells holding an integration) per step
+    scan_number: np.ndarray     # (n_step,) int32: SCAN_NUMBER of each step
+    interval: float             # INTERVAL of every row (the time axis' integration_time; 0: none)
+
+
+@dataclass(frozen=True, eq=False)
 class PartitionSource(StorageRows):
     """One (field, window) group of a processing set, read in time order (``ms``: the store)."""
 
@@ -62,6 +72,29 @@ class PartitionSource(StorageRows):
 
     def read(self, table, columns: Sequence[str], rows) -> Dict[str, np.ndarray]:
         return table.read_rows(list(columns), rows)
+
+    def time_steps(self) -> GroupSteps:
+        """The group's time steps, rows per step and scans, as counted when it was opened:
+        what a pass over its TIME, SCAN_NUMBER and INTERVAL columns would find, unread."""
+        reader = self.reader(self.group)
+        return GroupSteps(time=reader.times[self.steps], n_rows=np.diff(self.step_start),
+                          scan_number=reader.scan_numbers[self.steps],
+                          interval=reader.integration_time)
+
+    def antennas(self, start: int, stop: int) -> Tuple[np.ndarray, np.ndarray]:
+        """(ANTENNA1, ANTENNA2) of positions [start, stop): from the baselines of their
+        cells, so only a partly filled step's presence is read."""
+        reader = self.reader(self.group)
+        ant1, ant2 = reader.baseline_antennas
+        s0 = int(np.searchsorted(self.step_start, start, side="right")) - 1
+        s1 = int(np.searchsorted(self.step_start, max(start, stop - 1), side="right"))
+        if stop > start and np.all(np.diff(self.step_start[s0:s1 + 1]) == reader.n_baseline):
+            # every cell of these steps a row: the baselines' antennas repeated per step
+            # (a tenth of the time of the division per position at 10^7 rows)
+            pick = slice(start - int(self.step_start[s0]), stop - int(self.step_start[s0]))
+            return np.tile(ant1, s1 - s0)[pick], np.tile(ant2, s1 - s0)[pick]
+        _, baseline = self.cells(np.arange(start, stop, dtype=np.int64))
+        return ant1[baseline], ant2[baseline]
 
     def cells(self, positions: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """(time index in the partition, baseline_id) of each position (ascending or not)."""

@@ -94,6 +94,11 @@ class PartitionReader:
         return int(self.times.size)
 
     @property
+    def baseline_antennas(self) -> Tuple[np.ndarray, np.ndarray]:
+        """(ANTENNA1, ANTENNA2) of each baseline_id, (n_baseline,) int32 each."""
+        return self._ant1, self._ant2
+
+    @property
     def n_baseline(self) -> int:
         return int(self._ant1.size)
 
