@@ -10,10 +10,8 @@ from __future__ import annotations
 import os
 import platform
 import re
-import resource
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -24,6 +22,13 @@ PLOT_DIR = ROOT / "docs" / "figures"
 def machine_line() -> str:
     return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
             f"Python {platform.python_version()}")
+
+
+def load_line() -> str:
+    """The load average when a table is written: whether the runs had the machine to
+    themselves (a shared machine's other jobs show here, not in the runs' own figures)."""
+    one, five, _ = os.getloadavg()
+    return f"load average {one:.1f} (1 min) and {five:.1f} (5 min) when written"
 
 
 # A minimal launcher process between the benchmark and the measured command.  Linux

@@ -46,7 +46,7 @@ import time
 from pathlib import Path
 from typing import Optional
 
-from ._report import ROOT, machine_line, replace_section, run_process
+from ._report import ROOT, load_line, machine_line, replace_section, run_process
 
 N_ANT = 8
 N_TIME = 35_715            # x 28 baselines = 1,000,020 rows
@@ -156,7 +156,7 @@ def _markdown(n_row, conv, layout, floor, mine, chunked, chunked_floor, casacore
     shape, chunks, sizes, ps_bytes, ms_bytes = layout
     mb = 1e6
     lines = [
-        f"Measured {time.strftime('%Y-%m-%d')} on {machine_line()} (shared with other work), "
+        f"Measured {time.strftime('%Y-%m-%d')} on {machine_line()} ({load_line()}), "
         f"xradio 1.3.0, zarr 3.1; a hitops.testing target set of {n_row:,} rows ({N_ANT} "
         "stations, RR LL, one channel, time order); page cache warm; median of the repeats.",
         "",
@@ -333,7 +333,7 @@ def bench_calibrate(work: Path, repeats: int) -> str:
         return " | ".join(f"{t[k]:.2f}" if k in t else "" for k in stages)
 
     return "\n".join([
-        f"Measured {time.strftime('%Y-%m-%d')} on {machine_line()} (shared with other work); "
+        f"Measured {time.strftime('%Y-%m-%d')} on {machine_line()} ({load_line()}); "
         f"a hitops.testing pair of {n_row:,} rows per band ({N_ANT} stations, RR LL, one "
         f"channel, time order), converted by xradio 1.3 in time chunks of {step} steps "
         f"({CHUNK_ROWS:,} rows); `hitops calibrate --method {METHODS} --chunk-rows "

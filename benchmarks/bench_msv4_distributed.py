@@ -180,8 +180,8 @@ def bench(work: Path, n_time: int, chunk_rows: int, repeats: int,
                f"`hitops calibrate --method {methods}")
     read = "the target's" if table else "both bands'"
     lines = [
-        f"Measured {time.strftime('%Y-%m-%d %H:%M')} on {machine_line()} (shared with other "
-        f"helpers' work: load average given per row); {pair_text}; "
+        f"Measured {time.strftime('%Y-%m-%d %H:%M')} on {machine_line()} (the load average "
+        f"before each configuration given per row); {pair_text}; "
         f"{command} --chunk-rows {chunk_rows} --no-verdict "
         f"--overwrite`, each run a process of its own, median of {repeats}.  x floor: "
         "against the floor as a process of its own (python started, numpy and zarr "

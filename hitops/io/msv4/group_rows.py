@@ -89,8 +89,8 @@ class PartitionSource(StorageRows):
         s0 = int(np.searchsorted(self.step_start, start, side="right")) - 1
         s1 = int(np.searchsorted(self.step_start, max(start, stop - 1), side="right"))
         if stop > start and np.all(np.diff(self.step_start[s0:s1 + 1]) == reader.n_baseline):
-            # every cell of these steps a row: the baselines' antennas repeated per step
-            # (a tenth of the time of the division per position at 10^7 rows)
+            # every cell of these steps a row: the baselines' antennas repeated per step,
+            # no position divided into its step and baseline
             pick = slice(start - int(self.step_start[s0]), stop - int(self.step_start[s0]))
             return np.tile(ant1, s1 - s0)[pick], np.tile(ant2, s1 - s0)[pick]
         _, baseline = self.cells(np.arange(start, stop, dtype=np.int64))
