@@ -24,7 +24,7 @@ import logging
 import os
 import shutil
 import sys
-from typing import Tuple
+from typing import Iterator, Optional, Tuple
 
 from .errors import InputError
 
@@ -54,6 +54,18 @@ def parse_scheduler(scheduler: str) -> Tuple[str, int]:
         raise InputError(f"--scheduler {scheduler}: the worker count after 'slurm:' must be a "
                          f"positive integer (e.g. slurm:4)")
     return "slurm", n
+
+
+@contextlib.contextmanager
+def scheduler_client(scheduler: str) -> Iterator[Optional[object]]:
+    """The client of ``--scheduler`` for the block, closed after it (with whatever was
+    started for it); None when ``scheduler`` is empty (the run uses its own threads)."""
+    if not scheduler:
+        yield None
+        return
+    client, closer = dask_client(scheduler)
+    with closer:
+        yield client
 
 
 def dask_client(scheduler: str):

@@ -188,14 +188,8 @@ def _calibrate_visibilities(start: RunStart) -> Dict:
     with dask.config.set(scheduler="threads"):
         plan = build_plan(start.opts, start.methods, outputs, start.ref_ms, start.target_ms,
                           columns, timings)
-        client = closer = None
-        if start.opts.run.scheduler:
-            # an address, or slurm[:N] (dask-jobqueue worker jobs): hitops/cluster.py
-            from ..cluster import dask_client
-            client, closer = dask_client(start.opts.run.scheduler)
-        try:
+        # --scheduler: an address, or slurm[:N] (dask-jobqueue worker jobs): hitops/cluster.py
+        from ..cluster import scheduler_client
+        with scheduler_client(start.opts.run.scheduler) as client:
             # stages 4-6: the run skeleton with REF_MS's visibilities as its source
             return run_source(VisibilitySource.of(plan, client, start.started, start.prepared))
-        finally:
-            if closer is not None:
-                closer.close()

@@ -196,15 +196,9 @@ def calibrate_from_table(start) -> Dict:
     # is written or a cluster is reached
     paired = pair_table(start.opts.input.reference_table, start.ref_ms, start.target_ms,
                         antenna_map=start.opts.input.antenna_map, target_meta=run.tgt_meta)
-    client = closer = None
-    if start.opts.run.scheduler:
-        from ..cluster import dask_client
-        client, closer = dask_client(start.opts.run.scheduler)
-    try:
+    from ..cluster import scheduler_client
+    with scheduler_client(start.opts.run.scheduler) as client:
         return run_source(TableSource.of(start, run, paired, client))
-    finally:
-        if closer is not None:
-            closer.close()
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ any time:
 * the writing pass: ``hitops-table-write`` reads chunk k of the target store
   (:meth:`StoreRows.read <hitops.calibrate.table_store.StoreRows.read>`, by path),
   corrects it by every method, writes its cells of the staged data groups and hands
-  back its sample counts and seconds;
+  back its sample counts;
 * the n0 step's first pass: ``hitops-table-sums`` reads and corrects chunk k and hands
   back its per-edge sums, which the client adds in chunk order, the additions one
   process makes in the same order (hitops/calibrate/from_table.py, ``offset_step``).
@@ -28,7 +28,6 @@ until none runs before the transaction removes the staged arrays.
 from __future__ import annotations
 
 import logging
-import time
 import uuid
 from collections import deque
 from dataclasses import dataclass
@@ -54,25 +53,16 @@ class TableJob:
     tx: Optional[DataGroupTransaction] = None     # None: the n0 step's first pass
 
 
-@dataclass(frozen=True)
-class ChunkWritten:
-    """A chunk corrected and written by a worker: its counts and the seconds it took."""
-
-    counts: SampleCounts
-    seconds: float
-
-
 # ---- the tasks (run on the workers)
-def write_task(job: TableJob, k: int, *after) -> ChunkWritten:
-    """Chunk ``k`` read, corrected and written into its cells of the staged groups.
-    ``after``: the earlier writes into its zarr chunks (only waited for)."""
-    start = time.perf_counter()
+def write_task(job: TableJob, k: int, *after) -> SampleCounts:
+    """Chunk ``k`` read, corrected and written into its cells of the staged groups; its
+    sample counts.  ``after``: the earlier writes into its zarr chunks (only waited for)."""
     chunk = read_chunk(job.run, k, None)
     done = correct_and_flag(job.run, job.transfers, chunk)
     job.tx.write_outputs(chunk.rows, done.outputs, done.new_flag)
     counts = SampleCounts()
     counts.add(done.before, done.new_flag)
-    return ChunkWritten(counts, time.perf_counter() - start)
+    return counts
 
 
 def sums_task(job: TableJob, k: int) -> Dict:
@@ -98,10 +88,7 @@ def write_on_workers(client, run: TableRun, tx: DataGroupTransaction,
         last_write.update({c: future for c in shared})
         return future
 
-    def collect(written: ChunkWritten) -> None:
-        counts.merge(written.counts)
-
-    _each_chunk(client, run, TableJob(run, transfers, tx), "write", submit, collect,
+    _each_chunk(client, run, TableJob(run, transfers, tx), "write", submit, counts.merge,
                 "writing pass")
     for source in run.store.sources:
         tx.mark_written(source)
