@@ -59,6 +59,10 @@ def test_several_chunks_leave_room_for_the_next_chunks_read():
     assert rows_for_budget(budget, big, 4, 1, 1) == room // (per_row + read_bytes_per_row(4, 1))
     assert rows_for_budget(budget, big, 4, 1, 1, time_ordered=False) < room // (
         per_row + read_bytes_per_row(4, 1))
+    # outputs to a processing set: the chunk being written is held beside the next read
+    assert rows_for_budget(budget, big, 4, 1, 1, writes_apart=True) == room // (
+        2 * per_row + read_bytes_per_row(4, 1))
+    assert rows_for_budget(budget, 1000, 4, 1, 1, writes_apart=True) == fits
     with pytest.raises(InputError, match="leave no room"):
         rows_for_budget(budget, 10 ** 8, 4, 1, 1)
     assert rows_for_budget(budget, 10 ** 8, 4, 1, 1, strict=False) == MIN_CHUNK_ROWS

@@ -4,7 +4,8 @@
   one thread in the order they are asked for: a read and a write never overlap, the
   write of chunk k runs after the read of chunk k+1 and ends before the read of
   chunk k+2 starts (two chunks in memory, as the budget assumes), and a failed job
-  raises in the caller.
+  raises in the caller.  With ``writes_apart`` (outputs to a processing set) the
+  writes run on a second thread, one at a time and in chunk order, beside the reads.
 * A time-ordered set read in several chunks takes each chunk's baselines and times
   from the index pass (:meth:`hitops.calibrate.chunks.GroupMatch.rows_from_index`)
   instead of reading ANTENNA1/2 again: the rows must be exactly those the re-read gives,
@@ -75,6 +76,71 @@ def test_reads_and_writes_run_one_at_a_time_in_the_pipelines_order():
     assert all(a[0] == "start" and b == ("end", a[1])
                for a, b in zip(rec.events[::2], rec.events[1::2]))
     assert len(rec.threads) == 1 and next(iter(rec.threads)).startswith("hitops-io")
+
+
+class _Apart(_Recorder):
+    """Reads and writes on their own threads: a read and a write may overlap, two reads
+    or two writes may not."""
+
+    def __init__(self):
+        super().__init__()
+        self.active_of = {"r": 0, "w": 0}
+        self.overlapped = []
+        self.thread_of = {}
+
+    def _job(self, name):
+        kind = name[0]
+        with self.lock:
+            if self.active_of[kind]:
+                self.overlapped.append(name)
+            self.active_of[kind] += 1
+            self.events.append(("start", name))
+            self.thread_of[name] = threading.current_thread().name
+            other = self.active_of["w" if kind == "r" else "r"]
+        # a write that finds a read running stays a little longer, so that the test sees
+        # the two at once
+        time.sleep(0.03 if other else 0.01)
+        with self.lock:
+            self.active_of[kind] -= 1
+            self.events.append(("end", name))
+
+
+def test_writes_apart_run_on_their_own_thread_in_chunk_order_beside_the_reads():
+    rec = _Apart()
+    with ChunkIO(rec.read, 6, writes_apart=True) as io:
+        _loop(io, rec, 6)
+    assert not rec.overlapped                      # one read at a time, one write at a time
+    writes = [name for kind, name in rec.events if kind == "start" and name[0] == "w"]
+    assert writes == [f"w{k}" for k in range(6)]
+    assert {rec.thread_of[f"w{k}"] for k in range(6)} == {"hitops-write_0"}
+    assert {rec.thread_of[f"r{k}"] for k in range(6)} == {"hitops-io_0"}
+    # a write ends before the next is asked for: at most one chunk held for writing
+    for k in range(1, 6):
+        assert rec.events.index(("end", f"w{k - 1}")) < rec.events.index(("start", f"w{k}"))
+    # the one-thread order would never have a read start while a write runs
+    running, beside = set(), 0
+    for kind, name in rec.events:
+        if kind == "start" and name[0] == "r" and any(n[0] == "w" for n in running):
+            beside += 1
+        (running.add if kind == "start" else running.discard)(name)
+    assert beside > 0
+
+
+def test_a_failed_write_apart_raises_in_the_caller():
+    rec = _Apart()
+
+    def failing_write(k):
+        if k == 1:
+            raise OSError("disk full (simulated)")
+        rec.write(k)
+
+    with pytest.raises(OSError, match="simulated"):
+        with ChunkIO(rec.read, 6, writes_apart=True) as io:
+            for k in range(6):
+                io.chunk(k)
+                io.read_ahead(k + 1)
+                io.write(failing_write, k)
+    assert [name for kind, name in rec.events if kind == "start" and name[0] == "w"] == ["w0"]
 
 
 def test_one_chunk_is_read_and_written_on_the_calling_thread():

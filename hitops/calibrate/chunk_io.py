@@ -15,7 +15,15 @@ transfer kernels:
 The thread takes the jobs in the order they are asked for, so a read and a write
 never touch the target table at the same time, and the write of chunk k ends before
 the read of chunk k+2 starts: at most two chunks' columns are held at once, as the
-memory budget assumes (hitops/calibrate/memory.py).  A failed read or write raises
+memory budget assumes (hitops/calibrate/memory.py).
+
+Outputs that go to a zarr store (``writes_apart``: MSv4 data groups, new arrays
+that no read of the run touches) are written on a second thread of their own, so
+that chunk k+1's read runs beside chunk k-1's write instead of after it (zarr
+decodes, encodes and stores on its own threads; the two calls only wait for them).
+The memory budget then counts the chunk being written as well
+(:func:`hitops.calibrate.memory.rows_for_budget`, ``writes_apart``); a write still
+waits for the previous one, so the outputs are written in chunk order.  A failed read or write raises
 in the main thread at the next call that waits on it, and at :meth:`close` at the
 latest, so nothing is committed after a failed write.
 """
@@ -27,15 +35,19 @@ from typing import Callable, Dict, Optional
 
 
 class ChunkIO:
-    """Reads (``read(k) -> chunk``) and writes of one pass over ``n_chunks`` chunks."""
+    """Reads (``read(k) -> chunk``) and writes of one pass over ``n_chunks`` chunks;
+    ``writes_apart``: the writes on a thread of their own (outputs to a zarr store)."""
 
-    def __init__(self, read: Callable[[int], object], n_chunks: int):
+    def __init__(self, read: Callable[[int], object], n_chunks: int,
+                 writes_apart: bool = False):
         self._read, self.n_chunks = read, n_chunks
         # one chunk: nothing to overlap, so the reads and writes run on the calling
         # thread (a paper-size read's getcols took 0.12-0.15 s of CPU there against
         # 0.16-0.31 s on a fresh thread, measured; the cause is not pinned down)
         self._pool = (ThreadPoolExecutor(1, thread_name_prefix="hitops-io")
                       if n_chunks > 1 else None)
+        self._writer = (ThreadPoolExecutor(1, thread_name_prefix="hitops-write")
+                        if self._pool is not None and writes_apart else None)
         self._reads: Dict[int, Future] = {}
         self._write: Optional[Future] = None
 
@@ -63,7 +75,8 @@ class ChunkIO:
         """Queue ``fn(*args)`` after what is asked for so far; the previous write's error,
         if it failed, raises here."""
         self._wait_write()
-        self._write = self._submit(fn, *args)
+        self._write = (self._writer.submit(fn, *args) if self._writer is not None
+                       else self._submit(fn, *args))
 
     def _wait_write(self) -> None:
         pending, self._write = self._write, None
@@ -83,8 +96,9 @@ class ChunkIO:
         finally:
             self._reads.clear()
             self._write = None
-            if self._pool is not None:
-                self._pool.shutdown(wait=True)
+            for pool in (self._pool, self._writer):
+                if pool is not None:
+                    pool.shutdown(wait=True)
 
     def __enter__(self) -> "ChunkIO":
         return self

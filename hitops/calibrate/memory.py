@@ -23,7 +23,9 @@ run's peak resident memory is fitted to peaks measured on this machine
   (baseline, time) grids, phasors and outputs): about 96 bytes per correlation
   plus 30 per correlation and method, and the per-channel columns again for
   every further channel; with several chunks also the next chunk's read
-  (:func:`read_bytes_per_row`).
+  (:func:`read_bytes_per_row`), and for outputs to a processing set, written on a
+  thread of their own beside that read (hitops/calibrate/chunk_io.py), the chunk
+  being written once more.
 """
 
 from __future__ import annotations
@@ -104,7 +106,7 @@ def min_chunk_rows(n_chan: int) -> int:
 
 def rows_for_budget(budget: int, n_rows_both_bands: int, n_corr: int, n_chan: int,
                     n_methods: int, time_ordered: bool = True, strict: bool = True,
-                    local: bool = False) -> int:
+                    local: bool = False, writes_apart: bool = False) -> int:
     """Target rows per time chunk that keep the run's peak within ``budget`` bytes.
 
     A run that fits in one chunk holds one; a run of several chunks also holds the
@@ -113,6 +115,8 @@ def rows_for_budget(budget: int, n_rows_both_bands: int, n_corr: int, n_chan: in
     the user gave); otherwise (the default budget) chunks have at least
     :func:`min_chunk_rows` rows, even where that exceeds the budget.  ``local``: the
     sets are read without dask-ms (no cluster, one group each), in either order.
+    ``writes_apart``: the outputs go to a processing set, written beside the next read,
+    so a run of several chunks may hold a third one (counted whole: an upper bound).
     """
     per_row = bytes_per_row(n_corr, n_chan, n_methods)
     # a run in one chunk reads every set in storage order: no sort, whatever the layout
@@ -122,7 +126,8 @@ def rows_for_budget(budget: int, n_rows_both_bands: int, n_corr: int, n_chan: in
         return int(room // per_row)
     if not (time_ordered or local):
         room = budget - FIXED_BYTES - UNSORTED_ORDER_BYTES_PER_ROW * n_rows_both_bands
-    rows = int(max(room, 0) // (per_row + read_bytes_per_row(n_corr, n_chan)))
+    held = per_row * (2 if writes_apart else 1) + read_bytes_per_row(n_corr, n_chan)
+    rows = int(max(room, 0) // held)
     if not strict:
         return max(rows, min_chunk_rows(n_chan))
     if rows < 1000:

@@ -107,6 +107,10 @@ class OutputTransaction:
     copied at the commit (the run's memory bound).
     """
 
+    #: the writes go to the table the run reads: on the reads' thread, after them
+    #: (hitops/calibrate/chunk_io.py)
+    writes_apart = False
+
     def __init__(self, target_ms: str, outputs: Dict[str, str], target_column: str,
                  n_rows: Optional[int], chunk_rows: int, direct_writes: bool = False):
         self.target_ms = target_ms

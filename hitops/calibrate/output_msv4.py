@@ -71,6 +71,10 @@ class DataGroupTransaction:
                         for p in partitions for m, name in self.data_groups.items()}
         self.staged: List[DataGroupWriter] = []
 
+    #: the writes go to new zarr arrays that no read of the run touches: on a thread of
+    #: their own, beside the next chunk's read (hitops/calibrate/chunk_io.py)
+    writes_apart = True
+
     def check_space(self) -> None:
         """Refuse before writing when the new groups could not fit uncompressed."""
         readers = {s.partition: s.reader(s.group) for s in self.sources}

@@ -19,7 +19,9 @@ For each time chunk of the plan, in time order:
 
 Reads and writes run on one I/O thread (:class:`hitops.calibrate.chunk_io.ChunkIO`):
 chunk k+1 is read while chunk k's kernels run, and chunk k is written while chunk
-k+1's run.  Steps 2-3 of one chunk are :meth:`GroupPipeline.advance`, from the
+k+1's run.  Outputs to a processing set are written on a thread of their own, and
+when both bands are processing sets chunk k+1's read is asked for as soon as chunk
+k is in hand.  Steps 2-3 of one chunk are :meth:`GroupPipeline.advance`, from the
 :class:`PassState` the previous chunk carried out: the same method runs in the chunk
 tasks of hitops/calibrate/worker_chunks.py, where the workers read and write.
 
@@ -268,10 +270,14 @@ class GroupPipeline:
         instead of writing (a first pass whose writing pass only shifts)."""
         state = self.start_state()
         progress = self.progress(spec)
-        with ChunkIO(lambda k: self.read(k, keep_reads), self.group.n_chunks) as io:
+        # zarr reads hold the GIL only briefly (no getcol to keep from the kernels' start):
+        # two processing sets' next chunk is asked for at once
+        early = state.result.tracker.grids_reference or self.group.reads_stores
+        with ChunkIO(lambda k: self.read(k, keep_reads), self.group.n_chunks,
+                     writes_apart=self.tx.writes_apart) as io:
             for k in range(self.group.n_chunks):
                 chunk = io.chunk(k)
-                if state.result.tracker.grids_reference:   # it reads the chunk: read beside it
+                if early:   # the tracker reads the chunk, or the read needs no GIL for long
                     io.read_ahead(k + 1)
                 # asked for once the kernels run: casacore's getcol holds the GIL, which
                 # each kernel needs to start

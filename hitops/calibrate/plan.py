@@ -138,7 +138,7 @@ def rows_from_budget(budget: int, ref_ms: str, target_ms: str, columns: Columns,
         if rows:
             n_chan, n_corr = max(n_chan, int(shape[0])), max(n_corr, int(shape[-1]))
     rows = rows_for_budget(budget, n_rows, n_corr, n_chan, n_methods, time_ordered, strict,
-                           local)
+                           local, writes_apart=target_ms in (stores or {}))
     if rows == min_chunk_rows(n_chan) and not strict:
         log.warning("the default memory budget (%.0f MB) cannot hold %d rows%s and a chunk: "
                     "chunks of %d rows; give --memory-budget or --chunk-rows to choose",
