@@ -62,13 +62,16 @@ WRAP_COUNTING = {"pwc": True, "cfpt": False}
 
 
 def each_chunk(run: TableRun, work: Callable[[TargetChunk, ChunkIO], None],
-               offset_column: Optional[str] = None, what: str = "writing pass") -> None:
+               offset_column: Optional[str] = None, what: str = "writing pass",
+               writes_apart: bool = False) -> None:
     """``work(chunk, io)`` on every chunk of the target set in order; chunk k+1 is read on
-    :class:`ChunkIO`'s thread while chunk k is worked on (``io.write`` queues a write there).
+    :class:`ChunkIO`'s thread while chunk k is worked on (``io.write`` queues a write there,
+    or on a thread of its own with ``writes_apart``: a processing set's new data groups).
     The pass's progress is logged (at most every 5 s) when it has several chunks."""
     progress = (Progress(f"calibrate --reference-table {what}: chunks", run.n_chunks,
                          logger=log) if run.n_chunks > 1 else None)
-    with ChunkIO(lambda k: read_chunk(run, k, offset_column), run.n_chunks) as io:
+    with ChunkIO(lambda k: read_chunk(run, k, offset_column), run.n_chunks,
+                 writes_apart=writes_apart) as io:
         for k in range(run.n_chunks):
             chunk = io.chunk(k)
             io.read_ahead(k + 1)
@@ -119,7 +122,7 @@ def write_outputs(run: TableRun, tx: OutputTransaction,
                  chunk.columns["flag"] if flag_is_read else None)
         counts.add(done.before, done.new_flag)
 
-    each_chunk(run, correct)
+    each_chunk(run, correct, writes_apart=tx.writes_apart)
     return counts
 
 
@@ -135,8 +138,9 @@ def _rows_per_chunk(opts: CalibrateOptions, meta: SetMetadata, n_rows: int,
     explicit = str(opts.run.memory_budget or "auto").strip().lower() != "auto"
     n_chan = max([w.num_chan for w in meta.windows] or [1])
     n_corr = max([len(p.corr_types) for p in meta.polarizations] or [1])
+    # a processing set's outputs are written beside the next read (hitops/calibrate/chunk_io.py)
     rows = rows_for_budget(budget, n_rows, n_corr, n_chan, n_methods, strict=explicit,
-                           local=True)
+                           local=True, writes_apart=is_processing_set(meta.ms))
     log.info("memory budget %.0f MB: up to %d target rows per chunk (--chunk-rows overrides)",
              budget / 1e6, rows)
     return max(1, rows)
