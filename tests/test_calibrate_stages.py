@@ -103,3 +103,31 @@ def test_stage4_stages_the_paper_output_and_rollback_leaves_the_set(planned_copy
         tx.rollback()
     with pt.table(str(truth.target_ms), ack=False) as t:
         assert not any(c.startswith("HITOPS_PARTIAL") or c == "PWC_DATA" for c in t.colnames())
+
+
+def test_stage4_the_first_pass_starts_from_the_planning_tracker(planned_run):
+    """The tracker that plans the reads has an empty state until a pass tracks with it:
+    the first pass starts from it (an antenna tracker's whole-track records are then held
+    once, not twice), later passes from fresh ones; what it plans is the same after."""
+    from hitops.calibrate.output import OutputTransaction
+    from hitops.calibrate.pipeline import GroupPipeline, PassSpec
+
+    planned = planned_run(SPEC, method="pwc", tracker="antenna", chunk_rows=1200)
+    run = planned.plan
+    # a first pass writes nothing: the transaction is never staged
+    tx = OutputTransaction(run.target_ms, run.outputs, run.columns.target_data, None,
+                           run.chunk_rows)
+    pipeline = GroupPipeline(run, run.groups[0], tx, None)
+    try:
+        plan_tracker = pipeline.plan_tracker
+        bounds = run.groups[0].bounds
+        extents = [plan_tracker.extended(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+        assert np.all(np.isnan(plan_tracker.antenna_phase))       # nothing tracked yet
+        first = pipeline.run_pass(PassSpec(write=False))
+        assert first.tracker is plan_tracker
+        assert np.any(np.isfinite(plan_tracker.antenna_phase))     # the pass filled it
+        assert [plan_tracker.extended(a, b) for a, b in zip(bounds[:-1], bounds[1:])] == extents
+        second = pipeline.start_state().result.tracker
+        assert second is not plan_tracker and np.all(np.isnan(second.antenna_phase))
+    finally:
+        pipeline.close()

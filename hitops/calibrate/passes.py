@@ -153,6 +153,9 @@ def _run_passes(run: RunPlan, group: GroupPlan, pipeline: GroupPipeline) -> Grou
     if keep:
         pipeline.write_kept(kept, solution.segment_k)
         return GroupResult.of(first, solution, group.n_chunks)
+    # the writing pass tracks again from a fresh tracker: the first pass's (its records
+    # span the whole track) need not be held beside it
+    del first
     final = _run_pass(pipeline, PassSpec(offsets=solution.offsets, segment_k=solution.segment_k,
                                          offset_k=solution.offset_k))
     return GroupResult.of(final, solution, group.n_chunks)
