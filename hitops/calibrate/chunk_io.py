@@ -23,9 +23,10 @@ that chunk k+1's read runs beside chunk k-1's write instead of after it (zarr
 decodes, encodes and stores on its own threads; the two calls only wait for them).
 The memory budget then counts the chunk being written as well
 (:func:`hitops.calibrate.memory.rows_for_budget`, ``writes_apart``); a write still
-waits for the previous one, so the outputs are written in chunk order.  A failed read or write raises
-in the main thread at the next call that waits on it, and at :meth:`close` at the
-latest, so nothing is committed after a failed write.
+waits for the previous one, so the outputs are written in chunk order.
+
+A failed read or write raises in the main thread at the next call that waits on it,
+and at :meth:`close` at the latest, so nothing is committed after a failed write.
 """
 
 from __future__ import annotations

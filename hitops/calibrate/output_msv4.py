@@ -43,6 +43,10 @@ class DataGroupTransaction:
     chunk, so the new arrays are stored in chunks of about one run chunk's time steps.
     """
 
+    #: the writes go to new zarr arrays that no read of the run touches: on a thread of
+    #: their own, beside the next chunk's read (hitops/calibrate/chunk_io.py)
+    writes_apart = True
+
     def __init__(self, target_ps: str, outputs: Dict[str, str], target_column: str,
                  sources: List[PartitionSource], chunk_rows: int, overwrite: bool):
         self.target_ms = target_ps
@@ -70,10 +74,6 @@ class DataGroupTransaction:
                                                 f"from data group '{self.like}'")
                         for p in partitions for m, name in self.data_groups.items()}
         self.staged: List[DataGroupWriter] = []
-
-    #: the writes go to new zarr arrays that no read of the run touches: on a thread of
-    #: their own, beside the next chunk's read (hitops/calibrate/chunk_io.py)
-    writes_apart = True
 
     def check_space(self) -> None:
         """Refuse before writing when the new groups could not fit uncompressed."""

@@ -222,8 +222,10 @@ def _per_time(names, number_of) -> np.ndarray:
     equal names (a scan or field lasts many steps: 357,143 steps sorted as strings took
     0.2 s, their runs take 0.02 s)."""
     values = np.asarray(names[...]).ravel()
-    if values.dtype.kind != "U":   # zarr gives fixed-width text already: no copy (0.08 s
-        values = values.astype(str)   # per 357,143 names)
+    # zarr gives xradio's names as fixed-width text already: converting them again
+    # copied them (0.08 s per 357,143 names)
+    if values.dtype.kind != "U":
+        values = values.astype(str)
     if values.size == 0:
         return np.zeros(0, np.int32)
     starts = np.concatenate([[0], np.flatnonzero(values[1:] != values[:-1]) + 1])
