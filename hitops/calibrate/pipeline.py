@@ -19,9 +19,7 @@ For each time chunk of the plan, in time order:
 
 Reads and writes run on one I/O thread (:class:`hitops.calibrate.chunk_io.ChunkIO`):
 chunk k+1 is read while chunk k's kernels run, and chunk k is written while chunk
-k+1's run.  Outputs to a processing set are written on a thread of their own, and
-when both bands are processing sets chunk k+1's read is asked for as soon as chunk
-k is in hand.  Steps 2-3 of one chunk are :meth:`GroupPipeline.advance`, from the
+k+1's run (a processing set's outputs on a thread of their own).  Steps 2-3 of one chunk are :meth:`GroupPipeline.advance`, from the
 :class:`PassState` the previous chunk carried out: the same method runs in the chunk
 tasks of hitops/calibrate/worker_chunks.py, where the workers read and write.
 
@@ -163,10 +161,8 @@ class GroupPipeline:
         # what to read: the tracker's context does not depend on its state (and on a
         # worker, the plan parts and records a packed tracker is unpacked onto)
         self.plan_tracker = self.new_tracker()
-        # the plan tracker's state and records are still empty: the first pass starts
-        # from it (start_state), so a segmented tracker's whole-track records are not
-        # held twice (the antenna tracker's: 16 bytes per station, correlation and time
-        # step, 91 MB at 357,150 steps of 8 stations and 2 correlations)
+        # empty still: the first pass starts from it, so that a tracker's whole-track
+        # records (the antenna tracker's: 91 MB at 10^7 rows) are not held twice
         self._plan_tracker_unused = True
         if on_worker:
             return
@@ -275,14 +271,13 @@ class GroupPipeline:
         instead of writing (a first pass whose writing pass only shifts)."""
         state = self.start_state()
         progress = self.progress(spec)
-        # zarr reads hold the GIL only briefly (no getcol to keep from the kernels' start):
-        # two processing sets' next chunk is asked for at once
+        # the tracker reads the chunk, or zarr's reads (unlike a getcol) hold the GIL briefly
         early = state.result.tracker.grids_reference or self.group.reads_stores
         with ChunkIO(lambda k: self.read(k, keep_reads), self.group.n_chunks,
                      writes_apart=self.tx.writes_apart) as io:
             for k in range(self.group.n_chunks):
                 chunk = io.chunk(k)
-                if early:   # the tracker reads the chunk, or the read needs no GIL for long
+                if early:   # the next chunk read beside this one's tracking
                     io.read_ahead(k + 1)
                 # asked for once the kernels run: casacore's getcol holds the GIL, which
                 # each kernel needs to start
@@ -306,10 +301,8 @@ class GroupPipeline:
     def start_state(self) -> PassState:
         """The state a pass starts from: a fresh tracker (the plan's, for the first pass:
         what it plans does not depend on its state), nothing carried, nothing summed."""
-        if self._plan_tracker_unused:
-            tracker, self._plan_tracker_unused = self.plan_tracker, False
-        else:
-            tracker = self.new_tracker()
+        tracker = self.plan_tracker if self._plan_tracker_unused else self.new_tracker()
+        self._plan_tracker_unused = False
         return PassState(PassResult(samples=SampleCounts(), tracker=tracker,
                                     sums=OffsetSums.for_batch(self.group)),
                          Carry.empty(self.group.match.n_bl, self.group.n_corr))
