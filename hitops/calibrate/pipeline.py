@@ -19,9 +19,10 @@ For each time chunk of the plan, in time order:
 
 Reads and writes run on one I/O thread (:class:`hitops.calibrate.chunk_io.ChunkIO`):
 chunk k+1 is read while chunk k's kernels run, and chunk k is written while chunk
-k+1's run (a processing set's outputs on a thread of their own).  Steps 2-3 of one chunk are :meth:`GroupPipeline.advance`, from the
-:class:`PassState` the previous chunk carried out: the same method runs in the chunk
-tasks of hitops/calibrate/worker_chunks.py, where the workers read and write.
+k+1's run (a processing set's outputs on a thread of their own).  Steps 2-3 of one
+chunk are :meth:`GroupPipeline.advance`, from the :class:`PassState` the previous
+chunk carried out: the same method runs in the chunk tasks of
+hitops/calibrate/worker_chunks.py, where the workers read and write.
 
 With the n0 offset step a first pass (steps 1-3) sums the calibrated phase against the offset
 reference per scan or segment (per target channel across a window); the integers are solved
