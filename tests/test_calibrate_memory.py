@@ -66,3 +66,46 @@ def test_several_chunks_leave_room_for_the_next_chunks_read():
     with pytest.raises(InputError, match="leave no room"):
         rows_for_budget(budget, 10 ** 8, 4, 1, 1)
     assert rows_for_budget(budget, 10 ** 8, 4, 1, 1, strict=False) == MIN_CHUNK_ROWS
+
+
+def test_a_tracker_that_grids_the_reference_leaves_room_for_it():
+    """The smooth and antenna trackers' chunk work (per target row and correlation) and
+    the antenna tracker's whole-track records (every station's phase and segment, 16
+    bytes per station, correlation and time step, in two trackers) shrink the chunks;
+    the count tracker's work is in bytes_per_row already."""
+    from hitops.calibrate.memory import (FIXED_BYTES, LOCAL_ORDER_BYTES_PER_ROW,
+                                         TRACKER_BYTES_PER_CORR, read_bytes_per_row,
+                                         tracker_bytes)
+
+    n_rows, n_ant, n_corr = 10 ** 7, 8, 2
+    count = tracker_bytes("count", n_corr, n_rows, n_ant)
+    smooth = tracker_bytes("smooth", n_corr, n_rows, n_ant)
+    antenna = tracker_bytes("antenna", n_corr, n_rows, n_ant)
+    assert count.per_row == count.per_run == smooth.per_run == 0
+    assert smooth.per_row == n_corr * TRACKER_BYTES_PER_CORR["smooth"] > 0
+    assert antenna.per_row == n_corr * TRACKER_BYTES_PER_CORR["antenna"] > 0
+    # 28 baselines at every step: 357,142.9 steps; two trackers' phases and segments
+    assert antenna.per_run == int(2 * 16 * n_ant * n_corr * n_rows / 28)
+    budget = 10 ** 9
+    args = (budget, 2 * n_rows, n_corr, 1, 1, True, False, True)
+    rows = {name: rows_for_budget(*args, tracker=t)
+            for name, t in (("count", count), ("smooth", smooth), ("antenna", antenna))}
+    assert rows["count"] > rows["smooth"] > rows["antenna"]
+    room = budget - FIXED_BYTES - LOCAL_ORDER_BYTES_PER_ROW * 2 * n_rows - antenna.per_run
+    assert rows["antenna"] == room // (bytes_per_row(n_corr, 1, 1) + antenna.per_row
+                                       + read_bytes_per_row(n_corr, 1))
+    # no stations to track: no records
+    assert tracker_bytes("antenna", n_corr, n_rows, 1).per_run == 0
+
+
+def test_the_paper_size_pair_stays_in_one_chunk_with_every_tracker():
+    """The paper's scene (8 stations, 43,200 steps, RR LL: 1,209,600 rows per band; its
+    one-chunk runs peak at 0.61, 0.84 and 0.93 GB with count, smooth and antenna) is one
+    chunk under the default budget whatever the tracker, so its verdict is made."""
+    from hitops.calibrate.memory import tracker_bytes
+
+    n_rows = 1_209_600
+    for name in ("count", "smooth", "antenna"):
+        rows = rows_for_budget(10 ** 9, 2 * n_rows, 2, 1, 3, True, False, True,
+                               tracker=tracker_bytes(name, 2, n_rows, 8))
+        assert rows >= n_rows, name

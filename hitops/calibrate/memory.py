@@ -25,13 +25,18 @@ run's peak resident memory is fitted to peaks measured on this machine
   every further channel; with several chunks also the next chunk's read
   (:func:`read_bytes_per_row`), and for outputs to a processing set, written on a
   thread of their own beside that read (hitops/calibrate/chunk_io.py), the chunk
-  being written once more.
+  being written once more;
+* the tracker's own (:func:`tracker_bytes`): the smooth and antenna trackers work on
+  the reference gridded over the chunk and its context, and the antenna tracker keeps
+  every station's phase and segment over the whole track (16 bytes per station,
+  correlation and time step, in two trackers at once).
 """
 
 from __future__ import annotations
 
 import os
 import re
+from dataclasses import dataclass
 
 from ..errors import InputError
 
@@ -90,6 +95,39 @@ def bytes_per_row(n_corr: int, n_chan: int, n_methods: int) -> int:
     return n_corr * (96 + 30 * n_methods + per_chan * max(n_chan - 1, 0))
 
 
+#: bytes per target row and correlation that the smooth and antenna trackers add to a
+#: chunk (the reference gridded over the chunk and its context, the segment and antenna
+#: solves), with the rest of the model fitted to peaks measured on 2026-11-29
+#: (docs/calibrate.md, "Memory budget"): the paper-size pair (1.2 M rows per band,
+#: whose one-chunk runs peak at 0.84 and 0.93 GB) stays in one chunk, and 10^7-row runs
+#: peak at 0.91-0.94 GB (1.007 GB: the smooth tracker on a Measurement Set v2).  Alone
+#: the trackers measured 200-225 bytes more per row and correlation than the count
+#: tracker; the count model's own margin holds the rest.
+TRACKER_BYTES_PER_CORR = {"count": 0, "smooth": 80, "antenna": 80}
+
+
+@dataclass(frozen=True)
+class TrackerMemory:
+    """What the run's tracker holds beside the chunk (:func:`tracker_bytes`)."""
+
+    per_row: int        # bytes per target row of a chunk
+    per_run: int        # bytes for the whole run
+
+
+def tracker_bytes(tracker: str, n_corr: int, n_rows_target: int, n_ant: int) -> TrackerMemory:
+    """The tracker's share of a run: per target row of a chunk, and the antenna tracker's
+    whole-track records (every station's phase and segment, 16 bytes per station,
+    correlation and time step, in two trackers at once: the writing pass's and the first
+    pass's, which is also the one that plans the reads).  Its time steps are taken as the
+    target's rows over its baselines, every baseline at every step; a set with fewer
+    baselines per step has more steps than that."""
+    per_row = n_corr * TRACKER_BYTES_PER_CORR.get(tracker, 0)
+    if tracker != "antenna" or n_ant < 2:
+        return TrackerMemory(per_row, 0)
+    n_time = n_rows_target / (n_ant * (n_ant - 1) / 2)
+    return TrackerMemory(per_row, int(2 * 16 * n_ant * n_corr * n_time))
+
+
 def read_bytes_per_row(n_corr: int, n_chan: int) -> int:
     """Bytes per target row of one chunk as read (both bands' data and flags, the row
     grids and the tracker's gridded reference): what reading the next chunk while this
@@ -106,7 +144,8 @@ def min_chunk_rows(n_chan: int) -> int:
 
 def rows_for_budget(budget: int, n_rows_both_bands: int, n_corr: int, n_chan: int,
                     n_methods: int, time_ordered: bool = True, strict: bool = True,
-                    local: bool = False, writes_apart: bool = False) -> int:
+                    local: bool = False, writes_apart: bool = False,
+                    tracker: TrackerMemory = TrackerMemory(0, 0)) -> int:
     """Target rows per time chunk that keep the run's peak within ``budget`` bytes.
 
     A run that fits in one chunk holds one; a run of several chunks also holds the
@@ -117,15 +156,17 @@ def rows_for_budget(budget: int, n_rows_both_bands: int, n_corr: int, n_chan: in
     sets are read without dask-ms (no cluster, one group each), in either order.
     ``writes_apart``: the outputs go to a processing set, written beside the next read,
     so a run of several chunks may hold a third one (counted whole: an upper bound).
+    ``tracker``: what the run's tracker adds (:func:`tracker_bytes`).
     """
-    per_row = bytes_per_row(n_corr, n_chan, n_methods)
+    per_row = bytes_per_row(n_corr, n_chan, n_methods) + tracker.per_row
     # a run in one chunk reads every set in storage order: no sort, whatever the layout
     order_bytes = LOCAL_ORDER_BYTES_PER_ROW if local else ORDER_BYTES_PER_ROW
-    room = budget - FIXED_BYTES - order_bytes * n_rows_both_bands
+    room = budget - FIXED_BYTES - order_bytes * n_rows_both_bands - tracker.per_run
     if 2 * (max(room, 0) // per_row) >= n_rows_both_bands:
         return int(room // per_row)
     if not (time_ordered or local):
-        room = budget - FIXED_BYTES - UNSORTED_ORDER_BYTES_PER_ROW * n_rows_both_bands
+        room = (budget - FIXED_BYTES - UNSORTED_ORDER_BYTES_PER_ROW * n_rows_both_bands
+                - tracker.per_run)
     held = per_row * (2 if writes_apart else 1) + read_bytes_per_row(n_corr, n_chan)
     rows = int(max(room, 0) // held)
     if not strict:

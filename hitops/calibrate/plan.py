@@ -121,24 +121,29 @@ def chunk_bounds(per_time: np.ndarray, chunk_rows: int) -> List[int]:
 
 def rows_from_budget(budget: int, ref_ms: str, target_ms: str, columns: Columns,
                      n_methods: int, time_ordered: bool, strict: bool,
-                     local: bool = False, stores: Optional[Dict[str, Dict]] = None) -> int:
+                     local: bool = False, stores: Optional[Dict[str, Dict]] = None,
+                     tracker: str = "count", n_ant: int = 0) -> int:
     """Rows per time chunk that keep the run within ``budget`` bytes (hitops/calibrate/memory.py).
 
     ``time_ordered``: both sets are stored in time order; ``strict``: the budget was
     given (not the default), so a budget too small is an error; ``local``: no cluster,
     the sets are read without dask-ms (hitops/io/read.py, open_for_reading), and neither
     set mixes fields or windows (those are still read through dask-ms's datasets);
-    ``stores``: the processing-set bands' groups, opened already (:func:`_open_stores`).
+    ``stores``: the processing-set bands' groups, opened already (:func:`_open_stores`);
+    ``tracker`` and ``n_ant``: the run's tracker and the target's stations (what the
+    tracker holds, :func:`hitops.calibrate.memory.tracker_bytes`).
     """
-    from .memory import min_chunk_rows, rows_for_budget
-    n_rows, n_corr, n_chan = 0, 1, 1
+    from .memory import min_chunk_rows, rows_for_budget, tracker_bytes
+    n_rows, n_corr, n_chan, n_target = 0, 1, 1, 0
     for ms, column in ((ref_ms, columns.ref_data), (target_ms, columns.target_data)):
         rows, shape = _column_extent(ms, column, stores or {})
         n_rows += rows
+        n_target = rows if ms == target_ms else n_target
         if rows:
             n_chan, n_corr = max(n_chan, int(shape[0])), max(n_corr, int(shape[-1]))
     rows = rows_for_budget(budget, n_rows, n_corr, n_chan, n_methods, time_ordered, strict,
-                           local, writes_apart=target_ms in (stores or {}))
+                           local, writes_apart=target_ms in (stores or {}),
+                           tracker=tracker_bytes(tracker, n_corr, n_target, n_ant))
     if rows == min_chunk_rows(n_chan) and not strict:
         log.warning("the default memory budget (%.0f MB) cannot hold %d rows%s and a chunk: "
                     "chunks of %d rows; give --memory-budget or --chunk-rows to choose",
@@ -202,7 +207,8 @@ def build_plan(opts: CalibrateOptions, methods: List[str], outputs: Dict[str, st
                                       # through dask-ms's datasets
                                       local=not (opts.run.scheduler or ref_meta.has_groups()
                                                  or tgt_meta.has_groups()),
-                                      stores=stores)
+                                      stores=stores, tracker=opts.tracking.tracker,
+                                      n_ant=len(tgt_meta.antennas.names))
     # dask row chunks of chunk_rows rows: the metadata blocks of the first pass are
     # slices of these datasets (no dataset per block); a field/spectral-window group is a
     # dataset of its own, so FIELD_ID and DATA_DESC_ID are not read per row
