@@ -126,23 +126,6 @@ def test_writes_apart_run_on_their_own_thread_in_chunk_order_beside_the_reads():
     assert beside > 0
 
 
-def test_a_failed_write_apart_raises_in_the_caller():
-    rec = _Apart()
-
-    def failing_write(k):
-        if k == 1:
-            raise OSError("disk full (simulated)")
-        rec.write(k)
-
-    with pytest.raises(OSError, match="simulated"):
-        with ChunkIO(rec.read, 6, writes_apart=True) as io:
-            for k in range(6):
-                io.chunk(k)
-                io.read_ahead(k + 1)
-                io.write(failing_write, k)
-    assert [name for kind, name in rec.events if kind == "start" and name[0] == "w"] == ["w0"]
-
-
 def test_one_chunk_is_read_and_written_on_the_calling_thread():
     """Nothing to overlap: no thread (a fresh thread's allocations cost more, measured)."""
     rec = _Recorder()
@@ -160,8 +143,9 @@ def test_one_chunk_is_read_and_written_on_the_calling_thread():
             io.write(failing, 0)
 
 
-def test_a_failed_write_raises_in_the_caller_and_later_jobs_do_not_run():
-    rec = _Recorder()
+@pytest.mark.parametrize("apart", [False, True], ids=["one-thread", "writes-apart"])
+def test_a_failed_write_raises_in_the_caller_and_later_jobs_do_not_run(apart):
+    rec = _Apart() if apart else _Recorder()
 
     def failing_write(k):
         if k == 1:
@@ -169,7 +153,7 @@ def test_a_failed_write_raises_in_the_caller_and_later_jobs_do_not_run():
         rec.write(k)
 
     with pytest.raises(OSError, match="simulated"):
-        with ChunkIO(rec.read, 6) as io:
+        with ChunkIO(rec.read, 6, writes_apart=apart) as io:
             for k in range(6):
                 io.chunk(k)
                 io.read_ahead(k + 1)
