@@ -96,10 +96,9 @@ class _Apart(_Recorder):
             self.active_of[kind] += 1
             self.events.append(("start", name))
             self.thread_of[name] = threading.current_thread().name
-            other = self.active_of["w" if kind == "r" else "r"]
-        # a write that finds a read running stays a little longer, so that the test sees
-        # the two at once
-        time.sleep(0.03 if other else 0.01)
+        # long enough that a read and a write asked for together are seen at once, even
+        # on a loaded machine
+        time.sleep(0.05)
         with self.lock:
             self.active_of[kind] -= 1
             self.events.append(("end", name))
