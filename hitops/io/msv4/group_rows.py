@@ -16,7 +16,7 @@ the writer.  Columns are named as in MSv2 and mapped by hitops/io/msv4/columns.p
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import ClassVar, Dict, Sequence, Tuple
+from typing import ClassVar, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -84,31 +84,37 @@ class PartitionSource(StorageRows):
     def antennas(self, start: int, stop: int) -> Tuple[np.ndarray, np.ndarray]:
         """(ANTENNA1, ANTENNA2) of positions [start, stop): from the baselines of their
         cells, so only a partly filled step's presence is read."""
-        reader = self.reader(self.group)
-        ant1, ant2 = reader.baseline_antennas
-        s0 = int(np.searchsorted(self.step_start, start, side="right")) - 1
-        s1 = int(np.searchsorted(self.step_start, max(start, stop - 1), side="right"))
-        if stop > start and np.all(np.diff(self.step_start[s0:s1 + 1]) == reader.n_baseline):
+        ant1, ant2 = self.reader(self.group).baseline_antennas
+        full = self._full_steps(start, stop - 1) if stop > start else None
+        if full is not None:
             # every cell of these steps a row: the baselines' antennas repeated per step,
             # no position divided into its step and baseline
+            s0, s1 = full
             pick = slice(start - int(self.step_start[s0]), stop - int(self.step_start[s0]))
             return np.tile(ant1, s1 - s0)[pick], np.tile(ant2, s1 - s0)[pick]
         _, baseline = self.cells(np.arange(start, stop, dtype=np.int64))
         return ant1[baseline], ant2[baseline]
 
+    def _full_steps(self, first: int, last: int) -> Optional[Tuple[int, int]]:
+        """[s0, s1): the group's steps that positions ``first``..``last`` fall in, when every
+        cell of them is a row; None when some cell of them is not."""
+        s0 = int(np.searchsorted(self.step_start, first, side="right")) - 1
+        s1 = int(np.searchsorted(self.step_start, last, side="right"))
+        n_baseline = self.reader(self.group).n_baseline
+        return (s0, s1) if np.all(np.diff(self.step_start[s0:s1 + 1]) == n_baseline) else None
+
     def cells(self, positions: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """(time index in the partition, baseline_id) of each position (ascending or not)."""
         positions = np.asarray(positions, np.int64)
         reader = self.reader(self.group)
-        if positions.size:
-            # the steps these positions fall in; when every cell of them is a row, a
-            # position's step and baseline follow by division (no search per position)
-            s0 = int(np.searchsorted(self.step_start, positions.min(), side="right")) - 1
-            s1 = int(np.searchsorted(self.step_start, positions.max(), side="right"))
-            if np.all(np.diff(self.step_start[s0:s1 + 1]) == reader.n_baseline):
-                offset = positions - self.step_start[s0]
-                return (self.steps[s0 + offset // reader.n_baseline],
-                        offset % reader.n_baseline)
+        # the steps these positions fall in; when every cell of them is a row, a
+        # position's step and baseline follow by division (no search per position)
+        full = (self._full_steps(int(positions.min()), int(positions.max()))
+                if positions.size else None)
+        if full is not None:
+            offset = positions - self.step_start[full[0]]
+            return (self.steps[full[0] + offset // reader.n_baseline],
+                    offset % reader.n_baseline)
         step = np.searchsorted(self.step_start, positions, side="right") - 1
         times = self.steps[step]
         rank = positions - self.step_start[step]        # the k-th row of its time step
