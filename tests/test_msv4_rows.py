@@ -296,6 +296,31 @@ def test_full_steps_read_without_presence_give_the_same_rows(simulator_sets):
         assert np.unique(times * reader.n_baseline + baselines).size == source.n_rows
 
 
+def test_one_field_partitions_take_their_field_without_reading_names(simulator_sets,
+                                                                     tmp_path):
+    """A partition whose field_and_source dataset lists one field gives every step that
+    field's FIELD_ID without reading the per-step names; one that lists several reads
+    them.  Both agree with the names xradio stored, in the default scheme (fields share
+    partitions) and partitioned by field."""
+    from xradio.measurement_set import convert_msv2_to_processing_set
+
+    ms, shared = simulator_sets
+    by_field = tmp_path / "by-field.ps.zarr"
+    convert_msv2_to_processing_set(str(ms), str(by_field), partition_scheme=["FIELD_ID"])
+    kinds = set()
+    for ps in (str(shared), str(by_field)):
+        layout = read_layout(open_store(ps))
+        known = {n: i for i, n in enumerate(layout.fields.v4_names)}
+        for place in layout.partitions:
+            reader = PartitionReader(layout, place.name)
+            names = np.asarray(zarr.open_group(ps, mode="r")[place.name]["field_name"][...])
+            np.testing.assert_array_equal(reader.field_ids, [known[str(n)] for n in names])
+            kinds.add(len(place.field_v4_names) == 1)
+            # the one-field shortcut opened no field_name array
+            assert ("field_name" in reader._arrays) == (len(place.field_v4_names) > 1)
+    assert kinds == {True, False}
+
+
 def test_time_ordered_blocks_merge_as_the_sort_merges():
     """The index pass keeps a time-ordered band's blocks' distinct times and joins them
     once (the one time a block boundary cuts counted once, its rows added), and a block

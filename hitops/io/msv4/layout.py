@@ -77,6 +77,9 @@ class PartitionLayout:
     data_desc_id: int
     window: int
     polarization: int
+    # field_name of the partition's own field_and_source dataset: the fields its times
+    # hold (xradio builds both from the partition's FIELD_IDs, conversion.py)
+    field_v4_names: Tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -136,7 +139,8 @@ def read_layout(store: ProcessingSetStore) -> ProcessingSetLayout:
     for fact in facts:
         pair = (window_ids[fact.window.v4_name], setups.index(fact.correlations))
         partitions.append(PartitionLayout(name=fact.entry.name, data_desc_id=pairs.index(pair),
-                                          window=pair[0], polarization=pair[1]))
+                                          window=pair[0], polarization=pair[1],
+                                          field_v4_names=fact.fields.v4_names))
     return ProcessingSetLayout(store=store, antennas=_merge_antennas([f.antennas for f in facts]),
                                fields=_merge_fields([f.fields for f in facts]),
                                windows=tuple(windows), polarizations=tuple(setups),
