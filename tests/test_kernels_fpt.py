@@ -121,6 +121,31 @@ def test_gather_phase_conjugates_swapped_rows_and_exchanges_hands():
     assert va[0, :, 0].tolist() == [False, False, True, True] and np.isnan(ph[0, 0, 0])
 
 
+def test_gather_phase_is_the_float64_argument_of_the_stored_value():
+    """Each phase is the argument of the complex64 value as stored, to float64 rounding
+    (the conjugate's for swapped rows, signed zeros and the -pi/pi edge included): an
+    arctangent taken in float32, which numba picks for a complex64's parts, is 1e-7 rad
+    off, ~10^9 float64 steps at pi."""
+    rng = np.random.default_rng(4)
+    n_row = 4000
+    vis = (rng.normal(size=(n_row, 2)) + 1j * rng.normal(size=(n_row, 2))).astype(np.complex64)
+    vis[:4, 0] = [complex(-1, 0.0), complex(-1, -0.0), complex(-2, 1e-38), complex(0.0, -3)]
+    swapped = rng.random(n_row) < 0.5
+    swapped[:4] = [False, True, True, False]
+    rows = np.arange(n_row, dtype=np.int64).reshape(2, -1)
+    identity = np.array([[0, 1], [0, 1]])
+    ph, va = fpt.gather_phase(rows, vis, np.ones((n_row, 2), bool), swapped, identity)
+    exact = np.angle(np.where(swapped[:, None], np.conj(vis.astype(np.complex128)),
+                              vis.astype(np.complex128)))
+    got = ph.transpose(0, 2, 1).reshape(n_row, 2)
+    assert va.all()
+    # within a float64 step or two of pi (NumPy's vector arctangent against its own loop)
+    np.testing.assert_allclose(got, exact, rtol=0, atol=4 * np.spacing(np.pi))
+    # -1 + 0j is pi; swapped, -1 - 0j is conjugated to -1 + 0j: pi again; -2 + tiny j
+    # swapped is just below -pi's side: -pi
+    assert got[:4, 0].tolist() == [np.pi, np.pi, -np.pi, -np.pi / 2]
+
+
 def test_choose_offset_picks_bounded_k_and_flags_ambiguity():
     eps = 29 / 43
     for k in (-3, 0, 2, 7):

@@ -40,23 +40,26 @@ def usable(v):
     return math.isfinite(re) and math.isfinite(im) and not (re == 0.0 and im == 0.0)
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def arg(v):
+    """The phase of ``v`` in float64, whatever its precision: numba types ``math.atan2``
+    of a complex64's parts as float32 (the C library's atan2f), 1e-7 rad coarse."""
+    return math.atan2(np.float64(v.imag), np.float64(v.real))
+
+
 @numba.njit(cache=True, nogil=True)
-def gather_phase(rows, vis, ok, swapped, corr_map):
-    """Phase series of each (baseline, correlation) in time order.
+def gather_parts(rows, vis, ok, swapped, corr_map):
+    """The real and imaginary parts of each (baseline, correlation) series in time order,
+    in float64, swapped rows conjugated, and their validity (the arguments and the rule
+    of :func:`gather_phase`, whose kernel this is).
 
-    rows: (n_bl, n_time) int64 row index or -1; vis: (n_row, n_corr_in) complex;
-    ok: (n_row, n_corr_in) bool; swapped: (n_row,) bool, True when the row's
-    antenna order is reversed with respect to the baseline (its phase is
-    negated, i.e. the visibility conjugated); corr_map: (2, n_corr) int64, the
-    input correlation of each output correlation for unswapped (0) and
-    swapped (1) rows, -1 when there is none.
-
-    Returns phase (n_bl, n_corr, n_time) float64 (NaN where invalid) and
-    valid (n_bl, n_corr, n_time) bool: unflagged, finite, non-zero samples.
+    Returns re, im (n_bl, n_corr, n_time) float64 (0 where invalid) and valid
+    (n_bl, n_corr, n_time) bool.
     """
     n_bl, n_time = rows.shape
     n_corr = corr_map.shape[1]
-    phase = np.full((n_bl, n_corr, n_time), np.nan)
+    re = np.zeros((n_bl, n_corr, n_time))
+    im = np.zeros((n_bl, n_corr, n_time))
     valid = np.zeros((n_bl, n_corr, n_time), dtype=np.bool_)
     for b in range(n_bl):
         for t in range(n_time):
@@ -71,9 +74,34 @@ def gather_phase(rows, vis, ok, swapped, corr_map):
                 v = vis[row, ci]
                 if not usable(v):
                     continue
-                ph = math.atan2(v.imag, v.real)
-                phase[b, c, t] = -ph if swap else ph
+                re[b, c, t] = v.real
+                # the conjugate's phase is the phase negated, for every value atan2 takes
+                # (its sign follows the imaginary part's, signed zeros included)
+                im[b, c, t] = -v.imag if swap else v.imag
                 valid[b, c, t] = True
+    return re, im, valid
+
+
+def gather_phase(rows, vis, ok, swapped, corr_map):
+    """Phase series of each (baseline, correlation) in time order.
+
+    rows: (n_bl, n_time) int64 row index or -1; vis: (n_row, n_corr_in) complex;
+    ok: (n_row, n_corr_in) bool; swapped: (n_row,) bool, True when the row's
+    antenna order is reversed with respect to the baseline (its phase is
+    negated, i.e. the visibility conjugated); corr_map: (2, n_corr) int64, the
+    input correlation of each output correlation for unswapped (0) and
+    swapped (1) rows, -1 when there is none.
+
+    Returns phase (n_bl, n_corr, n_time) float64 (NaN where invalid) and
+    valid (n_bl, n_corr, n_time) bool: unflagged, finite, non-zero samples.
+    The arctangent is NumPy's float64 loop over the gathered parts: vectorised where
+    the CPU allows (1.9 ns per sample with AVX-512 here, against 18.5 ns for the C
+    library's scalar atan2 in a numba loop; docs/performance.md, "What one process here
+    cannot go below").
+    """
+    re, im, valid = gather_parts(rows, vis, ok, swapped, corr_map)
+    phase = np.arctan2(im, re, out=re)
+    phase[~valid] = np.nan
     return phase, valid
 
 
@@ -190,7 +218,7 @@ def offset_sums(tgt_phase, phasor, calibrated, off_phase, off_valid, scan_of_tim
                 if not (calibrated[b, t, c] and off_valid[b, c, t]):
                     continue
                 p = phasor[b, t, c]
-                out_phase = tgt_phase[b, c, t] + math.atan2(p.imag, p.real)
+                out_phase = tgt_phase[b, c, t] + arg(p)
                 d = off_phase[b, c, t] - out_phase
                 sums[b, c, s] += complex(math.cos(d), math.sin(d))
                 counts[b, c, s] += 1

@@ -20,6 +20,8 @@ import numpy as np
 from numba import types
 from numba.extending import overload
 
+from .fpt import arg
+
 
 class SegmentSums(NamedTuple):
     """Sums of exp(i (Phi_ref - Phi_out)) per (baseline, correlation, segment key), sorted."""
@@ -95,15 +97,14 @@ def _phase_diff_impl(samples, b, c, t):
     if _form(samples) is GridSamples:
         def phase_diff(samples, b, c, t):
             p = samples.phasor[b, t, c]
-            return samples.off_phase[b, c, t] - (samples.tgt_phase[b, c, t]
-                                                 + math.atan2(p.imag, p.real))
+            return samples.off_phase[b, c, t] - (samples.tgt_phase[b, c, t] + arg(p))
         return phase_diff
     if _form(samples) is RowSamples:
         def phase_diff(samples, b, c, t):
             row = samples.tgt_rows[b, t]
             o = samples.off_vis[row, c]
             v = samples.tgt_vis[row, c] * samples.phasor[row, c]
-            return math.atan2(o.imag, o.real) - math.atan2(v.imag, v.real)
+            return arg(o) - arg(v)
         return phase_diff
     return None
 
