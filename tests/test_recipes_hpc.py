@@ -134,8 +134,15 @@ def test_singularity_and_slurm_commands_name_the_image(tmp_path):
     env["SHIM_LOG"] = str(log)
     env.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".venv" / "numba-cache"))
     out = tmp_path / "out"
+    # Stimela's slurm wrapper (stimela/backends/slurm_runner.sh, 2.1.4) makes one
+    # directory per step for the container's /tmp under the 'tmp' ephemeral class (/tmp
+    # unless set) and never removes it (its clean-up tests -f, a file, on a directory):
+    # here they go under the test's own directory
+    ephemeral = tmp_path / "ephemeral"
+    ephemeral.mkdir()
     cmd = [str(BIN / "stimela"), "run", "-S", "--slurm", "-s", "simulate",
            "-c", f"opts.backend.singularity.image_dir={tmp_path / 'images'}",
+           "-c", f"opts.backend.singularity.ephemeral.tmp={ephemeral}",
            "-c", "opts.backend.slurm.srun_opts.cpus-per-task=2",
            str(ROOT / "recipes" / "fpt-demo.yml"), f"dir={out}"]
     done = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True,
@@ -149,6 +156,8 @@ def test_singularity_and_slurm_commands_name_the_image(tmp_path):
     assert list(srun) == ["params.fpt-demo", "simulate.fpt-demo"], list(srun)
     assert srun["simulate.fpt-demo"].startswith("srun -J simulate.fpt-demo --cpus-per-task 2")
     assert "singularity exec" in srun["simulate.fpt-demo"]
+    assert re.search(f"slurm_runner.sh {re.escape(str(ephemeral))}::EPH0 -- ",
+                     srun["simulate.fpt-demo"])
     assert "ghcr.io-hitops-hitops:0.1.0.simg hitops simulate" in srun["simulate.fpt-demo"]
     assert "ghcr.io-hitops-hitops:0.1.0.simg python" in srun["params.fpt-demo"]
     # the recipe file (read by the parameter step) is bound into the container
