@@ -24,6 +24,13 @@ floor's CPU after its start + arithmetic) / cores).  Beside them, the floor with
 numba's start on a thread of its own (how much of the start really hides behind
 zarr's reads here), and ``hitops calibrate --method pwc`` as a user runs it.
 
+The bounds count only the arithmetic; **the least PWC program**
+(:mod:`benchmarks.least_pwc`) is the method itself done with nothing else: the floor's
+reads and writes in chunks, NumPy's arctangent and one fused numba kernel, no checks,
+no pairing, no staging, no report.  Its output is compared with the data group the
+pwc run writes (equal to float32 rounding, flags identical, on this pair), and it takes
+turns with the floor and the run, so that the three see the same hours of the machine.
+
 Run: ``python -m benchmarks.bench_msv4_bound [--workdir DIR] [--n-time 357150]
 [--repeats 5]`` (about 4 minutes here, one of them building the pair; a pair already in
 ``--workdir`` is reused); writes the ``msv4-bound`` section of docs/performance.md.
@@ -45,6 +52,9 @@ import numpy as np
 
 from ._report import load_line, machine_line, replace_section, run_process
 from .bench_msv4 import _FLOOR_PROCESS, _floor_arrays_removed
+
+#: where ``python -m benchmarks.least_pwc`` finds its package
+_REPO = Path(__file__).resolve().parents[1]
 
 #: the floor process's start: what it has before its first read
 _START = "import numpy, zarr"
@@ -127,18 +137,43 @@ def _processes(script: str, args, repeats: int, store: Path = None) -> dict:
     return {"wall": statistics.median(walls), "cpu": statistics.median(cpus), "walls": walls}
 
 
-def _calibrate(ref: Path, tgt: Path, repeats: int) -> dict:
-    """``hitops calibrate --method pwc`` with the default chunks and --overwrite, median
-    wall and CPU of ``repeats`` runs after a first one."""
+def _least_check(ref: Path, tgt: Path) -> dict:
+    """benchmarks/least_pwc.py run once (its kernel compiled into numba's cache, so the
+    timed runs load it as hitops's are loaded) and its output compared with the data
+    group the last ``hitops calibrate --method pwc`` left in ``tgt``."""
+    from .least_pwc import compare
+
+    with _floor_arrays_removed(tgt):
+        run_process([sys.executable, "-m", "benchmarks.least_pwc", ref, tgt, "CHECK"],
+                    cwd=_REPO)
+        return compare(tgt, "CHECK")
+
+
+def _alternating(ref: Path, tgt: Path, repeats: int) -> dict:
+    """The floor, the least PWC program and ``hitops calibrate --method pwc`` (default
+    chunks, --overwrite), each ``repeats`` times in turn, so that all three see the same
+    hours of the machine: median wall and CPU of each.  ``hitops calibrate`` runs once
+    before (its first run may create the data group: not a rerun) and the least program
+    is checked against what that run wrote (:func:`_least_check`)."""
     hitops = Path(sys.executable).with_name("hitops")
-    walls, cpus = [], []
-    for k in range(repeats + 1):
-        run = run_process([hitops, "calibrate", ref, tgt, "--method", "pwc", "--no-verdict",
-                           "--overwrite"])
-        if k:        # the first run may create the data group (not a rerun): left out
-            walls.append(run["wall_s"])
-            cpus.append(run["cpu_s"])
-    return {"wall": statistics.median(walls), "cpu": statistics.median(cpus), "walls": walls}
+    calibrate = [hitops, "calibrate", ref, tgt, "--method", "pwc", "--no-verdict",
+                 "--overwrite"]
+    run_process(calibrate)
+    check = _least_check(ref, tgt)
+    runs = {"floor": [], "least": [], "run": []}
+    for k in range(repeats):
+        with _floor_arrays_removed(tgt):
+            runs["floor"].append(run_process([sys.executable, "-c", _FLOOR_PROCESS, ref, tgt,
+                                              1, f"F{k}"]))
+        with _floor_arrays_removed(tgt):
+            runs["least"].append(run_process([sys.executable, "-m", "benchmarks.least_pwc",
+                                              ref, tgt, f"L{k}"], cwd=_REPO))
+        runs["run"].append(run_process(calibrate))
+    out = {name: {"wall": statistics.median(r["wall_s"] for r in done),
+                  "cpu": statistics.median(r["cpu_s"] for r in done),
+                  "walls": [r["wall_s"] for r in done]} for name, done in runs.items()}
+    out["least"]["check"] = check
+    return out
 
 
 def _arithmetic(n_samples: int, repeats: int) -> dict:
@@ -197,9 +232,9 @@ def bench(work: Path, n_time: int, repeats: int) -> str:
     start = _processes(_START, [], repeats)
     start_numba = _processes(_START_NUMBA, [], repeats)
     start_hitops = _processes(_START_HITOPS, [], repeats)
-    floor = _processes(_FLOOR_PROCESS, [ref, tgt, 1], repeats, tgt)
     beside = _processes(_FLOOR_BESIDE_NUMBA, [ref, tgt, 1], repeats, tgt)
-    run = _calibrate(ref, tgt, repeats)
+    turns = _alternating(ref, tgt, repeats)
+    floor, least, run = turns["floor"], turns["least"], turns["run"]
     threads = _thread_cpu(ref, tgt, work)
     n_samples = 2 * n_row                 # RR LL of every row, each band
     math = _arithmetic(n_samples, repeats)
@@ -228,7 +263,15 @@ def bench(work: Path, n_time: int, repeats: int) -> str:
             start_hitops),
         row("**the zarr floor** (its start, both bands read, one group written)", floor),
         row("the floor with numba's start on a thread beside it", beside),
+        row("**the least PWC program** (benchmarks/least_pwc.py: the floor's reads and "
+            "writes in chunks, one numba kernel)", least),
         row("`hitops calibrate --method pwc --no-verdict --overwrite` (default chunks)", run),
+        "",
+        f"The floor, the least PWC program and the run took turns ({repeats} rounds).  The "
+        "least program's output against the data group `hitops calibrate --method pwc` "
+        f"wrote: at most {least['check']['max_relative']:.1e} of the amplitude apart, flags "
+        + ("identical" if least['check']['same_flags'] else "**different**")
+        + f"; the run took {run['wall'] / least['wall']:.2f}x the least program's wall.",
         "",
         f"The arithmetic of {n_samples:,} samples per band, CPU seconds (ns per sample): "
         f"arctangent {math['numpy_atan2']:.2f} ({math['numpy_atan2_ns']:.1f}) in NumPy, "
@@ -244,6 +287,8 @@ def bench(work: Path, n_time: int, repeats: int) -> str:
         f"| overlapped start: numba's start CPU ({start_numba['cpu']:.2f} s), the I/O and the "
         f"arithmetic, every core busy from the first instant | {overlapped:.2f} | "
         f"{overlapped / floor['wall']:.2f} |",
+        f"| the least PWC program, measured (above) | {least['wall']:.2f} | "
+        f"{least['wall'] / floor['wall']:.2f} |",
         f"| issue 37's target, 1.5 x the floor | {target:.2f} | 1.50 |",
         "",
         "Where one `hitops calibrate --method pwc` run's CPU went, by thread (sampled every "
