@@ -131,6 +131,7 @@ def _rows_per_chunk(opts: CalibrateOptions, meta: SetMetadata, n_rows: int,
     """--chunk-rows, else the rows --memory-budget holds (hitops/calibrate/memory.py's model
     of a chunk of both bands: the table path reads one, so it stays within the budget)."""
     from .memory import parse_budget, rows_for_budget
+    from .output_msv4 import transaction_class
 
     if int(opts.run.chunk_rows) > 0:
         return int(opts.run.chunk_rows)
@@ -140,7 +141,7 @@ def _rows_per_chunk(opts: CalibrateOptions, meta: SetMetadata, n_rows: int,
     n_corr = max([len(p.corr_types) for p in meta.polarizations] or [1])
     # a processing set's outputs are written beside the next read (hitops/calibrate/chunk_io.py)
     rows = rows_for_budget(budget, n_rows, n_corr, n_chan, n_methods, strict=explicit,
-                           local=True, writes_apart=is_processing_set(meta.ms))
+                           local=True, writes_apart=transaction_class(meta.ms).writes_apart)
     log.info("memory budget %.0f MB: up to %d target rows per chunk (--chunk-rows overrides)",
              budget / 1e6, rows)
     return max(1, rows)

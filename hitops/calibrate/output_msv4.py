@@ -26,7 +26,9 @@ from ..io import access
 from ..io.msv4.columns import BASE_GROUP, group_of_column
 from ..io.msv4.data_group import DataGroupWriter, consolidate_partition
 from ..io.msv4.group_rows import PartitionSource, rows_by_source
+from ..io.msv4.store import is_processing_set
 from ..kernels.wideband import rotate_channels
+from .output import OutputTransaction
 
 log = logging.getLogger("hitops.calibrate")
 
@@ -246,6 +248,15 @@ def _runs_of_steps(times: np.ndarray) -> List[np.ndarray]:
     run_of_step[breaks] = 1
     run = np.cumsum(run_of_step)[np.searchsorted(steps, times)]
     return [np.flatnonzero(run == r) for r in range(int(run.max()) + 1)]
+
+
+def transaction_class(target: str) -> type:
+    """The transaction of a run that writes to ``target``: :class:`DataGroupTransaction` for
+    a processing set, :class:`~hitops.calibrate.output.OutputTransaction` for a Measurement
+    Set v2.  Its ``writes_apart`` says where the writes run (hitops/calibrate/chunk_io.py),
+    and so what the memory budget counts (hitops/calibrate/memory.py): the one place that
+    decides both."""
+    return DataGroupTransaction if is_processing_set(target) else OutputTransaction
 
 
 def data_groups_entry(tx) -> Optional[Dict]:

@@ -134,6 +134,8 @@ def rows_from_budget(budget: int, ref_ms: str, target_ms: str, columns: Columns,
     tracker holds, :func:`hitops.calibrate.memory.tracker_bytes`).
     """
     from .memory import min_chunk_rows, rows_for_budget, tracker_bytes
+    from .output_msv4 import transaction_class
+
     n_rows, n_corr, n_chan, n_target = 0, 1, 1, 0
     for ms, column in ((ref_ms, columns.ref_data), (target_ms, columns.target_data)):
         rows, shape = _column_extent(ms, column, stores or {})
@@ -142,7 +144,7 @@ def rows_from_budget(budget: int, ref_ms: str, target_ms: str, columns: Columns,
         if rows:
             n_chan, n_corr = max(n_chan, int(shape[0])), max(n_corr, int(shape[-1]))
     rows = rows_for_budget(budget, n_rows, n_corr, n_chan, n_methods, time_ordered, strict,
-                           local, writes_apart=target_ms in (stores or {}),
+                           local, writes_apart=transaction_class(target_ms).writes_apart,
                            tracker=tracker_bytes(tracker, n_corr, n_target, n_ant))
     if rows == min_chunk_rows(n_chan) and not strict:
         log.warning("the default memory budget (%.0f MB) cannot hold %d rows%s and a chunk: "

@@ -14,9 +14,8 @@ from dataclasses import dataclass
 from typing import Dict, List, Optional, Tuple
 
 from ..io import read as msio
-from ..io.msv4.store import is_processing_set
 from .output import OutputTransaction, release_cluster_tables
-from .output_msv4 import DataGroupTransaction, data_groups_entry
+from .output_msv4 import DataGroupTransaction, data_groups_entry, transaction_class
 from .plan import RunPlan
 from .files import PreparedInputs
 
@@ -55,7 +54,7 @@ class VisibilitySource:
         # everything this run changes in the target set: a Measurement Set v2's new columns
         # (hitops/calibrate/output.py), a processing set's new data groups
         # (hitops/calibrate/output_msv4.py)
-        if is_processing_set(run.target_ms):
+        if transaction_class(run.target_ms) is DataGroupTransaction:
             tx = DataGroupTransaction(run.target_ms, run.outputs, run.columns.target_data,
                                       [g.match.datasets["tgt"] for g in run.groups],
                                       run.chunk_rows, bool(run.opts.output.overwrite))
