@@ -112,9 +112,18 @@ def _partitions(ps: Path):
 def run(ref_ps: Path, tgt_ps: Path, tag: str) -> None:
     import zarr
 
-    for ref_name, tgt_name in zip(_partitions(ref_ps), _partitions(tgt_ps)):
+    ref_names, tgt_names = _partitions(ref_ps), _partitions(tgt_ps)
+    if len(ref_names) != len(tgt_names):
+        raise SystemExit(f"{ref_ps} holds {len(ref_names)} partitions and {tgt_ps} "
+                         f"{len(tgt_names)}: the least program pairs them in name order, one "
+                         "to one (the benchmark's one-channel pair)")
+    for ref_name, tgt_name in zip(ref_names, tgt_names):
         ref = zarr.open_group(str(ref_ps), path=ref_name, mode="r", use_consolidated=False)
         tgt = zarr.open_group(str(tgt_ps), path=tgt_name, mode="r+", use_consolidated=False)
+        if ref["VISIBILITY"].shape != tgt["VISIBILITY"].shape or tgt["VISIBILITY"].shape[2] != 1:
+            raise SystemExit(f"partitions {ref_name} and {tgt_name}: VISIBILITY "
+                             f"{ref['VISIBILITY'].shape} against {tgt['VISIBILITY'].shape}; the "
+                             "least program takes one channel on the same (time, baseline) grid")
         _run_partition(ref, tgt, tag)
 
 
