@@ -404,6 +404,37 @@ def test_zero_window_is_naive_and_zero_max_gap_segments_every_gap():
     assert segment.max() == 3 and not bridged.any()
 
 
+def test_half_windows_are_the_theory_evaluated_sample_by_sample():
+    """Each sample's half-window is the theory's for its own rounded (SNR, t_c), however the
+    samples are grouped: pairs that share an SNR but not a t_c, or a t_c but not an SNR,
+    get their own windows (a lookup keyed on one of the two would not), and the samples
+    with no signal, or unknown inputs, follow their own rules."""
+    rng = np.random.default_rng(7)
+    grid_rho, grid_tc = np.meshgrid([0.8, 1.6, 3.0, 9.0], [3.0, 8.0, 30.0, 120.0])
+    pick = rng.integers(0, grid_rho.size, 5000)
+    # a spread well below the rounding to 2 digits: many samples share each rounded pair
+    rho = grid_rho.ravel()[pick] * (1 + rng.uniform(-1e-3, 1e-3, pick.size))
+    t_c = grid_tc.ravel()[pick] * (1 + rng.uniform(-1e-3, 1e-3, pick.size))
+    rho[:3], t_c[3:5] = [0.0, np.nan, -1.0], [np.nan, 0.0]
+    windows = half_windows(rho, t_c, dt=1.0)
+    expected = np.ones(rho.size, np.int64)
+    for i, (r, t) in enumerate(zip(rho, t_c)):
+        if np.isfinite(r) and r > 0 and np.isfinite(t) and t > 0:
+            expected[i] = theory.recommended_half_window(float(_two_digits(r)),
+                                                         float(_two_digits(max(t, 1.0))), 1.0)
+        elif np.isfinite(r) and r <= 0 and np.isfinite(t):
+            expected[i] = min(max(int((t - 1) // 2), 1), 200)
+    assert np.array_equal(windows, expected)
+    # the grid's pairs give at least a few distinct windows, so the check is not vacuous
+    assert np.unique(windows[5:]).size >= 4
+
+
+def _two_digits(x: float) -> float:
+    """x rounded to 2 significant digits, written out here (not hitops's two_digits)."""
+    digits = np.floor(np.log10(x)) - 1
+    return np.round(x / 10.0 ** digits) * 10.0 ** digits
+
+
 def test_per_sample_windows_follow_local_coherence():
     """Turbulence 10x faster in the second half (low elevation): a long fixed window slips
     there, per-sample windows from the local coherence time do not."""

@@ -87,9 +87,15 @@ def half_windows(rho, coherence_time, dt: float = 1.0, widest: int = 200) -> np.
     out = np.ones(rho.shape, np.int64)
     ok = np.isfinite(rho) & (rho > 0) & np.isfinite(t_c) & (t_c > 0)
     if ok.any():
-        keys = np.stack([two_digits(rho[ok]), two_digits(np.maximum(t_c[ok], dt))], axis=1)
-        unique, inverse = np.unique(keys, axis=0, return_inverse=True)
-        values = np.array([half_window_for(float(r), float(t), dt) for r, t in unique], np.int64)
+        # each pair as one complex number: NumPy sorts complex values by their real, then
+        # their imaginary part, so the distinct pairs and each sample's index are those of
+        # np.unique(axis=0) on the stacked pairs, 4x faster (that one compares rows as
+        # bytes: 1.1 s against 0.24 s per 1.4 x 10^6 samples, a 10^6-row chunk's two
+        # correlations; 11.6 s of a 10^7-row smooth-tracker run went there)
+        keys = two_digits(rho[ok]) + 1j * two_digits(np.maximum(t_c[ok], dt))
+        unique, inverse = np.unique(keys, return_inverse=True)
+        values = np.array([half_window_for(float(k.real), float(k.imag), dt) for k in unique],
+                          np.int64)
         out[ok] = values[inverse.ravel()]
     low = np.isfinite(rho) & (rho <= 0) & np.isfinite(t_c)
     out[low] = np.clip(((t_c[low] / dt - 1) // 2).astype(np.int64), 1, widest)
