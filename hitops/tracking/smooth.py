@@ -154,10 +154,20 @@ class SmoothTracker(WrapTracker):
             tc = self.station_tc[:, t_lo + run.a:t_lo + run.b]
             tc_bl = on_grid(np.minimum(tc[self.grid.ant1], tc[self.grid.ant2]), run.pos,
                             run.length)
-        for c in self.smooth_corrs:
+        def windows_of(c: int) -> np.ndarray:
             rho = per_sample_snr(run.vis[:, c], run.valid[:, c],
                                  None if reg_sigma is None else reg_sigma[:, c], setup.snr_window)
-            hw[:, c] = half_windows(rho, tc_bl, setup.dt, widest=setup.max_half_window)
+            return half_windows(rho, tc_bl, setup.dt, widest=setup.max_half_window)
+
+        corrs = list(self.smooth_corrs)
+        if self.workers > 1 and len(corrs) > 1:
+            # one correlation per thread: NumPy's loops and sorts let go of the GIL
+            with ThreadPoolExecutor(min(self.workers, len(corrs))) as pool:
+                for c, windows in zip(corrs, pool.map(windows_of, corrs)):
+                    hw[:, c] = windows
+        else:
+            for c in corrs:
+                hw[:, c] = windows_of(c)
         return hw
 
     def _smooth_run(self, run: Run, t_lo, sigma, ch: Chunk) -> None:

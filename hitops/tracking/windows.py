@@ -52,9 +52,9 @@ def per_sample_snr(vis: np.ndarray, valid: np.ndarray, sigma: Optional[np.ndarra
                    window: int) -> np.ndarray:
     """Per-sample SNR estimate of each regular series (n, L); NaN where unknown."""
     v = np.where(valid, vis, 0)
-    n = running_sum(valid.astype(np.float64), window)
     with np.errstate(invalid="ignore", divide="ignore"):
         if sigma is not None:
+            n = running_sum(valid.astype(np.float64), window)   # valid samples per window
             # incoherent: <|V|^2> = A^2 + 2 sigma^2 whatever the phase does inside the
             # window (a coherent |<V>| would fall where turbulence is fast, at low
             # elevation, and ask for longer windows exactly where they must be short)
@@ -93,10 +93,14 @@ def half_windows(rho, coherence_time, dt: float = 1.0, widest: int = 200) -> np.
         # bytes: 1.1 s against 0.24 s per 1.4 x 10^6 samples, a 10^6-row chunk's two
         # correlations; 11.6 s of a 10^7-row smooth-tracker run went there)
         keys = two_digits(rho[ok]) + 1j * two_digits(np.maximum(t_c[ok], dt))
-        unique, inverse = np.unique(keys, return_inverse=True)
+        # the SNR is a running mean, so neighbouring samples mostly share their rounded
+        # pair: the distinct pairs are looked up among the first samples of each run of
+        # equal keys, and each run takes its first sample's window
+        first = np.flatnonzero(np.concatenate([[True], keys[1:] != keys[:-1]]))
+        unique, inverse = np.unique(keys[first], return_inverse=True)
         values = np.array([half_window_for(float(k.real), float(k.imag), dt) for k in unique],
                           np.int64)
-        out[ok] = values[inverse.ravel()]
+        out[ok] = np.repeat(values[inverse.ravel()], np.diff(np.append(first, keys.size)))
     low = np.isfinite(rho) & (rho <= 0) & np.isfinite(t_c)
     out[low] = np.clip(((t_c[low] / dt - 1) // 2).astype(np.int64), 1, widest)
     return out
