@@ -20,6 +20,7 @@ import numpy as np
 from numba import types
 from numba.extending import overload
 
+from .distinct import unique_rows
 from .fpt import arg
 
 
@@ -166,8 +167,7 @@ def _merge_runs(index, sums, counts) -> SegmentSums:
     """The runs of one (baseline, correlation, key) added up: one entry each, sorted."""
     if index.shape[0] == 0:
         return SegmentSums(index, sums, counts)
-    uniq, inverse = np.unique(index, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
+    uniq, inverse = unique_rows(index)
     out_sums = np.bincount(inverse, sums.real, uniq.shape[0]) \
         + 1j * np.bincount(inverse, sums.imag, uniq.shape[0])
     return SegmentSums(uniq.astype(np.int64), out_sums,
