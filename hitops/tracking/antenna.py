@@ -17,6 +17,8 @@ which this tracker extends; the antennas' history across chunks is
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
+from typing import Dict
 
 import numpy as np
 
@@ -82,23 +84,35 @@ class AntennaTracker(SmoothTracker):
 
     # -- the parallel hands of one scan run
     def _antenna_run(self, run: Run, t_lo, sigma, ch: Chunk) -> None:
-        for c in self.antenna_corrs:
-            solve_h = self.setup.solve_half_window
-            if solve_h < 0:
-                tc_t = None
-                if self.station_tc is not None:
-                    # the antennas present: the lowest one's local t_c sets the window
-                    tc_t = on_grid(self.station_tc[:, t_lo + run.a:t_lo + run.b].min(axis=0),
-                                   run.pos, run.length)
-                reg_sigma = (None if sigma is None
-                             else on_grid(sigma[:, c, run.a:run.b], run.pos, run.length))
-                solve_h = self._solve_windows(run.vis[:, c], run.valid[:, c], reg_sigma, tc_t)
-            out = self._antenna(run.vis[:, c], run.valid[:, c], run.pos, solve_h)
+        corrs = list(self.antenna_corrs)
+        if self.workers > 1 and len(corrs) > 1:
+            # one correlation per thread: the solves are nogil numba kernels, the windows
+            # NumPy loops; each thread returns what it found, nothing shared is changed
+            with ThreadPoolExecutor(min(self.workers, len(corrs))) as pool:
+                solved = list(pool.map(lambda c: self._antenna_corr(run, t_lo, sigma, c), corrs))
+        else:
+            solved = [self._antenna_corr(run, t_lo, sigma, c) for c in corrs]
+        for c, out in zip(corrs, solved):
+            self.stats.frame_breaks += out.pop("frame_breaks")
             span = slice(run.a, run.b)
             ch.counts[:, c, span], ch.seg[:, c, span] = out["counts"], out["seg"]
             ch.suspect[:, c, span], ch.bridged[:, c, span] = out["suspect"], out["bridged"]
             ch.unmodelled[:, c, span] = out["unmodelled"]
             ch.ant.setdefault(c, []).append((run.a, run.b, out))
+
+    def _antenna_corr(self, run: Run, t_lo, sigma, c: int) -> Dict:
+        """Antenna mode on correlation ``c`` of one scan run (:meth:`_antenna`'s results)."""
+        solve_h = self.setup.solve_half_window
+        if solve_h < 0:
+            tc_t = None
+            if self.station_tc is not None:
+                # the antennas present: the lowest one's local t_c sets the window
+                tc_t = on_grid(self.station_tc[:, t_lo + run.a:t_lo + run.b].min(axis=0),
+                               run.pos, run.length)
+            reg_sigma = (None if sigma is None
+                         else on_grid(sigma[:, c, run.a:run.b], run.pos, run.length))
+            solve_h = self._solve_windows(run.vis[:, c], run.valid[:, c], reg_sigma, tc_t)
+        return self._antenna(run.vis[:, c], run.valid[:, c], run.pos, solve_h)
 
     def _solve_windows(self, vis, valid, sigma, coherence_time=None):
         """Per-time solve half-windows from the antennas' combined per-sample SNR.
@@ -135,7 +149,6 @@ class AntennaTracker(SmoothTracker):
                                           if fixed else setup.jump_window),
                              jump_threshold=setup.jump_threshold, min_coherence=MIN_COHERENCE)
         ant_res = res.extra["antenna"]
-        self.stats.frame_breaks += int(res.extra["frame_break"][pos].sum())
         # the phases transferred in antenna mode are solved per sample: the windowed solve
         # above chooses the lobes, but its smoothing error would enter the target band
         if np.any(np.asarray(solve_half_window) > 0):
@@ -153,7 +166,9 @@ class AntennaTracker(SmoothTracker):
                 "ant_suspect": ant_res.suspect[:, pos], "ant_bridged": ant_res.bridged[:, pos],
                 "ant_jump": ant_res.jump[:, pos], "bl_phase": np.angle(vis[:, pos]),
                 "raw_phase": raw_phase[:, pos], "raw_valid": raw_valid[:, pos],
-                "bl_valid": valid[:, pos]}
+                "bl_valid": valid[:, pos],
+                # added to the statistics by the caller (one thread per correlation)
+                "frame_breaks": int(res.extra["frame_break"][pos].sum())}
 
     # -- across chunks
     def _align(self, scan, t_lo, t0, ch: Chunk) -> None:
