@@ -69,13 +69,16 @@ def main(argv=None) -> None:
     single = [run_process(command(single_ms)) for _ in range(args.repeats)]
     expected = _columns(single_ms, ["PWC_DATA", "FLAG"])
 
+    import dask
     from distributed import Client, LocalCluster
 
     rows = []
     checks = []
     for n_workers in (1, 2):
-        with LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                          dashboard_address=None) as cluster, Client(cluster) as client:
+        # dask's scratch space in the benchmark's directory, not the machine's /tmp
+        with dask.config.set({"temporary-directory": str(workdir)}), \
+                LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
+                             dashboard_address=None) as cluster, Client(cluster) as client:
             address = cluster.scheduler_address
             cmd = command(dist_ms, "--scheduler", address)
             run_process(cmd)   # warm-up: each worker loads the numba kernels once

@@ -51,6 +51,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
+import dask
+
 from ._report import machine_line, replace_section, run_process
 from .bench_msv4 import METHODS, N_ANT, _convert, _run_floor, _run_floor_process
 
@@ -73,6 +75,9 @@ def _runs(ref: Path, tgt: Path, chunk_rows: int, repeats: int, n_workers: int,
     load = os.getloadavg()[0]
     cluster = client = None
     extra = []
+    # dask's scratch space (the scheduler's and the workers') in the benchmark's directory,
+    # not the machine's /tmp
+    scratch = dask.config.set({"temporary-directory": str(tgt.parent)})
     if n_workers:
         from distributed import Client, LocalCluster
         cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
@@ -93,6 +98,7 @@ def _runs(ref: Path, tgt: Path, chunk_rows: int, repeats: int, n_workers: int,
         if client:
             client.close()
             cluster.close()
+        scratch.__exit__(None, None, None)
     return {"wall": statistics.median(walls), "walls": walls, "client_rss": max(rss),
             "workers_rss": workers, "load": load, "stages": report.get("timings_s", {})}
 

@@ -290,13 +290,17 @@ class LocalScheduler:
     """A local dask cluster, started for the first case that asks for one (the table scene
     needs none), closed with the run."""
 
-    def __init__(self, stack: contextlib.ExitStack):
-        self.stack, self.address = stack, None
+    def __init__(self, stack: contextlib.ExitStack, workdir: Path):
+        self.stack, self.address, self.workdir = stack, None, workdir
 
     def __call__(self) -> str:
         if self.address is None:
+            import dask
             from dask.distributed import Client, LocalCluster
 
+            # dask's scratch space (the scheduler's and the workers') in the work
+            # directory, not the machine's /tmp
+            self.stack.enter_context(dask.config.set({"temporary-directory": str(self.workdir)}))
             cluster = self.stack.enter_context(LocalCluster(
                 n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None))
             client = self.stack.enter_context(Client(cluster, set_as_default=False))
@@ -307,7 +311,7 @@ class LocalScheduler:
 def fingerprint(workdir: Path, scenes, only=None) -> dict:
     result = {}
     with contextlib.ExitStack() as stack:
-        scheduler = LocalScheduler(stack)
+        scheduler = LocalScheduler(stack, workdir)
         for scene in scenes:
             matrix = {TABLE_SCENE: table_cases, PHASEREF_SCENE: phaseref_cases}
             selected = [(name, kw) for name, kw in
