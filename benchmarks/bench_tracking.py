@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -418,7 +419,9 @@ def main(argv=None):
     limit_rows = noise_limit(rhos, coherences, args.tracks)
     rt_rows = error_vs_runtime([1.5, 2.0, 3.0], args.arrays)
     t_naive, t_smooth, t_jump = million_sample_timing(np.random.default_rng(3))
-    scene_rows = [] if args.no_scene else paper_scene(Path("/tmp/track-bench-scene"))
+    scene_dir = Path("/tmp/track-bench-scene")
+    scene_rows = [] if args.no_scene else paper_scene(scene_dir)
+    shutil.rmtree(scene_dir, ignore_errors=True)     # the simulated sets: not needed after
     wall = time.perf_counter() - t0
 
     PLOT_DIR.mkdir(parents=True, exist_ok=True)
