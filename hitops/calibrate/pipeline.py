@@ -348,24 +348,36 @@ class GroupPipeline:
             chunk.off_vis, chunk.off_ok), baselines=None)
 
     def write_kept(self, kept: Dict[int, KeptChunk], segment_k: Dict[tuple, int]) -> None:
-        """The writing pass from the first pass's kept output, shifted by the step's k."""
-        for k in range(self.group.n_chunks):
+        """The writing pass from the first pass's kept output, shifted by the step's k.
+
+        The target's reads and the writes run on :class:`ChunkIO`'s threads, the shift
+        here: chunk k+1 is read while chunk k is shifted, and chunk k is written while
+        k+1 is shifted (at most three target chunks at once, fewer bytes than the two
+        chunks of both bands the first pass held)."""
+        def read(k: int) -> ChunkData:
             if k in self._cache:
-                chunk = self._cache[k]
-            else:   # the target rows only: the reference band has done its work
-                stage = time.perf_counter()
-                chunk = read_target(self.run, self.group, k, self.io_scheduler)
-                self.timings["read"] += time.perf_counter() - stage
-            part = kept.pop(k)
+                return self._cache[k]
             stage = time.perf_counter()
-            shifted = [c for c in self.codes if c in (fpt.PWC, fpt.CWU)]
-            for c, out in zip(shifted, offset_shifted_rows(
-                    chunk.tgt_grid, self.group.eps, segment_k, part.segment_keys,
-                    [part.outputs.phasor_rows[c] for c in shifted])):
-                part.outputs.phasor_rows[c] = out
-            self.timings["offset_apply"] = (self.timings.get("offset_apply", 0.0)
-                                            + time.perf_counter() - stage)
-            self.write(chunk, part.outputs)
+            # the target rows only: the reference band has done its work
+            chunk = read_target(self.run, self.group, k, self.io_scheduler)
+            self.timings["read"] += time.perf_counter() - stage
+            return chunk
+
+        shifted = [c for c in self.codes if c in (fpt.PWC, fpt.CWU)]
+        with ChunkIO(read, self.group.n_chunks, writes_apart=self.tx.writes_apart) as io:
+            for k in range(self.group.n_chunks):
+                chunk = io.chunk(k)
+                io.read_ahead(k + 1)
+                part = kept.pop(k)
+                stage = time.perf_counter()
+                for c, out in zip(shifted, offset_shifted_rows(
+                        chunk.tgt_grid, self.group.eps, segment_k, part.segment_keys,
+                        [part.outputs.phasor_rows[c] for c in shifted])):
+                    part.outputs.phasor_rows[c] = out
+                self.timings["offset_apply"] = (self.timings.get("offset_apply", 0.0)
+                                                + time.perf_counter() - stage)
+                io.write(self.write, chunk, part.outputs)
+                del chunk, part
 
 
 def _add_parts(result: PassResult, tracker: WrapTracker, tgt_carry: Carry, parts) -> None:
