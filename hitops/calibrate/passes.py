@@ -24,7 +24,8 @@ from ..kernels import fpt
 from ..tracking.base import WrapTracker
 from .n0.step import OffsetSolution, offset_step_needed, solve_offsets
 from .output import OutputTransaction
-from .pipeline import GroupPipeline, KeptChunk, Lane, PassResult, PassSpec
+from .kept import KeptChunk, write_kept
+from .pipeline import GroupPipeline, Lane, PassResult, PassSpec
 from .plan import GroupPlan, RunPlan
 from .transfer import SampleCounts
 from .worker_chunks import LaneStopped, run_pass_on_workers
@@ -151,7 +152,7 @@ def _run_passes(run: RunPlan, group: GroupPlan, pipeline: GroupPipeline) -> Grou
                       keep_reads=group.n_chunks == 1)
     solution = solve_offsets(run, group, first.tracker, first.sums)
     if keep:
-        pipeline.write_kept(kept, solution.segment_k)
+        write_kept(pipeline, kept, solution.segment_k)
         return GroupResult.of(first, solution, group.n_chunks)
     # the writing pass tracks again from a fresh tracker: the first pass's (its records
     # span the whole track) need not be held beside it

@@ -28,7 +28,8 @@ With the n0 offset step a first pass (steps 1-3) sums the calibrated phase again
 reference per scan or segment (per target channel across a window); the integers are solved
 (:mod:`hitops.calibrate.n0.step`) and the writing pass follows (hitops/calibrate/passes.py
 runs the passes).  With a segmented tracker (smooth, antenna) the first pass keeps its output
-when it fits in a fifth of the memory budget, and the writing pass only shifts it by 2 pi eps k
+when it fits in a fifth of the memory budget, and the writing pass (hitops/calibrate/kept.py)
+only shifts it by 2 pi eps k
 per segment (:func:`hitops.calibrate.n0.step.offset_shifted_rows`) instead of tracking and
 transferring again.
 """
@@ -51,9 +52,10 @@ from ..tracking.base import ChunkTracking, WrapTracker
 from ..tracking.count import Carry
 from ..tracking.factory import new_tracker
 from .chunk_io import ChunkIO
-from .chunk_read import ChunkData, read_chunk, read_target
+from .chunk_read import ChunkData, read_chunk
 from .batch_tasks import BatchTasks, StartedGroups
-from .n0.step import OffsetSums, channel_sums, offset_shifted_rows
+from .kept import KeptChunk
+from .n0.step import OffsetSums, channel_sums
 from .output import OutputTransaction
 from .row_outputs import PlacedGroup, RowOutputs, rows_of_batches
 from .plan import GroupPlan, RunPlan
@@ -79,14 +81,6 @@ class PassResult:
     def jump_flagged(self) -> int:
         """Reference samples flagged after a jump (--jump-action flag)."""
         return int(self.tracker.stats.per_series["jump_flagged"].sum())
-
-
-@dataclass
-class KeptChunk:
-    """The first pass's output of one chunk, kept for the writing pass."""
-
-    outputs: RowOutputs
-    segment_keys: Optional[np.ndarray]
 
 
 @dataclass
@@ -194,6 +188,10 @@ class GroupPipeline:
         return new_tracker(self.run.opts.tracking.tracker, group.grid, group.match.corr_names,
                            group.tracking, len(group.antenna_names), list(group.antenna_names),
                            workers=1 if self.client is not None or self.on_worker else 0)
+
+    def cached(self, k: int) -> Optional[ChunkData]:
+        """Chunk ``k`` as a first pass kept it (a one-chunk run), or None."""
+        return self._cache.get(k)
 
     def read(self, k: int, keep: bool = False) -> ChunkData:
         """Chunk ``k``, read (``keep``: cached for a second pass over a one-chunk run)."""
@@ -346,39 +344,6 @@ class GroupPipeline:
         _add_segment_sums(result.sums, segment_row_sums(
             chunk.tgt_grid, seg_keys, chunk.tgt_vis, phasor_rows[method], calibrated,
             chunk.off_vis, chunk.off_ok), baselines=None)
-
-    def write_kept(self, kept: Dict[int, KeptChunk], segment_k: Dict[tuple, int]) -> None:
-        """The writing pass from the first pass's kept output, shifted by the step's k.
-
-        The target's reads and the writes run on :class:`ChunkIO`'s threads, the shift
-        here: chunk k+1 is read while chunk k is shifted, and chunk k is written while
-        k+1 is shifted (at most three target chunks at once, fewer bytes than the two
-        chunks of both bands the first pass held)."""
-        def read(k: int) -> ChunkData:
-            if k in self._cache:
-                return self._cache[k]
-            stage = time.perf_counter()
-            # the target rows only: the reference band has done its work
-            chunk = read_target(self.run, self.group, k, self.io_scheduler)
-            self.timings["read"] += time.perf_counter() - stage
-            return chunk
-
-        shifted = [c for c in self.codes if c in (fpt.PWC, fpt.CWU)]
-        with ChunkIO(read, self.group.n_chunks, writes_apart=self.tx.writes_apart) as io:
-            for k in range(self.group.n_chunks):
-                chunk = io.chunk(k)
-                io.read_ahead(k + 1)
-                part = kept.pop(k)
-                stage = time.perf_counter()
-                for c, out in zip(shifted, offset_shifted_rows(
-                        chunk.tgt_grid, self.group.eps, segment_k, part.segment_keys,
-                        [part.outputs.phasor_rows[c] for c in shifted])):
-                    part.outputs.phasor_rows[c] = out
-                self.timings["offset_apply"] = (self.timings.get("offset_apply", 0.0)
-                                                + time.perf_counter() - stage)
-                io.write(self.write, chunk, part.outputs)
-                del chunk, part
-
 
 def _add_parts(result: PassResult, tracker: WrapTracker, tgt_carry: Carry, parts) -> None:
     """Add the baseline batches' sample counts and offset sums; hand the tracker what its
