@@ -17,7 +17,6 @@ which this tracker extends; the antennas' history across chunks is
 from __future__ import annotations
 
 import logging
-from concurrent.futures import ThreadPoolExecutor
 from typing import Dict
 
 import numpy as np
@@ -84,15 +83,10 @@ class AntennaTracker(SmoothTracker):
 
     # -- the parallel hands of one scan run
     def _antenna_run(self, run: Run, t_lo, sigma, ch: Chunk) -> None:
-        corrs = list(self.antenna_corrs)
-        if self.workers > 1 and len(corrs) > 1:
-            # one correlation per thread: the solves are nogil numba kernels, the windows
-            # NumPy loops; each thread returns what it found, nothing shared is changed
-            with ThreadPoolExecutor(min(self.workers, len(corrs))) as pool:
-                solved = list(pool.map(lambda c: self._antenna_corr(run, t_lo, sigma, c), corrs))
-        else:
-            solved = [self._antenna_corr(run, t_lo, sigma, c) for c in corrs]
-        for c, out in zip(corrs, solved):
+        # one correlation per thread: each returns what it found, nothing shared is changed
+        solved = self._each(lambda c: self._antenna_corr(run, t_lo, sigma, c),
+                            self.antenna_corrs)
+        for c, out in zip(self.antenna_corrs, solved):
             self.stats.frame_breaks += out.pop("frame_breaks")
             span = slice(run.a, run.b)
             ch.counts[:, c, span], ch.seg[:, c, span] = out["counts"], out["seg"]

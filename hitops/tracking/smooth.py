@@ -20,7 +20,7 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Callable, List, Optional, Sequence
 
 import numpy as np
 
@@ -159,16 +159,19 @@ class SmoothTracker(WrapTracker):
                                  None if reg_sigma is None else reg_sigma[:, c], setup.snr_window)
             return half_windows(rho, tc_bl, setup.dt, widest=setup.max_half_window)
 
-        corrs = list(self.smooth_corrs)
-        if self.workers > 1 and len(corrs) > 1:
-            # one correlation per thread: NumPy's loops and sorts let go of the GIL
-            with ThreadPoolExecutor(min(self.workers, len(corrs))) as pool:
-                for c, windows in zip(corrs, pool.map(windows_of, corrs)):
-                    hw[:, c] = windows
-        else:
-            for c in corrs:
-                hw[:, c] = windows_of(c)
+        # one correlation per thread: NumPy's loops and sorts let go of the GIL
+        for c, windows in zip(self.smooth_corrs, self._each(windows_of, self.smooth_corrs)):
+            hw[:, c] = windows
         return hw
+
+    def _each(self, fn: Callable, items: Sequence) -> List:
+        """``[fn(item) for item in items]``, on up to ``workers`` threads when there is more
+        than one item (the numba kernels and NumPy's loops let go of the GIL)."""
+        items = list(items)
+        if self.workers > 1 and len(items) > 1:
+            with ThreadPoolExecutor(min(self.workers, len(items))) as pool:
+                return list(pool.map(fn, items))
+        return [fn(item) for item in items]
 
     def _smooth_run(self, run: Run, t_lo, sigma, ch: Chunk) -> None:
         hw = self._windows(run, t_lo, sigma)
@@ -177,11 +180,7 @@ class SmoothTracker(WrapTracker):
         jobs = [(np.ascontiguousarray(reg_phase[bl, c]), np.ascontiguousarray(run.valid[bl, c]),
                  None if hw is None else np.ascontiguousarray(hw[bl, c]), self.setup)
                 for bl, c in keys]
-        if self.workers > 1 and len(jobs) > 1:
-            with ThreadPoolExecutor(self.workers) as pool:
-                results = list(pool.map(smooth_series, jobs))
-        else:
-            results = [smooth_series(j) for j in jobs]
+        results = self._each(smooth_series, jobs)
         span = slice(run.a, run.b)
         for (bl, c), res in zip(keys, results):
             ch.counts[bl, c, span] = res[0][run.pos]
