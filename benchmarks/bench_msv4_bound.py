@@ -122,19 +122,24 @@ def _thread_cpu(ref: Path, tgt: Path, work: Path) -> dict:
     return json.loads(out.read_text())
 
 
+def _summary(runs) -> dict:
+    """Median wall and CPU of processes run by ``run_process``, and every wall."""
+    return {"wall": statistics.median(r["wall_s"] for r in runs),
+            "cpu": statistics.median(r["cpu_s"] for r in runs),
+            "walls": [r["wall_s"] for r in runs]}
+
+
 def _processes(script: str, args, repeats: int, store: Path = None) -> dict:
     """Median wall and CPU of ``repeats`` runs of ``python -c script args``; a floor's
     arrays are taken off ``store`` after each run."""
-    walls, cpus = [], []
+    runs = []
     for k in range(repeats):
         if store is None:
-            run = run_process([sys.executable, "-c", script, *args])
+            runs.append(run_process([sys.executable, "-c", script, *args]))
         else:
             with _floor_arrays_removed(store):
-                run = run_process([sys.executable, "-c", script, *args, f"B{k}"])
-        walls.append(run["wall_s"])
-        cpus.append(run["cpu_s"])
-    return {"wall": statistics.median(walls), "cpu": statistics.median(cpus), "walls": walls}
+                runs.append(run_process([sys.executable, "-c", script, *args, f"B{k}"]))
+    return _summary(runs)
 
 
 def _least_check(ref: Path, tgt: Path) -> dict:
@@ -169,9 +174,7 @@ def _alternating(ref: Path, tgt: Path, repeats: int) -> dict:
             runs["least"].append(run_process([sys.executable, "-m", "benchmarks.least_pwc",
                                               ref, tgt, f"L{k}"], cwd=_REPO))
         runs["run"].append(run_process(calibrate))
-    out = {name: {"wall": statistics.median(r["wall_s"] for r in done),
-                  "cpu": statistics.median(r["cpu_s"] for r in done),
-                  "walls": [r["wall_s"] for r in done]} for name, done in runs.items()}
+    out = {name: _summary(done) for name, done in runs.items()}
     out["least"]["check"] = check
     return out
 
